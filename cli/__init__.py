@@ -1,0 +1,1 @@
+"""The elimfast command-line interface (installed as the package ``elimfast_cli``)."""

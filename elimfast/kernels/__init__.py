@@ -1,0 +1,1 @@
+"""Numba kernels: floats and arrays only, status codes out (see STYLE.md)."""

@@ -1,0 +1,157 @@
+"""Method objects: a family, (r, k, s), and the tables of spec section 1 built once."""
+from __future__ import annotations
+
+import operator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..kernels.quadrature import gauss_legendre, legendre_integral_table, legendre_table
+from ..kernels.stepper import FAMILY_ELIM, FAMILY_LIM
+
+MAX_NODES = 64  # the quadrature is verified to a few ulp up to here
+
+
+def quadrature(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n-point Gauss-Legendre nodes and weights on [0, 1] (spec section 1)."""
+    n = _positive_int("n", n)
+    if n > MAX_NODES:
+        raise ValueError(f"n = {n}: Gauss-Legendre nodes are provided for n <= {MAX_NODES}")
+    nodes = np.empty(n)
+    weights = np.empty(n)
+    gauss_legendre(n, nodes, weights)
+    return nodes, weights
+
+
+def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
+    """(Ps, Is) of spec section 1: Ps[i, j] = P_j(c_i), j < n_values; Is[i, j] = int_0^{c_i} P_j, j < n_integrals."""
+    nodes = np.ascontiguousarray(nodes, dtype=np.float64)
+    values = np.empty((nodes.size, n_values))
+    integrals = np.empty((nodes.size, n_integrals))
+    legendre_table(nodes, n_values, values)
+    legendre_integral_table(nodes, n_integrals, integrals)
+    return values, integrals
+
+
+def _positive_int(name: str, value) -> int:
+    if isinstance(value, bool):
+        raise TypeError(f"{name} must be an integer, not {value!r}")
+    try:
+        as_int = operator.index(value)
+    except TypeError:
+        if isinstance(value, float) and value.is_integer():
+            as_int = int(value)
+        else:
+            raise TypeError(f"{name} must be an integer, got {value!r}") from None
+    if as_int < 1:
+        raise ValueError(f"{name} must be >= 1, got {as_int}")
+    return as_int
+
+
+@dataclass(frozen=True, eq=False)
+class Method:
+    """A method of spec sections 2-4 with its tables, built once.
+
+    family: 'gauss', 'hbvm', 'elim', 'ehbvm', 'lim' or 'ghbvm'. k nodes for H, r nodes
+    for the invariants (r = k where the family has no separate r), s coefficients.
+    Tables: c, b (k nodes and weights), Ps (k x k: P_j(c_l), j < k, enough for the
+    stable right-hand side of spec 3b), Is (k x s); chat, bhat, Ps_hat (r x r),
+    Is_hat (r x s) at the r nodes.
+    """
+
+    family: str
+    r: int
+    k: int
+    s: int
+    c: np.ndarray = field(repr=False)
+    b: np.ndarray = field(repr=False)
+    Ps: np.ndarray = field(repr=False)
+    Is: np.ndarray = field(repr=False)
+    chat: np.ndarray = field(repr=False)
+    bhat: np.ndarray = field(repr=False)
+    Ps_hat: np.ndarray = field(repr=False)
+    Is_hat: np.ndarray = field(repr=False)
+
+    @property
+    def order(self) -> int:
+        """Classical order 2s (spec 2-4)."""
+        return 2 * self.s
+
+    @property
+    def kernel_family(self) -> int:
+        return FAMILY_LIM if self.family in ("lim", "ghbvm") else FAMILY_ELIM
+
+    @property
+    def imposes_invariants(self) -> bool:
+        """True for ELIM/EHBVM/LIM/GHBVM: they accept invariants to conserve."""
+        return self.family in ("elim", "ehbvm", "lim", "ghbvm")
+
+    @property
+    def has_runge_kutta_form(self) -> bool:
+        """ELIM has one for given eta (spec 3); LIM's correction acts through phi_0, so it has none."""
+        return self.kernel_family == FAMILY_ELIM
+
+    @property
+    def name(self) -> str:
+        if self.family == "gauss":
+            return f"GAUSS({self.s})"
+        if self.family in ("hbvm", "ehbvm", "ghbvm"):
+            return f"{self.family.upper()}({self.k},{self.s})"
+        return f"{self.family.upper()}({self.r},{self.k},{self.s})"
+
+    def __repr__(self) -> str:
+        return f"<Method {self.name}, order {self.order}>"
+
+    def max_conserved(self) -> int | None:
+        """How many invariants (besides H) the method can impose; None: no limit."""
+        if self.family in ("elim", "ehbvm"):
+            return self.s - 1
+        if self.family in ("lim", "ghbvm"):
+            return None
+        return 0
+
+    def butcher(self, eta=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A, b, c) of the Runge-Kutta form: A = Is diag(1, eta_1..eta_{s-1}) Ps^T Omega.
+
+        Spec sections 2 and 3 (paper section 2.3). eta defaults to ones (HBVM(k,s));
+        for ELIM pass the step's eta (length s or s-1; eta_0 is always 1).
+        """
+        if not self.has_runge_kutta_form:
+            raise ValueError(
+                f"{self.name} has no fixed Runge-Kutta form: its correction -c h phi_0 lambda "
+                "depends on the invariants' gradients (spec 4); use the HBVM of the same k, s for its base tableau")
+        s = self.s
+        if eta is None:
+            eta_full = np.ones(s)
+        else:
+            eta = np.asarray(eta, dtype=float).ravel()
+            if eta.size == s - 1:
+                eta_full = np.concatenate(([1.0], eta))
+            elif eta.size == s:
+                if eta[0] != 1.0:
+                    raise ValueError(f"eta_0 must be 1 (spec 3), got {eta[0]}")
+                eta_full = eta
+            else:
+                raise ValueError(f"eta must have {s - 1} or {s} entries for {self.name}, got {eta.size}")
+        A = self.Is @ np.diag(eta_full) @ self.Ps[:, :s].T @ np.diag(self.b)
+        return A, self.b.copy(), self.c.copy()
+
+
+def build(family: str, r: int, k: int, s: int) -> Method:
+    """Validate (k >= s >= 1, r >= s, k, r <= 64) and build the tables once."""
+    k = _positive_int("k", k)
+    s = _positive_int("s", s)
+    r = _positive_int("r", r)
+    if k < s:
+        raise ValueError(f"k must be >= s (the quadrature needs at least s nodes), got k={k}, s={s}")
+    if r < s:
+        raise ValueError(f"r must be >= s (the invariants' quadrature needs at least s nodes), got r={r}, s={s}")
+    if k > MAX_NODES or r > MAX_NODES:
+        raise ValueError(f"k and r must be <= {MAX_NODES}, got k={k}, r={r}")
+    c, b = quadrature(k)
+    Ps, Is = legendre_tables(c, k, s)
+    chat, bhat = (c, b) if r == k else quadrature(r)
+    Ps_hat, Is_hat = (Ps, Is) if r == k else legendre_tables(chat, r, s)
+    # Left writable: Numba types read-only arrays differently from the kernels' signatures.
+    arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat)]
+    return Method(family, r, k, s, *arrays)

@@ -1,0 +1,95 @@
+"""The Problem object: a Hamiltonian system with its invariants, as compiled functions.
+
+A problem carries four compiled functions with the fixed signatures of
+``elimfast.kernels.signatures`` (H, grad_H, invariants, grad_invariants), its
+parameter vector, default initial state and names. Kernels never see the Problem:
+the driver passes its functions and arrays, so new problems (built-in, generated
+from expressions, or user files) never touch the kernels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+
+def _vector(y) -> np.ndarray:
+    # A fresh writable copy: the compiled functions' signatures take writable C arrays.
+    return np.array(y, dtype=np.float64, order="C")
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """y' = J grad H(y), y = (q, p), with named invariants L_i (grad L_i^T J grad H = 0).
+
+    name: short identifier; q_names, p_names: coordinate names (m each);
+    H, grad_H, invariants, grad_invariants: compiled functions (see kernels.signatures);
+    invariant_names: names of the invariants, in the order ``invariants`` writes them;
+    y0: default initial state (2m,); params: parameter vector passed to every function;
+    parameters: the named parameters the problem was built with (for reports).
+    """
+
+    name: str
+    q_names: tuple[str, ...]
+    p_names: tuple[str, ...]
+    H: Any = field(repr=False)
+    grad_H: Any = field(repr=False)
+    invariants: Any = field(repr=False)
+    grad_invariants: Any = field(repr=False)
+    invariant_names: tuple[str, ...]
+    y0: np.ndarray = field(repr=False)
+    params: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    parameters: dict = field(default_factory=dict)
+    description: str = ""
+
+    def __post_init__(self):
+        if len(self.q_names) != len(self.p_names):
+            raise ValueError(f"problem {self.name!r}: {len(self.q_names)} q names but {len(self.p_names)} p names")
+        y0 = np.ascontiguousarray(self.y0, dtype=np.float64).copy()
+        if y0.shape != (2 * len(self.q_names),):
+            raise ValueError(f"problem {self.name!r}: y0 must have {2 * len(self.q_names)} entries, got shape {y0.shape}")
+        y0.setflags(write=False)
+        # Not read-only: Numba types read-only arrays differently from the kernels' signatures.
+        params = np.ascontiguousarray(self.params, dtype=np.float64).copy()
+        object.__setattr__(self, "y0", y0)
+        object.__setattr__(self, "params", params)
+        object.__setattr__(self, "q_names", tuple(self.q_names))
+        object.__setattr__(self, "p_names", tuple(self.p_names))
+        object.__setattr__(self, "invariant_names", tuple(self.invariant_names))
+        if len(set(self.invariant_names)) != len(self.invariant_names) or "H" in self.invariant_names:
+            raise ValueError(f"problem {self.name!r}: invariant names must be distinct and not 'H'")
+
+    @property
+    def degrees_of_freedom(self) -> int:
+        return len(self.q_names)
+
+    @property
+    def coordinate_names(self) -> tuple[str, ...]:
+        """Names of the 2m components of y: the q names, then the p names."""
+        return self.q_names + self.p_names
+
+    def with_initial(self, y0) -> "Problem":
+        """The same problem from another initial state."""
+        return replace(self, y0=np.asarray(y0, dtype=np.float64))
+
+    # Convenience evaluations from Python (the kernels call the compiled functions directly).
+    def hamiltonian(self, y) -> float:
+        return float(self.H(_vector(y), self.params))
+
+    def gradient(self, y) -> np.ndarray:
+        out = np.empty(2 * self.degrees_of_freedom)
+        self.grad_H(_vector(y), self.params, out)
+        return out
+
+    def invariant_values(self, y) -> dict[str, float]:
+        """{'H': H(y), name: L_i(y), ...}."""
+        values = np.empty(len(self.invariant_names))
+        self.invariants(_vector(y), self.params, values)
+        return {"H": self.hamiltonian(y), **dict(zip(self.invariant_names, values.tolist()))}
+
+    def invariant_gradients(self, y) -> np.ndarray:
+        """(n_inv, 2m): row i is grad L_i(y)."""
+        out = np.empty((len(self.invariant_names), 2 * self.degrees_of_freedom))
+        self.grad_invariants(_vector(y), self.params, out)
+        return out

@@ -1,0 +1,120 @@
+"""The Python API: arguments, errors, results, chunking."""
+import math
+
+import numpy as np
+import pytest
+
+import elimfast
+from elimfast import Integration
+from elimfast.methods import ehbvm, elim, gauss, ghbvm, hbvm
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(method=ehbvm(12, 3), conserve=["angular_momentum", "lrl_x", "lrl_y"]), "at most s-1 = 2"),
+    (dict(method=ehbvm(12, 1), conserve=["angular_momentum"]), "raise s above 1"),
+    (dict(method=ehbvm(12, 3), conserve=["energy"]), "no invariant 'energy'.*angular_momentum, lrl_x, lrl_y"),
+    (dict(method=ehbvm(12, 3), conserve=["H"]), "leave it out"),
+    (dict(method=hbvm(12, 3), conserve=["angular_momentum"]), "cannot impose invariants"),
+    (dict(method=ghbvm(12, 3), conserve=["lrl_y", "lrl_y"]), "twice"),
+    (dict(method=gauss(3), h=0.0), "positive"),
+    (dict(method=gauss(3), h=-0.1), "positive"),
+    (dict(method=gauss(3), h=float("nan")), "positive"),
+    (dict(method=gauss(3), t_end=1.05, n_steps=None), "not a whole number of steps"),
+    (dict(method=gauss(3), t_end=1.0, n_steps=10), "exactly one"),
+    (dict(method=gauss(3), n_steps=0), "positive integer"),
+    (dict(method=gauss(3), max_iter=0), "max_iter"),
+    (dict(method=gauss(3), store_every=0), "store_every"),
+    (dict(method=gauss(3), rhs="fancy"), "stable"),
+    (dict(method="gauss3"), "elimfast Method"),
+])
+def test_bad_arguments_say_what_to_change(kepler, kwargs, match):
+    arguments = dict(h=0.1, n_steps=10)
+    arguments.update(kwargs)
+    with pytest.raises((ValueError, TypeError), match=match):
+        elimfast.integrate(kepler, **arguments)
+
+
+def test_t_end_gives_round_number_of_steps(kepler):
+    result = elimfast.integrate(kepler, gauss(2), math.pi / 30, t_end=2 * math.pi)
+    assert result.n_steps == 60 and result.iterations.shape == (60,)
+    assert abs(result.t_final - 2 * math.pi) < 1e-14
+    assert result.t.shape == (61,) and result.y.shape == (61, 4)
+
+
+def test_result_holds_every_invariant_imposed_or_not(kepler):
+    result = elimfast.integrate(kepler, ehbvm(12, 3), 0.1, n_steps=20, conserve=["lrl_y"])
+    assert set(result.invariants) == {"H", "angular_momentum", "lrl_x", "lrl_y"}
+    assert result.invariants["H"][0] == pytest.approx(-0.5, abs=1e-15)
+    assert result.invariants["angular_momentum"][0] == pytest.approx(math.sqrt(1 - 0.36), abs=1e-15)
+    assert result.invariants["lrl_x"][0] == pytest.approx(0.6, abs=1e-15)
+    assert result.alpha.shape == (20, 1) and result.lam is None
+    assert result.status == "complete"
+    np.testing.assert_array_equal(result.y[-1], result.y_final)
+    lim_result = elimfast.integrate(kepler, ghbvm(12, 3), 0.1, n_steps=20, conserve=["lrl_y"])
+    assert lim_result.lam.shape == (20, 2) and lim_result.alpha is None
+
+
+def test_store_every_keeps_the_last_state(kepler):
+    result = elimfast.integrate(kepler, gauss(2), 0.1, n_steps=25, store_every=10)
+    np.testing.assert_allclose(result.t, [0.0, 1.0, 2.0, 2.5], atol=1e-14)
+    full = elimfast.integrate(kepler, gauss(2), 0.1, n_steps=25)
+    np.testing.assert_array_equal(result.y, full.y[[0, 10, 20, 25]])
+    assert result.iterations.shape == (25,)
+
+
+def test_chunked_run_is_bitwise_identical_to_one_call(kepler):
+    one = elimfast.integrate(kepler, ehbvm(12, 3), 0.1, n_steps=103, conserve=["angular_momentum", "lrl_y"])
+    run = Integration(kepler, ehbvm(12, 3), 0.1, 103, conserve=["angular_momentum", "lrl_y"])
+    chunks = [run.advance(n) for n in (1, 7, 50, 1000)]
+    np.testing.assert_array_equal(run.y, one.y_final)
+    np.testing.assert_array_equal(np.concatenate([c.y for c in chunks]), one.y[1:])
+    np.testing.assert_array_equal(np.concatenate([c.multipliers for c in chunks]), one.alpha)
+
+
+def test_state_restore_continues_exactly(kepler):
+    method = ehbvm(12, 3)
+    full = Integration(kepler, method, 0.1, 80, conserve=["lrl_y"])
+    full.advance(80)
+    first = Integration(kepler, method, 0.1, 80, conserve=["lrl_y"])
+    first.advance(33)
+    second = Integration(kepler, method, 0.1, 80, conserve=["lrl_y"])
+    second.restore(first.state())
+    second.advance(80)
+    np.testing.assert_array_equal(second.y, full.y)
+    np.testing.assert_array_equal(second.clock, full.clock)
+
+
+def test_non_convergence_raises_with_step_time_and_partial_result(kepler):
+    with pytest.raises(elimfast.ConvergenceError) as caught:
+        elimfast.integrate(kepler, hbvm(12, 3), 0.1, n_steps=50, max_iter=3)
+    error = caught.value
+    assert error.step == 1 and error.time == 0.0 and error.reason == "not converged"
+    assert "step 1 (t = 0 -> 0.1" in str(error) and "max_iter = 3" in str(error)
+    assert error.result.steps_done == 0 and error.result.y.shape == (1, 4)
+    assert error.result.status.startswith("failed:")
+
+
+def test_failure_mid_run_keeps_what_was_computed(kepler):
+    # A step too large for the fixed-point iteration near perihelion: the first steps converge.
+    with pytest.raises(elimfast.ConvergenceError) as caught:
+        elimfast.integrate(kepler, gauss(3), 0.7, n_steps=40)
+    error = caught.value
+    assert error.step > 1
+    partial = error.result
+    assert partial.steps_done == error.step - 1
+    assert partial.t[-1] == pytest.approx(0.7 * partial.steps_done)
+    assert partial.iterations.shape == (error.step,)  # the failed step's count is kept
+    assert "t = " in str(error)
+
+
+def test_singular_gamma_is_reported_not_nan(central_quartic):
+    # At the origin with zero momentum nothing moves: phi_j^T gamma_j = 0, Gamma singular.
+    with pytest.raises(elimfast.ConvergenceError) as caught:
+        elimfast.integrate(central_quartic, ehbvm(6, 3), 0.1, n_steps=5, conserve=["angular_momentum"],
+                           y0=[0.0, 0.0, 0.0, 0.0])
+    assert caught.value.reason == "singular" and "Gamma" in str(caught.value)
+
+
+def test_elim_with_r_different_from_k_conserves_polynomial_invariant(central_quartic):
+    result = elimfast.integrate(central_quartic, elim(4, 6, 3), 0.1, n_steps=500, conserve=["angular_momentum"])
+    assert result.invariant_errors()["angular_momentum"] < 1e-12
