@@ -18,7 +18,8 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	touch $(VENV)/.installed $@
 
 run: $(VENV)/.installed
-	$(BIN)/python -m elimfast.demo
+	$(BIN)/elimfast run configs/kepler.yaml -o out/kepler.h5 --overwrite --quiet
+	$(BIN)/elimfast inspect out/kepler.h5
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q

@@ -1,0 +1,1 @@
+"""Input and output: HDF5 (the only module importing h5py)."""
