@@ -250,7 +250,7 @@ class Integration:
         status = stepper.time_loop(
             p.H, p.grad_H, p.invariants, p.grad_invariants, p.params,
             m.kernel_family, len(p.invariant_names), int(self.rhs == "stable"), int(self.warm_start),
-            h, m.b, m.Ps, m.Is, m.bhat, m.Ps_hat, m.Is_hat,
+            h, m.projection, m.Is, m.projection_hat, m.Is_hat,
             self.conserve_idx, self.tol, STAGNATION_THRESHOLD, self.max_iter,
             self.y, self.y_comp, self.clock, self.coef, self.multipliers,
             self.steps_done, n_run, self.n_steps, self.store_every,

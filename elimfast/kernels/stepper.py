@@ -63,7 +63,7 @@ def _stopping_rule(delta, best, stalls, tol_abs, small_abs):
     return False, best, 0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _stages(y, h, integrals, coef, n_coef, out):
     """out[l] = y + h sum_{j<n_coef} integrals[l, j] coef[j]   (spec 2: u_l = u(c_l h))."""
     n = y.shape[0]
@@ -75,24 +75,43 @@ def _stages(y, h, integrals, coef, n_coef, out):
             out[l, i] = y[i] + h * acc
 
 
-@njit(cache=True)
-def _project(weights, table, values, n_degrees, out):
-    """out[j] = sum_l weights[l] table[l, j] values[l], j < n_degrees.
+@njit(cache=True, inline="always")
+def _project(projection, values, n_degrees, out):
+    """out[j] = sum_l projection[j, l] values[l] = sum_l b_l P_j(c_l) values[l], j < n_degrees.
 
-    The discrete Legendre coefficients of spec 2 (gamma_j) and 3 (phi_j), applied to
-    rows of values (n_nodes, n).
+    The discrete Legendre coefficients of spec 2 (gamma_j) and 3 (phi_j) of the rows of
+    values (n_nodes, n); projection (>= n_degrees, n_nodes) holds b_l P_j(c_l).
+    Scalar accumulators, four components at a time: accumulating into out[j, i]
+    chains every update through memory (3x slower), and four independent sums let
+    LLVM use one vector FMA for them.
     """
     n = values.shape[1]
+    n_nodes = values.shape[0]
+    n4 = n - n % 4
     for j in range(n_degrees):
-        for i in range(n):
-            out[j, i] = 0.0
-        for l in range(values.shape[0]):
-            w = weights[l] * table[l, j]
-            for i in range(n):
-                out[j, i] += w * values[l, i]
+        for i in range(0, n4, 4):
+            acc0 = 0.0
+            acc1 = 0.0
+            acc2 = 0.0
+            acc3 = 0.0
+            for l in range(n_nodes):
+                w = projection[j, l]
+                acc0 += w * values[l, i]
+                acc1 += w * values[l, i + 1]
+                acc2 += w * values[l, i + 2]
+                acc3 += w * values[l, i + 3]
+            out[j, i] = acc0
+            out[j, i + 1] = acc1
+            out[j, i + 2] = acc2
+            out[j, i + 3] = acc3
+        for i in range(n4, n):
+            acc = 0.0
+            for l in range(n_nodes):
+                acc += projection[j, l] * values[l, i]
+            out[j, i] = acc
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _apply_J(projected, n_degrees, out):
     """out[j] = J projected[j], J = [[0, I], [-I, 0]] (spec 1)."""
     m = projected.shape[1] // 2
@@ -102,7 +121,7 @@ def _apply_J(projected, n_degrees, out):
             out[j, m + i] = -projected[j, i]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _update_coef(coef, new_coef, n_coef, h):
     """Copy new_coef into coef; return max |h (new - old)|, the stage increment."""
     delta = 0.0
@@ -115,12 +134,9 @@ def _update_coef(coef, new_coef, n_coef, h):
     return delta
 
 
-@njit(cache=True)
-def elim_step(grad_H, grad_invariants, params, y, h,
-              b, Pk, Is, bhat, Pr, Ihat, conserve_idx, stable_rhs,
-              coef, alpha, cold, tol, small, max_iter,
-              u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi, gamma_hat,
-              big_gamma, bvec, new_coef, h_powers):
+@njit(cache=True, inline="always")
+def elim_step(grad_H, grad_invariants, params, y, h, tables, conserve_idx, stable_rhs,
+              coef, alpha, cold, tol, small, max_iter, work):
     """One ELIM(r,k,s) step by fixed-point iteration (spec section 3; HBVM when nu = 0, spec 2).
 
     Iterates  coef_j = eta_j gamma_j(u),  gamma_j = sum_l b_l Ps[l,j] J grad H(u_l),
@@ -128,10 +144,13 @@ def elim_step(grad_H, grad_invariants, params, y, h,
     Gamma alpha = bvec (spec 3). bvec is the stable tail -sum_{j=s}^{k-1} phi_j^T gamma_j
     of spec 3b when stable_rhs is true, the paper's sum_{j<s} phi_j^T gamma_j otherwise.
 
-    Shapes: y (n,); b (k,); Pk (k, >= s, >= k if stable); Is (k, s); bhat (r,);
-    Pr (r, >= s, >= r if stable); Ihat (r, s); conserve_idx (nu,); coef (s, n) in/out
-    (initial guess, then the converged coefficients); alpha (nu,) in/out.
-    The remaining arrays are caller-allocated workspace.
+    Shapes: y (n,); tables = (projection (k, k): b_l P_j(c_l) indexed [j, l],
+    Is (k, s), projection_hat (r, r): bhat_i P_j(chat_i) indexed [j, i], Ihat (r, s));
+    conserve_idx (nu,);
+    coef (s, n) in/out (initial guess, then the converged coefficients); alpha (nu,)
+    in/out. work: the caller-allocated workspace tuple built by time_loop.
+    (Tables and workspace travel as tuples so the call stays under CPython's 30
+    arguments, above which it cannot be inlined.)
     cold: the stages start at y0, so Gamma is singular on the first iteration
     (spec 3, "practical points"): alpha = 0 there.
 
@@ -141,9 +160,12 @@ def elim_step(grad_H, grad_invariants, params, y, h,
 
     Returns (status, iterations). y1 = y + h coef[0].
     """
+    projection, Is, projection_hat, Ihat = tables
+    (u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi, gamma_hat,
+     big_gamma, bvec, new_coef, h_powers) = work
     n = y.shape[0]
-    k = b.shape[0]
-    r = bhat.shape[0]
+    k = Is.shape[0]
+    r = Ihat.shape[0]
     s = coef.shape[0]
     nu = conserve_idx.shape[0]
     shared_nodes = r == k
@@ -162,7 +184,7 @@ def elim_step(grad_H, grad_invariants, params, y, h,
         _stages(y, h, Is, coef, s, u)
         for l in range(k):
             grad_H(u[l], params, grads[l])
-        _project(b, Pk, grads, n_gamma, proj)
+        _project(projection, grads, n_gamma, proj)
         _apply_J(proj, n_gamma, gamma)
 
         if nu > 0:
@@ -177,7 +199,7 @@ def elim_step(grad_H, grad_invariants, params, y, h,
                     for p in range(n):
                         grads_hat[a, i, p] = inv_grads[conserve_idx[a], p]
             for a in range(nu):
-                _project(bhat, Pr, grads_hat[a], n_phi, phi[a])
+                _project(projection_hat, grads_hat[a], n_phi, phi[a])
             for col in range(nu):
                 j = s - nu + col
                 for a in range(nu):
@@ -193,7 +215,7 @@ def elim_step(grad_H, grad_invariants, params, y, h,
                     # Spec 3b for r != k: the tail with J grad H taken at the r nodes too.
                     for i in range(r):
                         grad_H(uhat[i], params, grads_hat[nu, i])
-                    _project(bhat, Pr, grads_hat[nu], r, proj)
+                    _project(projection_hat, grads_hat[nu], r, proj)
                     _apply_J(proj, r, gamma_hat)
                     tail = gamma_hat
                     n_tail = r
@@ -243,12 +265,9 @@ def elim_step(grad_H, grad_invariants, params, y, h,
     return STATUS_NOT_CONVERGED, max_iter
 
 
-@njit(cache=True)
-def lim_step(grad_H, grad_invariants, params, y, h,
-             b, Pk, Is, bhat, Pr, Ihat, conserve_idx,
-             coef, lam, tol, small, max_iter,
-             u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi,
-             gram, rhs, new_coef):
+@njit(cache=True, inline="always")
+def lim_step(grad_H, grad_invariants, params, y, h, tables, conserve_idx,
+             coef, lam, tol, small, max_iter, work):
     """One LIM(r,k,s) step by fixed-point iteration (spec section 4).
 
     Ltilde = (H, L_conserve...) has nu + 1 components. Iterates
@@ -256,13 +275,17 @@ def lim_step(grad_H, grad_invariants, params, y, h,
         phi_j   = sum_i bhat_i P_j(chat_i) grad Ltilde(uhat_i)    (r nodes)
         (phi_0^T phi_0) lambda = sum_{j<s} phi_j^T gamma_j        (SPD solve)
         coef_0 = gamma_0 - phi_0 lambda,  coef_j = gamma_j
-    with the same stopping rule as elim_step. lam (nu+1,) in/out; grads_hat
-    (nu+1, r, n); phi (nu+1, s, n); gram (nu+1, nu+1); rhs (nu+1,).
+    with the same stopping rule as elim_step. lam (nu+1,) in/out; tables and work
+    as for elim_step (grads_hat (nu+2, r, n), phi (nu+1, >= s, n), and the small
+    matrix and vector serve as the Gram matrix and right-hand side).
     Returns (status, iterations). y1 = y + h coef[0].
     """
+    projection, Is, projection_hat, Ihat = tables
+    (u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi, gamma_hat,
+     gram, rhs, new_coef, h_powers) = work
     n = y.shape[0]
-    k = b.shape[0]
-    r = bhat.shape[0]
+    k = Is.shape[0]
+    r = Ihat.shape[0]
     s = coef.shape[0]
     n_tilde = conserve_idx.shape[0] + 1
     shared_nodes = r == k
@@ -277,7 +300,7 @@ def lim_step(grad_H, grad_invariants, params, y, h,
         _stages(y, h, Is, coef, s, u)
         for l in range(k):
             grad_H(u[l], params, grads[l])
-        _project(b, Pk, grads, s, proj)
+        _project(projection, grads, s, proj)
         _apply_J(proj, s, gamma)
 
         if shared_nodes:
@@ -297,7 +320,7 @@ def lim_step(grad_H, grad_invariants, params, y, h,
                     for p in range(n):
                         grads_hat[a, i, p] = inv_grads[conserve_idx[a - 1], p]
         for a in range(n_tilde):
-            _project(bhat, Pr, grads_hat[a], s, phi[a])
+            _project(projection_hat, grads_hat[a], s, phi[a])
         for a in range(n_tilde):
             for c in range(n_tilde):
                 acc = 0.0
@@ -337,7 +360,7 @@ def _kahan_add(value, compensation, increment):
     return new_value, (value - new_value) + corrected
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sample(H, invariants, params, y, t, index, t_out, y_out, inv_out, inv_values):
     t_out[index] = t
     for p in range(y.shape[0]):
@@ -351,7 +374,7 @@ def _sample(H, invariants, params, y, t, index, t_out, y_out, inv_out, inv_value
 TIME_LOOP_SIGNATURE = types.int64(
     H_TYPE, GRAD_H_TYPE, INVARIANTS_TYPE, GRAD_INVARIANTS_TYPE, VECTOR,   # problem
     types.int64, types.int64, types.int64, types.int64,                   # family, n_inv, stable_rhs, warm_start
-    types.float64, VECTOR, MATRIX, MATRIX, VECTOR, MATRIX, MATRIX,        # h, b, Pk, Is, bhat, Pr, Ihat
+    types.float64, MATRIX, MATRIX, MATRIX, MATRIX,                        # h, projection, Is, projection_hat, Ihat
     INT_VECTOR, types.float64, types.float64, types.int64,                # conserve_idx, tol, small, max_iter
     VECTOR, VECTOR, VECTOR, MATRIX, VECTOR,                               # y, y_comp, clock, coef, multipliers
     types.int64, types.int64, types.int64, types.int64,                   # step_start, n_steps, n_total, store_every
@@ -362,7 +385,7 @@ TIME_LOOP_SIGNATURE = types.int64(
 @njit(TIME_LOOP_SIGNATURE, cache=True)
 def time_loop(H, grad_H, invariants, grad_invariants, params,
               family, n_inv, stable_rhs, warm_start,
-              h, b, Pk, Is, bhat, Pr, Ihat,
+              h, projection, Is, projection_hat, Ihat,
               conserve_idx, tol, small, max_iter,
               y, y_comp, clock, coef, multipliers,
               step_start, n_steps, n_total, store_every,
@@ -390,8 +413,8 @@ def time_loop(H, grad_H, invariants, grad_invariants, params,
     step (the failed step is not applied), and progress says how far it got.
     """
     n = y.shape[0]
-    k = b.shape[0]
-    r = bhat.shape[0]
+    k = Is.shape[0]
+    r = Ihat.shape[0]
     s = coef.shape[0]
     nu = conserve_idx.shape[0]
     n_tilde = nu + 1 if family == FAMILY_LIM else nu
@@ -416,6 +439,9 @@ def time_loop(H, grad_H, invariants, grad_invariants, params,
     h_powers = np.zeros(max(nu, 1))
     for col in range(nu):
         h_powers[col] = h ** (2 * (nu - 1 - col))
+    tables = (projection, Is, projection_hat, Ihat)
+    work = (u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi, gamma_hat,
+            small_matrix, small_vector, new_coef, h_powers)
 
     n_samples = 0
     progress[0] = 0
@@ -434,16 +460,12 @@ def time_loop(H, grad_H, invariants, grad_invariants, params,
                 multipliers[a] = 0.0
         if family == FAMILY_LIM:
             status, iterations = lim_step(
-                grad_H, grad_invariants, params, y, h, b, Pk, Is, bhat, Pr, Ihat,
-                conserve_idx, coef, multipliers, tol, small, max_iter,
-                u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi,
-                small_matrix, small_vector, new_coef)
+                grad_H, grad_invariants, params, y, h, tables, conserve_idx,
+                coef, multipliers, tol, small, max_iter, work)
         else:
             status, iterations = elim_step(
-                grad_H, grad_invariants, params, y, h, b, Pk, Is, bhat, Pr, Ihat,
-                conserve_idx, stable_rhs != 0, coef, multipliers, cold, tol, small,
-                max_iter, u, grads, proj, gamma, uhat, grads_hat, inv_grads, phi,
-                gamma_hat, small_matrix, small_vector, new_coef, h_powers)
+                grad_H, grad_invariants, params, y, h, tables, conserve_idx,
+                stable_rhs != 0, coef, multipliers, cold, tol, small, max_iter, work)
         iter_out[step] = iterations
         if status != STATUS_OK:
             # Leave the state at the last good step so the caller can report or resume.

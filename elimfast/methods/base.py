@@ -56,7 +56,8 @@ class Method:
     for the invariants (r = k where the family has no separate r), s coefficients.
     Tables: c, b (k nodes and weights), Ps (k x k: P_j(c_l), j < k, enough for the
     stable right-hand side of spec 3b), Is (k x s); chat, bhat, Ps_hat (r x r),
-    Is_hat (r x s) at the r nodes.
+    Is_hat (r x s) at the r nodes; projection[j, l] = b_l P_j(c_l) and
+    projection_hat[j, i] = bhat_i P_j(chat_i), the kernels' form of Ps^T Omega.
     """
 
     family: str
@@ -71,6 +72,8 @@ class Method:
     bhat: np.ndarray = field(repr=False)
     Ps_hat: np.ndarray = field(repr=False)
     Is_hat: np.ndarray = field(repr=False)
+    projection: np.ndarray = field(repr=False)
+    projection_hat: np.ndarray = field(repr=False)
 
     @property
     def order(self) -> int:
@@ -153,5 +156,7 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     chat, bhat = (c, b) if r == k else quadrature(r)
     Ps_hat, Is_hat = (Ps, Is) if r == k else legendre_tables(chat, r, s)
     # Left writable: Numba types read-only arrays differently from the kernels' signatures.
-    arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat)]
+    projection = (b[:, None] * Ps).T
+    projection_hat = (bhat[:, None] * Ps_hat).T
+    arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat)]
     return Method(family, r, k, s, *arrays)
