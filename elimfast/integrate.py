@@ -17,7 +17,7 @@ from .methods import Method
 from .problems import Problem
 
 # Defaults of the fixed-point iteration (all tunables in one place).
-DEFAULT_TOL = 2.0 ** -52          # stage increment at round-off: eps * max(1, |y|)
+DEFAULT_TOL = 2.0 ** -52          # relative stage increment at round-off (machine epsilon)
 STAGNATION_THRESHOLD = 1e-10      # below this (relative), an increment that stops decreasing ends the iteration
 DEFAULT_MAX_ITER = 100
 DEFAULT_CHUNK_STEPS = 1 << 16     # steps per kernel call in integrate()
@@ -112,6 +112,14 @@ def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) 
             f"{method.name} can impose at most s-1 = {limit} invariant(s), got {len(names)}: each one takes "
             f"one of the coefficients gamma_1..gamma_(s-1) (gamma_0 fixes y1, spec 3); raise s above "
             f"{len(names)} or impose fewer")
+    if method.family in ("elim", "ehbvm"):
+        linear = [n for n in names if n in problem.linear_invariant_names]
+        if linear:
+            raise ValueError(
+                f"{', '.join(linear)} {'is' if len(linear) == 1 else 'are'} linear: every Runge-Kutta method, "
+                f"{method.name} included, keeps {'it' if len(linear) == 1 else 'them'} exactly, and ELIM cannot "
+                "impose a linear invariant (its Gamma column vanishes, spec 3); leave it out of conserve "
+                "(or impose it with lim/ghbvm)")
     indices = np.array([problem.invariant_names.index(n) for n in names], dtype=np.int64)
     return names, indices
 
@@ -285,7 +293,7 @@ def integrate(problem: Problem, method: Method, h: float, t_end: float | None = 
     Give t_end (a whole number of steps after t0, to 1e-9 relative) or n_steps.
     conserve: names of the problem's invariants to impose (ELIM/EHBVM: fewer than s;
     LIM/GHBVM: any number; must be empty for GAUSS/HBVM). tol: stopping tolerance of the
-    fixed-point iteration relative to max(1, |y|) (default: machine epsilon);
+    fixed-point iteration on the relative stage increment (default: machine epsilon);
     max_iter: iterations allowed per step. store_every: keep every n-th state (the
     last one always). rhs: 'stable' (spec 3b, default) or 'literal' (the paper's form).
     warm_start: start each step's iteration from the previous step's coefficients
