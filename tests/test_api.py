@@ -118,3 +118,15 @@ def test_singular_gamma_is_reported_not_nan(central_quartic):
 def test_elim_with_r_different_from_k_conserves_polynomial_invariant(central_quartic):
     result = elimfast.integrate(central_quartic, elim(4, 6, 3), 0.1, n_steps=500, conserve=["angular_momentum"])
     assert result.invariant_errors()["angular_momentum"] < 1e-12
+
+
+def test_linear_invariants_are_detected_and_refused_for_elim():
+    from elimfast.problems import fpu_beta, kepler
+    chain = fpu_beta(n=4)
+    assert chain.linear_invariant_names == ("momentum",)
+    assert kepler().linear_invariant_names == ()
+    with pytest.raises(ValueError, match="momentum is linear.*keeps it exactly.*lim/ghbvm"):
+        elimfast.integrate(chain, ehbvm(8, 4), 0.1, n_steps=5, conserve=["momentum"])
+    # LIM can impose it (pointlessly, but correctly)
+    result = elimfast.integrate(chain, ghbvm(8, 4), 0.1, n_steps=5, conserve=["momentum"])
+    assert result.invariant_errors()["momentum"] < 1e-14

@@ -9,6 +9,7 @@ from expressions, or user files) never touch the kernels.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -87,6 +88,28 @@ class Problem:
         values = np.empty(len(self.invariant_names))
         self.invariants(_vector(y), self.params, values)
         return {"H": self.hamiltonian(y), **dict(zip(self.invariant_names, values.tolist()))}
+
+    @cached_property
+    def linear_invariant_names(self) -> tuple[str, ...]:
+        """Invariants whose gradient is the same at y0 and at two seeded points near it.
+
+        ELIM cannot impose these (phi_j = 0 for j >= 1, so Gamma has a zero column),
+        and needs not: every Runge-Kutta method keeps linear invariants exactly.
+        """
+        if not self.invariant_names:
+            return ()
+        rng = np.random.default_rng(20140611)
+        spread = 0.1 * max(1.0, float(np.max(np.abs(self.y0))))
+        points = [self.y0] + [self.y0 * (1.0 + 0.1 * rng.standard_normal(self.y0.size))
+                              + spread * rng.standard_normal(self.y0.size) for _ in range(2)]
+        gradients = [self.invariant_gradients(point) for point in points]
+        linear = []
+        for i, name in enumerate(self.invariant_names):
+            reference_row = gradients[0][i]
+            size = max(float(np.max(np.abs(reference_row))), 1e-300)
+            if all(np.max(np.abs(g[i] - reference_row)) <= 1e-13 * size for g in gradients[1:]):
+                linear.append(name)
+        return tuple(linear)
 
     def invariant_gradients(self, y) -> np.ndarray:
         """(n_inv, 2m): row i is grad L_i(y)."""
