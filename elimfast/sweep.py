@@ -1,0 +1,405 @@
+"""Sweeps: a base config run over a grid of overrides, in parallel worker processes.
+
+A sweep file (YAML, data only) names a base run config and the axes of a grid:
+
+    base: ../kepler.yaml            # a run config (path relative to this file) or a mapping
+    set:                            # overrides applied to every run (nested mappings merge)
+      integration: {t_end: 20*pi}
+    grid:                           # the cartesian product of the axes, in this order
+      - name: method                # labelled variants: each sets several keys at once
+        values:
+          - {label: GAUSS3, set: {method: {name: gauss, s: 3}, conserve: []}}
+          - {label: "EHBVM(12,3) L1", set: {method: {name: ehbvm, k: 12, s: 3}, conserve: [angular_momentum]}}
+      - name: h                     # a plain axis: one key, a list of values
+        key: integration.h
+        values: [pi/30, pi/60, pi/120]
+    error: {exact: initial}         # or {reference: {set: {...}}}, or omitted (no error column)
+    order_axis: h                   # observed orders between successive values of this axis
+
+A variant's ``set`` replaces whole top-level values it names (a method mapping is
+replaced, not merged, so ``{name: gauss, s: 3}`` does not inherit ``k`` from the
+base); the sweep-wide ``set`` merges into nested mappings.
+
+Errors: ``exact: initial`` compares each run's final state with its initial state
+(a periodic problem over a whole number of periods, e.g. Kepler over 10 periods, the
+paper's Table 1); ``reference`` runs the base with the given overrides once and
+compares every run's final state with it.
+"""
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import yaml
+
+from .errors import ConvergenceError, ElimfastError
+
+
+_REFERENCE = "\0reference"  # the reference run's key: no grid label can collide with it
+
+
+class SweepError(ElimfastError):
+    """A sweep file that cannot be run; str() is one line naming the file and the key."""
+
+
+@dataclass
+class SweepRun:
+    """One point of the grid: its label, the coordinates along each axis, and its config."""
+
+    label: str
+    coordinates: dict[str, str]
+    config: dict
+
+
+@dataclass
+class RunOutcome:
+    """What a worker sends back: summary numbers and the arrays to store."""
+
+    label: str
+    coordinates: dict[str, str]
+    status: str                         # "complete" or "failed: <reason>"
+    resolved: dict = field(default_factory=dict)
+    n_steps: int = 0
+    steps_done: int = 0
+    h: float = math.nan
+    wall_time: float = 0.0
+    y_initial: np.ndarray | None = None
+    y_final: np.ndarray | None = None
+    t_final: float = math.nan
+    iterations_total: int = 0
+    max_multiplier: float = math.nan    # max |alpha| (ELIM) or |lambda| (LIM), nan otherwise
+    invariant_errors: dict[str, float] = field(default_factory=dict)
+    arrays: dict[str, Any] = field(default_factory=dict)  # t, y, invariants, iterations, alpha/lambda
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "complete"
+
+
+@dataclass
+class SweepSpec:
+    source: str
+    runs: list[SweepRun]
+    axes: list[str]
+    error_mode: str | None              # None, "initial" or "reference"
+    reference: dict | None              # the reference run's config
+    order_axis: str | None
+
+
+# --- reading the sweep file ----------------------------------------------------------
+
+def _fail(source, key, message):
+    raise SweepError(f"{source}: {key}: {message}")
+
+
+def _deep_merge(target: dict, overrides: dict) -> dict:
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(target.get(key), dict):
+            _deep_merge(target[key], value)
+        else:
+            target[key] = copy.deepcopy(value)
+    return target
+
+
+def _set_path(config: dict, dotted: str, value, source: str) -> None:
+    node = config
+    parts = dotted.split(".")
+    for part in parts[:-1]:
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            _fail(source, dotted, f"{part!r} is not a mapping in the base config")
+        node = child
+    node[parts[-1]] = copy.deepcopy(value)
+
+
+def _read_yaml(path: Path, what: str) -> Any:
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise SweepError(f"{path}: cannot read the {what}: {error.strerror or error}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise SweepError(f"{path}: not valid YAML{where}; check the indentation and quoting") from None
+
+
+def load_sweep(path: str | os.PathLike) -> SweepSpec:
+    """Read and expand a sweep file (see the module docstring). Runs are validated later,
+    each by the config loader, so that one bad point fails alone with its reason."""
+    path = Path(path)
+    source = str(path)
+    data = _read_yaml(path, "sweep file")
+    if not isinstance(data, dict):
+        _fail(source, "(top level)", "a sweep file is a mapping with keys base, set, grid, error, order_axis")
+    known = {"base", "set", "grid", "error", "order_axis", "description"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        _fail(source, unknown[0], f"unknown key; a sweep file has {', '.join(sorted(known))}")
+    base = data.get("base")
+    if isinstance(base, str):
+        base_path = (path.parent / base)
+        base = _read_yaml(base_path, "base config")
+        if not isinstance(base, dict):
+            _fail(source, "base", f"{base_path} does not hold a config mapping")
+        base = _rebase_paths(base, base_path.parent, path.parent)
+    elif not isinstance(base, dict):
+        _fail(source, "base", "give a run config: a path to a YAML file or an inline mapping")
+    base = copy.deepcopy(base)
+    common = data.get("set") or {}
+    if not isinstance(common, dict):
+        _fail(source, "set", "must be a mapping of overrides, e.g. {integration: {t_end: 20*pi}}")
+    _deep_merge(base, common)
+
+    axes = data.get("grid") or []
+    if not isinstance(axes, list):
+        _fail(source, "grid", "must be a list of axes, each {name, values} or {name, key, values}")
+    axis_points = []
+    axis_names = []
+    for index, axis in enumerate(axes):
+        key = f"grid[{index}]"
+        if not isinstance(axis, dict) or "values" not in axis:
+            _fail(source, key, "an axis is a mapping with 'values' (and 'name', and 'key' for a plain axis)")
+        name = str(axis.get("name") or axis.get("key") or f"axis{index}")
+        values = axis["values"]
+        if not isinstance(values, list) or not values:
+            _fail(source, f"{key}.values", "must be a non-empty list")
+        points = []
+        if "key" in axis:
+            labels = axis.get("labels") or [str(v) for v in values]
+            if len(labels) != len(values):
+                _fail(source, f"{key}.labels", f"has {len(labels)} entries for {len(values)} values")
+            for label, value in zip(labels, values):
+                points.append((str(label), {"path": axis["key"], "value": value}))
+        else:
+            for j, variant in enumerate(values):
+                if not isinstance(variant, dict) or "set" not in variant or not isinstance(variant["set"], dict):
+                    _fail(source, f"{key}.values[{j}]", "a variant is {label: ..., set: {key: value, ...}}")
+                points.append((str(variant.get("label", j)), {"replace": variant["set"]}))
+        axis_points.append(points)
+        axis_names.append(name)
+
+    runs = []
+    for combination in itertools.product(*axis_points) if axis_points else [()]:
+        config = copy.deepcopy(base)
+        coordinates = {}
+        for name, (label, change) in zip(axis_names, combination):
+            coordinates[name] = label
+            if "path" in change:
+                _set_path(config, change["path"], change["value"], source)
+            else:
+                for top_key, value in change["replace"].items():
+                    config[top_key] = copy.deepcopy(value)
+        label = "/".join(f"{label}" for label in coordinates.values()) or "run"
+        runs.append(SweepRun(label=label, coordinates=coordinates, config=config))
+    labels = [r.label for r in runs]
+    if len(set(labels)) != len(labels):
+        _fail(source, "grid", "two runs get the same label; give the variants distinct labels")
+
+    error = data.get("error")
+    error_mode, reference = None, None
+    if error is not None:
+        if not isinstance(error, dict) or len(error) != 1 or next(iter(error)) not in ("exact", "reference"):
+            _fail(source, "error", "use {exact: initial} or {reference: {set: {...}}}")
+        if "exact" in error:
+            if error["exact"] != "initial":
+                _fail(source, "error.exact", "the only exact solution known to sweeps is 'initial' "
+                                             "(a periodic orbit over whole periods)")
+            error_mode = "initial"
+        else:
+            ref = error["reference"]
+            if not isinstance(ref, dict) or not isinstance(ref.get("set", {}), dict):
+                _fail(source, "error.reference", "must be {set: {overrides of the base}}")
+            reference = _deep_merge(copy.deepcopy(base), ref.get("set", {}))
+            error_mode = "reference"
+    order_axis = data.get("order_axis")
+    if order_axis is not None and order_axis not in axis_names:
+        _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
+    return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
+                     reference=reference, order_axis=order_axis)
+
+
+def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:
+    """A base config's relative paths (python: problems) are relative to its own folder."""
+    problem = config.get("problem")
+    if isinstance(problem, dict) and isinstance(problem.get("python"), str):
+        target = Path(problem["python"])
+        if not target.is_absolute():
+            problem["python"] = os.path.relpath(config_dir / target, sweep_dir)
+    return config
+
+
+# --- running ----------------------------------------------------------------------
+
+def _execute(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool) -> RunOutcome:
+    """Worker: load one run's config, integrate it, summarise. Never raises for a run's
+    own failure: a bad config or a failed integration becomes the outcome's status."""
+    from .config import load_run_from_dict  # in the worker: keeps the parent light
+
+    outcome = RunOutcome(label=label, coordinates=coordinates, status="complete")
+    try:
+        spec = load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]")
+    except ElimfastError as error:
+        outcome.status = f"failed: {error}"
+        return outcome
+    outcome.resolved = spec.resolved
+    outcome.h = spec.h
+    outcome.n_steps = spec.n_steps
+    run = spec.integration()
+    outcome.y_initial = run.y.copy()
+    chunks = [run.initial_chunk()]
+    start = time.perf_counter()
+    while not run.finished:
+        chunks.append(run.advance(1 << 16))
+    outcome.wall_time = time.perf_counter() - start
+    outcome.steps_done = run.steps_done
+    outcome.y_final = run.y.copy()
+    outcome.t_final = run.t
+    if run.status != 0:
+        outcome.status = "failed: " + run.failure_message()
+    iterations = np.concatenate([c.iterations for c in chunks])
+    multipliers = np.concatenate([c.multipliers for c in chunks])
+    invariants = np.concatenate([c.invariants for c in chunks])
+    outcome.iterations_total = int(iterations.sum())
+    if multipliers.size:
+        outcome.max_multiplier = float(np.max(np.abs(multipliers)))
+    names = ("H",) + spec.problem.invariant_names
+    outcome.invariant_errors = {name: float(np.max(np.abs(invariants[:, i] - invariants[0, i])))
+                                for i, name in enumerate(names)}
+    if store_arrays:
+        outcome.arrays = {
+            "t": np.concatenate([c.t for c in chunks]), "y": np.concatenate([c.y for c in chunks]),
+            "invariants": invariants, "invariant_names": names, "iterations": iterations,
+            "multipliers": multipliers, "multiplier_name": "lambda" if spec.method.family in ("lim", "ghbvm")
+            else "alpha", "coordinate_names": spec.problem.coordinate_names,
+        }
+    return outcome
+
+
+def default_workers() -> int:
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+
+
+def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = True,
+              on_done: Callable[[RunOutcome, int, int], None] | None = None) -> tuple[list[RunOutcome], RunOutcome | None]:
+    """Run every point (and the reference run, if any) in ``workers`` processes.
+
+    Returns the outcomes in grid order and the reference outcome. ``on_done(outcome,
+    done, total)`` is called in the parent as each run finishes (progress, writing).
+    Workers are forked where the platform allows it: they inherit the loaded kernels
+    instead of importing and loading them again.
+    """
+    workers = default_workers() if workers is None else int(workers)
+    if workers < 1:
+        raise SweepError("--workers must be at least 1")
+    jobs = [(run.label, run.coordinates, run.config) for run in spec.runs]
+    if spec.reference is not None:
+        jobs.append((_REFERENCE, {}, spec.reference))
+    total = len(jobs)
+    results: dict[str, RunOutcome] = {}
+    if workers == 1:
+        for done, (label, coordinates, config) in enumerate(jobs, start=1):
+            outcome = _execute(label, coordinates, config, spec.source, store_arrays)
+            results[label] = outcome
+            if on_done:
+                on_done(outcome, done, total)
+    else:
+        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+        context = multiprocessing.get_context(method)
+        with ProcessPoolExecutor(max_workers=min(workers, total), mp_context=context) as pool:
+            futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
+                       for label, coordinates, config in jobs}
+            for done, future in enumerate(as_completed(futures), start=1):
+                outcome = future.result()
+                results[outcome.label] = outcome
+                if on_done:
+                    on_done(outcome, done, total)
+    reference = results.pop(_REFERENCE, None) if spec.reference is not None else None
+    return [results[run.label] for run in spec.runs], reference
+
+
+# --- tables -------------------------------------------------------------------------
+
+def errors_of(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome | None) -> dict[str, float]:
+    """max-norm error of each run's final state (nan where there is no error to compute)."""
+    errors = {}
+    for outcome in outcomes:
+        value = math.nan
+        if outcome.ok and outcome.y_final is not None:
+            if spec.error_mode == "initial":
+                value = float(np.max(np.abs(outcome.y_final - outcome.y_initial)))
+            elif spec.error_mode == "reference" and reference is not None and reference.ok:
+                value = float(np.max(np.abs(outcome.y_final - reference.y_final)))
+        errors[outcome.label] = value
+    return errors
+
+
+def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, float]) -> dict[str, float]:
+    """Observed order log(e1/e2)/log(h1/h2) between successive points of order_axis."""
+    orders = {o.label: math.nan for o in outcomes}
+    if spec.order_axis is None:
+        return orders
+    groups: dict[tuple, list[RunOutcome]] = {}
+    for outcome in outcomes:
+        key = tuple((a, outcome.coordinates[a]) for a in spec.axes if a != spec.order_axis)
+        groups.setdefault(key, []).append(outcome)
+    for members in groups.values():
+        for previous, current in zip(members, members[1:]):
+            e0, e1 = errors[previous.label], errors[current.label]
+            if previous.ok and current.ok and e0 > 0 and e1 > 0 and previous.h != current.h:
+                orders[current.label] = math.log(e0 / e1) / math.log(previous.h / current.h)
+    return orders
+
+
+def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome | None) -> tuple[list[str], list[list[str]]]:
+    """The sweep's summary table: one row per run."""
+    errors = errors_of(spec, outcomes, reference)
+    orders = orders_of(spec, outcomes, errors)
+    invariant_names = []
+    for outcome in outcomes:
+        for name in outcome.invariant_errors:
+            if name not in invariant_names:
+                invariant_names.append(name)
+    header = list(spec.axes) + (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
+        + ["iterations", "max |alpha|/|lambda|"] + [f"max err {n}" for n in invariant_names] + ["status"]
+    rows = []
+    for outcome in outcomes:
+        row = [outcome.coordinates.get(a, "") for a in spec.axes]
+        if spec.error_mode:
+            row.append(_fmt(errors[outcome.label]))
+        if spec.order_axis:
+            row.append("" if math.isnan(orders[outcome.label]) else f"{orders[outcome.label]:.2f}")
+        row.append(str(outcome.iterations_total) if outcome.steps_done else "")
+        row.append(_fmt(outcome.max_multiplier))
+        row.extend(_fmt(outcome.invariant_errors.get(n, math.nan)) for n in invariant_names)
+        row.append(outcome.status)
+        rows.append(row)
+    return header, rows
+
+
+def _fmt(value: float) -> str:
+    return "" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.3e}"
+
+
+def format_table(header: list[str], rows: list[list[str]], fmt: str = "markdown") -> str:
+    if fmt == "csv":
+        import csv
+        import io
+        buffer = io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows(rows)
+        return buffer.getvalue()
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
+    line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
+    return "\n".join([line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|", *map(line, rows)]) + "\n"

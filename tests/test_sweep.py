@@ -1,0 +1,141 @@
+"""Sweeps (elimfast.sweep) and the paper's reproduction (elimfast.paper)."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from elimfast import paper
+from elimfast.sweep import SweepError, load_sweep, orders_of, errors_of, run_sweep, table_rows, format_table
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = {
+    "problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}},
+    "method": {"name": "ehbvm", "k": 12, "s": 3},
+    "conserve": ["angular_momentum"],
+    "integration": {"h": "pi/30", "t_end": "2*pi"},
+}
+
+
+def write_sweep(tmp_path, data, name="sweep.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp_path):
+    path = write_sweep(tmp_path, {
+        "base": BASE,
+        "set": {"integration": {"t_end": "4*pi"}},
+        "grid": [
+            {"name": "method", "values": [{"label": "G2", "set": {"method": {"name": "gauss", "s": 2},
+                                                                  "conserve": []}},
+                                          {"label": "E", "set": {}}]},
+            {"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60", "pi/120"]},
+        ],
+        "error": {"exact": "initial"}, "order_axis": "h"})
+    spec = load_sweep(path)
+    assert [r.label for r in spec.runs] == ["G2/pi/30", "G2/pi/60", "G2/pi/120", "E/pi/30", "E/pi/60", "E/pi/120"]
+    gauss_run = spec.runs[0].config
+    assert gauss_run["method"] == {"name": "gauss", "s": 2}        # replaced: no k inherited
+    assert gauss_run["integration"] == {"h": "pi/30", "t_end": "4*pi"}  # merged
+    assert spec.runs[3].config["method"]["k"] == 12
+
+
+@pytest.mark.parametrize("data,match", [
+    ({"base": BASE, "grids": []}, "grids: unknown key"),
+    ({"base": 3}, "base: give a run config"),
+    ({"base": BASE, "grid": [{"name": "h"}]}, r"grid\[0\]: an axis is a mapping"),
+    ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "a", "set": {}}]}]},
+     "same label"),
+    ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
+    ({"base": BASE, "error": {"exact": "period"}}, "error.exact"),
+])
+def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
+    path = write_sweep(tmp_path, data)
+    with pytest.raises(SweepError, match=match) as caught:
+        load_sweep(path)
+    assert str(path) in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_sweep_runs_in_parallel_give_the_same_numbers_and_orders(tmp_path):
+    path = write_sweep(tmp_path, {
+        "base": BASE,
+        "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/80", "2*pi/160"]}],
+        "error": {"exact": "initial"}, "order_axis": "h"})
+    spec = load_sweep(path)
+    serial, _ = run_sweep(spec, workers=1)
+    parallel, _ = run_sweep(spec, workers=2)
+    for a, b in zip(serial, parallel):
+        np.testing.assert_array_equal(a.y_final, b.y_final)
+        assert a.iterations_total == b.iterations_total
+    orders = orders_of(spec, serial, errors_of(spec, serial, None))
+    assert all(abs(orders[o.label] - 6.0) < 0.3 for o in serial[1:])
+    header, rows = table_rows(spec, serial, None)
+    assert header[:3] == ["h", "error", "order"]
+    markdown = format_table(header, rows)
+    assert markdown.count("\n") == 2 + len(rows)
+    csv_text = format_table(header, rows, "csv")
+    assert csv_text.splitlines()[0].startswith("h,error,order")
+
+
+def test_a_failing_run_does_not_stop_the_others(tmp_path):
+    path = write_sweep(tmp_path, {
+        "base": {**BASE, "solver": {"max_iter": 30}},
+        "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/4"]}],
+        "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}})
+    outcomes, reference = run_sweep(load_sweep(path), workers=2)
+    assert outcomes[0].ok and reference.ok
+    assert not outcomes[1].ok and outcomes[1].status.startswith("failed: ")
+    assert "did not converge" in outcomes[1].status or "singular" in outcomes[1].status
+    errors = errors_of(load_sweep(path), outcomes, reference)
+    assert 0 < errors[outcomes[0].label] < 1e-3 and math.isnan(errors[outcomes[1].label])
+
+
+@pytest.fixture(scope="module")
+def reproduction(tmp_path_factory):
+    return paper.reproduce(ROOT / "configs" / "paper", tmp_path_factory.mktemp("paper-out"), workers=2)
+
+
+def test_paper_tables_1_and_3_are_reproduced(reproduction):
+    for h, column, value, published, relative, order in reproduction["table1"]:
+        if h not in paper.ROUND_OFF_ROWS:
+            assert abs(relative) < paper.TOLERANCE, (h, column, value, published)
+            assert math.isnan(order) or abs(order - 6.0) < 0.2
+    for h, column, value, published, relative in reproduction["table3"]:
+        if h not in paper.ROUND_OFF_ROWS:
+            assert abs(relative) < paper.TOLERANCE, (h, column, value, published)
+    for h, column, total, published in reproduction["table2"]:
+        if h == "pi/30":
+            assert abs(total / published - 1.0) < 0.15
+
+
+def test_paper_markdown_shows_each_value_beside_the_paper(reproduction, tmp_path_factory):
+    out = reproduction["figures"][0].parent
+    table = (out / "table1.md").read_text()
+    assert "| pi/30 | GAUSS3 | 1.941" in table and "1.942e-03" in table
+    assert "**(!)**" not in table.split("pi/240")[0]
+    for name in ("table2.md", "table3.md", "long_run.md"):
+        assert (out / name).stat().st_size > 200
+
+
+def test_paper_figures_are_drawn_and_show_what_the_paper_says(reproduction):
+    import matplotlib.image
+    assert len(reproduction["figures"]) == 4
+    for path in reproduction["figures"]:
+        pixels = matplotlib.image.imread(path)
+        assert pixels.std() > 0.05, path  # not blank
+    summary = reproduction["long_run"]
+    # Figure 2: GAUSS3 keeps H bounded but not to round-off
+    first, last = summary["GAUSS3"]["H"]
+    assert first > 1e-8 and last < 1.5 * first
+    # Figure 3: HBVM keeps H, its angular-momentum error is bounded
+    first, last = summary["HBVM(12,3)"]["angular_momentum"]
+    assert summary["HBVM(12,3)"]["H"][1] < 1e-12 and 1e-10 < last < 1.5 * first
+    # Figure 4: the LRL vector drifts unless imposed
+    for method in ("GAUSS3", "HBVM(12,3)", "EHBVM(12,3) L1", "GHBVM(12,3) L1"):
+        first, last = summary[method]["lrl"]
+        assert last > 3 * first, method
+    for method in ("EHBVM(12,3) L1,L2", "GHBVM(12,3) L1,L2"):
+        assert summary[method]["lrl"][1] < 1e-11, method
