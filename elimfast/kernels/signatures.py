@@ -31,10 +31,12 @@ INVARIANTS_TYPE = types.FunctionType(INVARIANTS_SIGNATURE)
 GRAD_INVARIANTS_TYPE = types.FunctionType(GRAD_INVARIANTS_SIGNATURE)
 
 # Decorators for problem modules: compile eagerly with the signature the kernels expect.
-jit_hamiltonian = njit(H_SIGNATURE, cache=True)
-jit_gradient = njit(GRAD_H_SIGNATURE, cache=True)
-jit_invariants = njit(INVARIANTS_SIGNATURE, cache=True)
-jit_invariant_gradients = njit(GRAD_INVARIANTS_SIGNATURE, cache=True)
+# error_model="numpy": a division by zero gives inf/NaN, which the kernel reports as a
+# non-finite solution (STATUS_NONFINITE), instead of a ZeroDivisionError escaping it.
+jit_hamiltonian = njit(H_SIGNATURE, cache=True, error_model="numpy")
+jit_gradient = njit(GRAD_H_SIGNATURE, cache=True, error_model="numpy")
+jit_invariants = njit(INVARIANTS_SIGNATURE, cache=True, error_model="numpy")
+jit_invariant_gradients = njit(GRAD_INVARIANTS_SIGNATURE, cache=True, error_model="numpy")
 
 
 @jit_invariants

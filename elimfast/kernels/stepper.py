@@ -46,7 +46,7 @@ FAMILY_LIM = 1
 STALLS_TO_STOP = 2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _stopping_rule(delta, best, stalls, tol_abs, small_abs):
     """Spec 3 "practical points" and spec 7: returns (stop, best, stalls).
 
@@ -63,7 +63,7 @@ def _stopping_rule(delta, best, stalls, tol_abs, small_abs):
     return False, best, 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _stages(y, h, integrals, coef, n_coef, out):
     """out[l] = y + h sum_{j<n_coef} integrals[l, j] coef[j]   (spec 2: u_l = u(c_l h))."""
     n = y.shape[0]
@@ -75,7 +75,7 @@ def _stages(y, h, integrals, coef, n_coef, out):
             out[l, i] = y[i] + h * acc
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _project(projection, values, n_degrees, out):
     """out[j] = sum_l projection[j, l] values[l] = sum_l b_l P_j(c_l) values[l], j < n_degrees.
 
@@ -111,7 +111,7 @@ def _project(projection, values, n_degrees, out):
             out[j, i] = acc
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _apply_J(projected, n_degrees, out):
     """out[j] = J projected[j], J = [[0, I], [-I, 0]] (spec 1)."""
     m = projected.shape[1] // 2
@@ -121,7 +121,7 @@ def _apply_J(projected, n_degrees, out):
             out[j, m + i] = -projected[j, i]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _update_coef(coef, new_coef, n_coef, h, y):
     """Copy new_coef into coef; return the largest relative stage increment.
 
@@ -144,7 +144,7 @@ def _update_coef(coef, new_coef, n_coef, h, y):
     return delta
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def elim_step(grad_H, grad_invariants, params, y, h, tables, conserve_idx, stable_rhs,
               coef, alpha, cold, tol, small, max_iter, work):
     """One ELIM(r,k,s) step by fixed-point iteration (spec section 3; HBVM when nu = 0, spec 2).
@@ -272,7 +272,7 @@ def elim_step(grad_H, grad_invariants, params, y, h, tables, conserve_idx, stabl
     return STATUS_NOT_CONVERGED, max_iter
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def lim_step(grad_H, grad_invariants, params, y, h, tables, conserve_idx,
              coef, lam, tol, small, max_iter, work):
     """One LIM(r,k,s) step by fixed-point iteration (spec section 4).
@@ -355,7 +355,7 @@ def lim_step(grad_H, grad_invariants, params, y, h, tables, conserve_idx,
     return STATUS_NOT_CONVERGED, max_iter
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _kahan_add(value, compensation, increment):
     """Compensated summation (spec 7): returns the new (value, compensation)."""
     corrected = increment + compensation
@@ -363,7 +363,7 @@ def _kahan_add(value, compensation, increment):
     return new_value, (value - new_value) + corrected
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _sample(H, invariants, params, y, t, index, t_out, y_out, inv_out, inv_values):
     t_out[index] = t
     for p in range(y.shape[0]):
@@ -385,7 +385,7 @@ TIME_LOOP_SIGNATURE = types.int64(
 )
 
 
-@njit(TIME_LOOP_SIGNATURE, cache=True)
+@njit(TIME_LOOP_SIGNATURE, cache=True, error_model="numpy")
 def time_loop(H, grad_H, invariants, grad_invariants, params,
               family, n_inv, stable_rhs, warm_start,
               h, projection, Is, projection_hat, Ihat,
