@@ -24,3 +24,18 @@ PROBLEMS = {
 
 __all__ = ["Problem", "PROBLEMS", "kepler", "harmonic_oscillator", "quartic_oscillator", "central_quartic",
            "perturbed_kepler", "henon_heiles", "fpu_beta", "toda", "nbody", "pendulum"]
+
+
+def problem_from_expressions(*args, **kwargs) -> Problem:
+    """A Problem from expression strings (see elimfast.problems.symbolic); sympy is imported only here."""
+    from .symbolic import problem_from_expressions as build
+    return build(*args, **kwargs)
+
+
+def problem_from_file(*args, **kwargs) -> Problem:
+    """A Problem from a user's Python file (see elimfast.problems.user_file)."""
+    from .user_file import problem_from_file as build
+    return build(*args, **kwargs)
+
+
+__all__ += ["problem_from_expressions", "problem_from_file"]

@@ -1,0 +1,664 @@
+"""Run configs: YAML -> one validated, frozen ``RunSpec``. All validation happens here.
+
+Format (every section but ``problem``, ``method`` and ``integration`` is optional)::
+
+    problem:
+      builtin: kepler                  # a name in elimfast.problems.PROBLEMS, or
+      # python: kepler_problem.py      # a problem file (relative to this config), or
+      # coordinates: {q: [q1, q2], p: [p1, p2]}      # a problem by expressions:
+      # hamiltonian: "(p1**2 + p2**2)/2 - mu/sqrt(q1**2 + q2**2)"
+      # invariants: {angular_momentum: "q1*p2 - q2*p1"}
+      # name: my_kepler                # expressions / python: the name in reports
+      parameters: {eccentricity: 0.6}  # keyword parameters of the problem
+      initial: {q1: 0.4, p2: 2.0}      # builtin/python: overrides of the default state;
+                                       # expressions: every coordinate (may use parameters)
+      check: true                      # check the invariants at load (false: skip)
+    conserve: [angular_momentum, lrl_y]  # invariants to impose (ELIM/EHBVM: < s; LIM/GHBVM: any)
+    method: {name: ehbvm, k: 12, s: 3}   # gauss(s) hbvm(k,s) elim(r,k,s) ehbvm(k,s) lim(r,k,s) ghbvm(k,s)
+    integration: {h: pi/30, t_end: 20*pi, t0: 0}   # or n_steps instead of t_end (both: must agree)
+    solver: {tol: 1e-15, max_iter: 100, rhs: stable, warm_start: true}
+    output: {path: out/kepler.h5, every: 10}        # path as given (the CLI resolves it)
+
+Numbers may be arithmetic on numbers, ``pi`` and ``e`` (``pi/30``, ``2*pi*10``, ``1e-15``),
+evaluated in double precision exactly as Python would (``pi/30 == math.pi/30``); initial
+values may also use the problem's parameters. Nothing in a config can run code: YAML is
+read with a safe loader (no tags, no aliases) and expressions are parsed as data.
+
+Every error is a ``ConfigError`` whose text is one line, ``FILE: key.path: what is
+wrong; what to do``. ``load_run(path, overrides)`` applies ``--set``-style overrides
+(``"method.s=4"``, values parsed as YAML) before validating.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import inspect
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, BeforeValidator, ConfigDict, StrictBool, ValidationError
+
+from .cache import CacheError
+from .errors import ElimfastError
+from .integrate import DEFAULT_MAX_ITER, T_END_RELATIVE_TOLERANCE, Integration, resolve_conserve
+from .methods import MAX_NODES, Method
+from .problems.base import Problem
+from .problems.expressions import ExpressionError, ProblemDefinitionError, evaluate_number
+
+MAX_FILE_BYTES = 1 << 20     # a config larger than 1 MiB is a mistake
+MAX_YAML_NODES = 100_000     # scalars + containers in one config
+MAX_YAML_DEPTH = 20          # nesting of sections and lists
+
+
+class ConfigError(ElimfastError):
+    """An invalid run config. ``str(err)`` is one line ``FILE: key.path: what is wrong; what to do``;
+    ``messages`` holds every error found (the first one is ``str(err)``); ``key`` the dotted key."""
+
+    def __init__(self, message: str, messages: tuple[str, ...] = (), key: str | None = None):
+        message = " ".join(str(message).split())
+        super().__init__(message)
+        self.messages = tuple(" ".join(m.split()) for m in messages) or (message,)
+        self.key = key
+
+
+# --- scalar types -------------------------------------------------------------------------
+
+def _to_number(value):
+    # A ValueError here is reported by pydantic as a value_error with this text.
+    if not isinstance(value, str):
+        return evaluate_number(value, what="the value")
+    try:
+        return evaluate_number(value, what="value")
+    except ExpressionError as err:
+        detail = err.detail
+        raise ValueError(f"{_short(value)} is not a number ({detail}); write a number or arithmetic on numbers, "
+                         "pi and e, e.g. pi/30") from None
+
+
+def _to_int(value):
+    if isinstance(value, bool):
+        raise ValueError(f"must be a whole number, got {value!r}")
+    if isinstance(value, int):
+        return value
+    number = _to_number(value)
+    if not number.is_integer():
+        raise ValueError(f"must be a whole number, got {value!r}")
+    return int(number)
+
+
+def _to_list_of_names(value):
+    if value is None:
+        return []
+    return [value] if isinstance(value, str) else value
+
+
+Number = Annotated[float, BeforeValidator(_to_number)]
+Integer = Annotated[int, BeforeValidator(_to_int)]
+
+
+# --- the schema (types and keys only; meaning is checked in _Builder) ---------------------
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=False)
+
+
+class CoordinatesSection(_Section):
+    q: list[str]
+    p: list[str]
+
+
+class ProblemSection(_Section):
+    builtin: str | None = None
+    python: str | None = None
+    coordinates: CoordinatesSection | None = None
+    hamiltonian: str | None = None
+    invariants: dict[str, str] | None = None
+    name: str | None = None
+    parameters: dict[str, Any] | None = None
+    initial: dict[str, Any] | None = None
+    check: StrictBool = True
+
+
+class MethodSection(_Section):
+    name: str
+    r: Integer | None = None
+    k: Integer | None = None
+    s: Integer | None = None
+
+
+class IntegrationSection(_Section):
+    h: Number
+    t_end: Number | None = None
+    n_steps: Integer | None = None
+    t0: Number = 0.0
+
+
+class SolverSection(_Section):
+    tol: Number | None = None
+    max_iter: Integer = DEFAULT_MAX_ITER
+    rhs: Literal["stable", "literal"] = "stable"
+    warm_start: StrictBool = True
+
+
+class OutputSection(_Section):
+    path: str | None = None
+    every: Integer = 1
+
+
+class RunConfig(_Section):
+    problem: ProblemSection
+    conserve: Annotated[list[str], BeforeValidator(_to_list_of_names)] = []
+    method: MethodSection
+    integration: IntegrationSection
+    solver: SolverSection = SolverSection()
+    output: OutputSection = OutputSection()
+
+
+_SECTIONS = {(): RunConfig, ("problem",): ProblemSection, ("problem", "coordinates"): CoordinatesSection,
+             ("method",): MethodSection, ("integration",): IntegrationSection, ("solver",): SolverSection,
+             ("output",): OutputSection}
+_EXAMPLES = {
+    "problem": "add e.g. problem: {builtin: kepler}",
+    "method": "add e.g. method: {name: ehbvm, k: 12, s: 3}",
+    "integration": "add e.g. integration: {h: 0.1, t_end: 1000}",
+    "integration.h": "give the step size, e.g. h: pi/30",
+    "method.name": "name one of gauss, hbvm, elim, ehbvm, lim, ghbvm",
+}
+
+
+# --- the result -------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RunSpec:
+    """A validated run: everything the driver needs, and the resolved config for the record."""
+
+    source: str
+    problem: Problem
+    method: Method
+    conserve: tuple[str, ...]
+    h: float
+    n_steps: int
+    t0: float
+    t_end: float
+    tol: float | None
+    max_iter: int
+    rhs: str
+    warm_start: bool
+    output_path: str | None
+    output_every: int
+    resolved: dict
+
+    def integration(self):
+        """A fresh ``elimfast.Integration`` for this run (``store_every`` = output.every)."""
+        return Integration(self.problem, self.method, self.h, self.n_steps, conserve=self.conserve,
+                           tol=self.tol, max_iter=self.max_iter, store_every=self.output_every, rhs=self.rhs,
+                           warm_start=self.warm_start, t0=self.t0)
+
+
+# --- entry points -------------------------------------------------------------------------
+
+def load_run(path, overrides=()) -> RunSpec:
+    """Read, override and validate a YAML run config; raise ConfigError (one line) on any fault."""
+    source = str(path)
+    try:
+        file_path = Path(path)
+        size = file_path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise ConfigError(f"{source}: the file is {size} bytes, more than a config can be "
+                              f"({MAX_FILE_BYTES} bytes); check that it is the right file")
+        raw = file_path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{source}: no such file; check the path") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{source}: is a directory, not a config file; give a .yaml file") from None
+    except (OSError, TypeError, ValueError) as err:
+        raise ConfigError(f"{source}: cannot be read ({type(err).__name__}: {err}); check the path and "
+                          "permissions") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{source}: not UTF-8 text (byte {err.start}); save the config as UTF-8") from None
+    data = parse_yaml(text, source)
+    if data is None:
+        raise ConfigError(f"{source}: the file is empty; a config needs problem, method and integration sections")
+    return load_run_from_dict(data, source=source, overrides=overrides, base_dir=file_path.resolve().parent)
+
+
+def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=None) -> RunSpec:
+    """Validate config data (as yaml.safe_load returns it); ``base_dir``: where relative
+    ``python:`` paths start (default: the current directory)."""
+    data, overridden = _apply_overrides(copy.deepcopy(data), overrides, source)
+    return _Builder(source, overridden, Path(base_dir) if base_dir is not None else Path.cwd()).build(data)
+
+
+# --- YAML ---------------------------------------------------------------------------------
+
+class _SafeLoader(yaml.SafeLoader):
+    """yaml.SafeLoader (no tags that build objects) without aliases: configs need none, and
+    alias bombs would expand exponentially in validation."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, "YAML aliases (*name) are not supported; write the value "
+                                              "out", event.start_mark)
+        return super().compose_node(parent, index)
+
+
+def parse_yaml(text: str, source: str = "<text>"):
+    """yaml safe-load of text; YAML errors become a ConfigError with the line and column."""
+    try:
+        return yaml.load(text, Loader=_SafeLoader)  # noqa: S506 -- a SafeLoader subclass
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(err, "problem", None) or getattr(err, "context", None) or str(err)
+        raise ConfigError(f"{source}: {where}invalid YAML ({problem}); fix the syntax there") from None
+    except (RecursionError, MemoryError):
+        raise ConfigError(f"{source}: the YAML is nested too deeply; simplify the file") from None
+
+
+def _apply_overrides(data, overrides, source):
+    if isinstance(overrides, str):
+        overrides = (overrides,)
+    overridden = set()
+    for item in overrides or ():
+        if not isinstance(item, str) or "=" not in item:
+            raise ConfigError(f"{source}: --set {item!r}: expected KEY=VALUE, e.g. method.s=4")
+        key, _, text = item.partition("=")
+        parts = key.strip().split(".")
+        if not all(parts):
+            raise ConfigError(f"{source}: --set {item!r}: {key!r} is not a key path; write e.g. integration.h=pi/60")
+        value = parse_yaml(text, f"{source}: --set {key.strip()}") if text.strip() else None
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            break  # reported below as "the config must be a mapping"
+        node = data
+        for depth, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"{source}: --set {item!r}: {'.'.join(parts[:depth + 1])} is not a section, so it "
+                                  "has no keys; set it as a whole instead")
+            node = child
+        node[parts[-1]] = value
+        overridden.add(tuple(parts))
+    return data, overridden
+
+
+# --- validation ----------------------------------------------------------------------------
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _join(path) -> str:
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "(top level)"
+
+
+def _suggest(word, options, label: str) -> str:
+    """'did you mean 'x'? (label: a, b, c)' or 'label: a, b, c'."""
+    options = [str(o) for o in options]
+    listed = ", ".join(options) or "none"
+    close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    return f"did you mean {close[0]!r}? ({label}: {listed})" if close else f"{label}: {listed}"
+
+
+class _Builder:
+    def __init__(self, source: str, overridden: set, base_dir: Path):
+        self.source, self.overridden, self.base_dir = source, overridden, base_dir
+
+    # errors
+    def message(self, path, text: str) -> str:
+        suffix = ""
+        path_tuple = tuple(p for p in path if isinstance(p, str))
+        if any(path_tuple[:len(o)] == o for o in self.overridden):
+            suffix = " (value from --set)"
+        return f"{self.source}: {_join(path)}: {text}{suffix}"
+
+    def error(self, path, text: str):
+        return ConfigError(self.message(path, text), key=_join(path))
+
+    def build(self, data) -> RunSpec:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{self.source}: the config must be a mapping of sections (problem, method, "
+                              f"integration, ...), got {type(data).__name__}")
+        self.check_keys(data)
+        try:
+            config = RunConfig.model_validate(data)
+        except ValidationError as err:
+            messages = tuple(self.message(e["loc"], self.describe(e)) for e in err.errors())
+            raise ConfigError(messages[0], messages=messages, key=_join(err.errors()[0]["loc"])) from None
+
+        method = self.method(config.method)
+        h, n_steps, t0, t_end = self.steps(config.integration)
+        solver = config.solver
+        if solver.tol is not None and solver.tol < 0.0:
+            raise self.error(("solver", "tol"), f"must be >= 0, got {solver.tol!r}; use e.g. 1e-15, or leave it out "
+                                                "for round-off level")
+        if solver.max_iter < 1:
+            raise self.error(("solver", "max_iter"), f"must be >= 1, got {solver.max_iter}")
+        if config.output.every < 1:
+            raise self.error(("output", "every"), f"must be >= 1 (store every n-th step), got {config.output.every}")
+        if config.output.path is not None and not config.output.path.strip():
+            raise self.error(("output", "path"), "is empty; give a file name such as out/run.h5, or leave it out")
+        self.conserve_fits_method(config.conserve, method)
+
+        problem, resolved_problem = self.problem(config.problem)
+        conserve = self.conserve(config.conserve, problem, method)
+        resolved = {
+            "problem": resolved_problem,
+            "conserve": list(conserve),
+            "method": {"name": method.family, **{p: getattr(method, p) for p in _method_parameters(method.family)}},
+            "integration": {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps},
+            "solver": {"tol": solver.tol, "max_iter": solver.max_iter, "rhs": solver.rhs,
+                       "warm_start": solver.warm_start},
+            "output": {"path": config.output.path, "every": config.output.every},
+        }
+        return RunSpec(source=self.source, problem=problem, method=method, conserve=conserve, h=h, n_steps=n_steps,
+                       t0=t0, t_end=t_end, tol=solver.tol, max_iter=solver.max_iter, rhs=solver.rhs,
+                       warm_start=solver.warm_start, output_path=config.output.path,
+                       output_every=config.output.every, resolved=resolved)
+
+    def check_keys(self, data) -> None:
+        """Mapping keys must be strings (YAML reads yes/no/on/off/1 as other types); bounded size and depth."""
+        stack = [(data, ())]
+        count = 0
+        while stack:
+            node, path = stack.pop()
+            count += 1
+            if count > MAX_YAML_NODES:
+                raise self.error((), f"the config has more than {MAX_YAML_NODES} entries; it cannot be a run config")
+            if len(path) > MAX_YAML_DEPTH:
+                raise self.error(path[:MAX_YAML_DEPTH], f"nested more than {MAX_YAML_DEPTH} levels deep; no config "
+                                                        "entry needs that")
+            if isinstance(node, dict):
+                for key, value in node.items():
+                    if not isinstance(key, str):
+                        hint = " (YAML reads yes/no/on/off/true/false as booleans: quote the key)" \
+                            if isinstance(key, bool) else ""
+                        raise self.error(path + (str(key),), f"key {key!r} must be a string{hint}")
+                    stack.append((value, path + (key,)))
+            elif isinstance(node, list):
+                stack.extend((value, path + (index,)) for index, value in enumerate(node))
+
+    def describe(self, error) -> str:
+        kind, value, loc = error["type"], error.get("input"), error["loc"]
+        if kind == "extra_forbidden":
+            parent = tuple(p for p in loc[:-1] if isinstance(p, str))
+            model = _SECTIONS.get(parent)
+            allowed = list(model.model_fields) if model else []
+            return f"unknown key; {_suggest(loc[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"
+        if kind == "missing":
+            return f"missing; {_EXAMPLES.get(_join(loc), 'add it')}"
+        if kind in ("model_type", "model_attributes_type", "dict_type"):
+            return f"must be a mapping (key: value), got {_short(value)}"
+        if kind == "list_type":
+            return f"must be a list, e.g. [a, b], got {_short(value)}"
+        if kind == "string_type":
+            return f"must be a string, got {_short(value)}"
+        if kind == "bool_type":
+            return f"must be true or false, got {_short(value)}"
+        if kind == "literal_error":
+            return f"must be one of {error['ctx']['expected']}, got {_short(value)}"
+        if kind in ("int_type", "int_parsing", "int_from_float"):
+            return f"must be a whole number, got {_short(value)}"
+        if kind in ("float_type", "float_parsing"):
+            return f"must be a number, got {_short(value)}"
+        if kind == "value_error":
+            text = str(error["ctx"]["error"])
+            return text.replace("the value ", "", 1) if text.startswith("the value ") else text
+        return f"{error['msg']}, got {_short(value)}"
+
+    # method
+    def method(self, section: MethodSection) -> Method:
+        from .methods import METHODS
+
+        name = section.name.strip().lower()
+        if name not in METHODS:
+            raise self.error(("method", "name"), f"unknown method {section.name!r}; {_suggest(name, METHODS, 'known')}")
+        expected = _method_parameters(name)
+        signature = f"{name}({', '.join(expected)})"
+        given = {p: getattr(section, p) for p in ("r", "k", "s") if getattr(section, p) is not None}
+        for p in ("r", "k", "s"):
+            if p in given and p not in expected:
+                raise self.error(("method", p), f"{signature} takes no {p}; remove it")
+        for p in expected:
+            if p not in given:
+                raise self.error(("method", p), f"missing; {signature} needs {', '.join(expected)}")
+        for p, value in given.items():
+            if value < 1:
+                raise self.error(("method", p), f"must be >= 1, got {value}")
+            if value > MAX_NODES:
+                raise self.error(("method", p), f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified "
+                                                f"up to there), got {value}")
+        s = given["s"]
+        if "k" in given and given["k"] < s:
+            raise self.error(("method", "k"), f"k = {given['k']} must be >= s = {s} (the quadrature needs at least s "
+                                              "nodes); raise k or lower s")
+        if "r" in given and given["r"] < s:
+            raise self.error(("method", "r"), f"r = {given['r']} must be >= s = {s} (the invariants' quadrature "
+                                              "needs at least s nodes); raise r or lower s")
+        try:
+            return METHODS[name](**given)
+        except (TypeError, ValueError) as err:
+            raise self.error(("method",), f"{err}") from None
+
+    # integration
+    def steps(self, section: IntegrationSection):
+        h, t0 = section.h, section.t0
+        if not h > 0.0:
+            raise self.error(("integration", "h"), f"must be > 0, got {h!r}")
+        if section.t_end is None and section.n_steps is None:
+            raise self.error(("integration",), "give t_end (the final time) or n_steps")
+        n_steps = section.n_steps
+        if n_steps is not None and n_steps < 1:
+            raise self.error(("integration", "n_steps"), f"must be >= 1, got {n_steps}")
+        if section.t_end is not None:
+            span = section.t_end - t0
+            if not (math.isfinite(span) and span > 0.0):
+                raise self.error(("integration", "t_end"), f"must be after t0 = {t0!r}, got {section.t_end!r}")
+            steps = round(span / h)
+            if steps < 1 or abs(steps * h - span) > T_END_RELATIVE_TOLERANCE * span:
+                raise self.error(("integration", "t_end"),
+                                 f"t_end - t0 = {span!r} is not a whole number of steps of h = {h!r} "
+                                 f"({span / h:.12g} steps); adjust h or t_end, or give n_steps instead")
+            if n_steps is not None and n_steps != steps:
+                raise self.error(("integration", "n_steps"), f"n_steps = {n_steps} disagrees with t_end: "
+                                                             f"(t_end - t0)/h = {steps}; give only one of them")
+            return h, int(steps), t0, section.t_end
+        return h, int(n_steps), t0, t0 + n_steps * h
+
+    # conserve
+    def conserve_fits_method(self, names, method: Method) -> None:
+        if names and not method.imposes_invariants:
+            raise self.error(("conserve",), f"{method.name} cannot impose invariants; use ehbvm/elim or ghbvm/lim, "
+                                            "or remove conserve")
+        limit = method.max_conserved()
+        if limit is not None and len(names) > limit:
+            raise self.error(("method", "s"), f"{method.name} imposes at most s - 1 = {limit} invariant(s) but "
+                                              f"conserve lists {len(names)}; raise method.s to {len(names) + 1} or "
+                                              "more, or conserve fewer")
+
+    def conserve(self, names, problem: Problem, method: Method) -> tuple[str, ...]:
+        for index, name in enumerate(names):
+            if name not in problem.invariant_names:
+                if name == "H":
+                    fix = "H is always conserved by HBVM/ELIM/LIM: leave it out"
+                else:
+                    fix = _suggest(name, problem.invariant_names, "its invariants")
+                raise self.error(("conserve", index), f"problem {problem.name!r} has no invariant {name!r}; {fix}")
+            if name in names[:index]:
+                raise self.error(("conserve", index), f"{name!r} is listed twice; list each invariant once")
+        try:
+            return resolve_conserve(problem, method, names)[0]
+        except (TypeError, ValueError) as err:
+            raise self.error(("conserve",), str(err)) from None
+
+    # problem
+    def problem(self, section: ProblemSection):
+        modes = [m for m, present in (("builtin", section.builtin is not None), ("python", section.python is not None),
+                                      ("expressions", section.hamiltonian is not None or section.coordinates
+                                       is not None)) if present]
+        if not modes:
+            raise self.error(("problem",), "no problem given; add builtin: NAME, python: FILE.py, or coordinates "
+                                           "and hamiltonian")
+        if len(modes) > 1:
+            keys = {"builtin": "builtin", "python": "python", "expressions": "coordinates/hamiltonian"}
+            raise self.error(("problem",), f"give only one of {', '.join(keys[m] for m in modes)}; they are "
+                                           "different ways to define the problem")
+        mode = modes[0]
+        if mode != "expressions" and section.invariants is not None:
+            raise self.error(("problem", "invariants"), f"only a problem by expressions takes invariants; "
+                                                        f"a {mode} problem defines its own: remove it")
+        if mode == "builtin" and section.name is not None:
+            raise self.error(("problem", "name"), "a built-in problem keeps its name; remove name")
+        try:
+            if mode == "builtin":
+                problem, resolved = self.builtin(section)
+            elif mode == "python":
+                problem, resolved = self.python_file(section)
+            else:
+                problem, resolved = self.expressions(section)
+            if section.check:
+                from .problems.check import require_invariants
+                require_invariants(problem)
+        except CacheError as err:
+            raise self.error(("problem",), str(err)) from None
+        except ProblemDefinitionError as err:
+            if mode == "expressions" and err.key:
+                path = ("problem", *err.key.split("."))
+            elif err.key and err.key.split(".")[0] in ("parameters", "initial"):
+                path = ("problem", *err.key.split("."))
+            else:
+                path = ("problem", "builtin" if mode == "builtin" else "python" if mode == "python" else "hamiltonian")
+            raise self.error(path, str(err)) from None
+        resolved["check"] = section.check
+        return problem, resolved
+
+    def builtin(self, section: ProblemSection):
+        from . import problems as library
+
+        name = section.builtin
+        constructors = library.PROBLEMS
+        if name not in constructors:
+            raise self.error(("problem", "builtin"),
+                             f"unknown problem {name!r}; {_suggest(name, sorted(constructors), 'built-in')}")
+        constructor = constructors[name]
+        accepted = inspect.signature(constructor).parameters
+        kwargs = {}
+        for pname, value in (section.parameters or {}).items():
+            if pname not in accepted:
+                raise self.error(("problem", "parameters", pname),
+                                 f"{name} has no parameter {pname!r}; {_suggest(pname, accepted, 'its parameters')}")
+            kwargs[pname] = self.parameter_value(value, accepted[pname].default, ("problem", "parameters", pname))
+        try:
+            problem = constructor(**kwargs)
+        except Exception as err:  # a built-in rejecting user values; report it, never a traceback
+            detail = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise self.error(("problem", "parameters"), f"{name}: {detail}") from None
+        problem = self.apply_initial(problem, section.initial)
+        parameters = {k: _plain(v) for k, v in problem.parameters.items() if k in accepted}
+        for k, v in kwargs.items():
+            parameters.setdefault(k, _plain(v))
+        return problem, {"builtin": name, "parameters": parameters, "initial": _initial_dict(problem)}
+
+    def parameter_value(self, value, default, path):
+        """Numbers (or numeric strings) stay numbers, ints where the default is an int; strings
+        stay strings where the default is one; lists are converted entry by entry."""
+        if isinstance(value, list):
+            return [self.parameter_value(v, None, path + (i,)) for i, v in enumerate(value)]
+        if isinstance(value, str) and isinstance(default, str):
+            return value
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, int) and not isinstance(default, float):
+            return value
+        try:
+            number = evaluate_number(value, what="value")
+        except ProblemDefinitionError as err:
+            raise self.error(path, str(err).replace("value ", "", 1)) from None
+        if isinstance(default, int) and not isinstance(default, bool) and number.is_integer():
+            return int(number)
+        return number
+
+    def apply_initial(self, problem: Problem, initial) -> Problem:
+        if not initial:
+            return problem
+        names = problem.coordinate_names
+        values = {k: float(v) for k, v in problem.parameters.items()
+                  if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        y0 = problem.y0.copy()
+        for cname, value in initial.items():
+            if cname not in names:
+                raise self.error(("problem", "initial", cname), f"problem {problem.name!r} has no coordinate "
+                                                                f"{cname!r}; {_suggest(cname, names, 'coordinates')}")
+            try:
+                y0[names.index(cname)] = evaluate_number(value, values, what="value")
+            except ProblemDefinitionError as err:
+                raise self.error(("problem", "initial", cname), str(err).replace("value ", "", 1)) from None
+        return problem.with_initial(y0)
+
+    def python_file(self, section: ProblemSection):
+        from .problems.user_file import problem_from_file
+
+        path = Path(section.python).expanduser()
+        if not path.is_absolute():
+            path = self.base_dir / path
+        problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name)
+        return problem, {"python": str(path.resolve()), "name": problem.name,
+                         "parameters": {k: _plain(v) for k, v in problem.parameters.items()},
+                         "initial": _initial_dict(problem)}
+
+    def expressions(self, section: ProblemSection):
+        from .problems.symbolic import problem_from_expressions
+
+        if section.coordinates is None:
+            raise self.error(("problem", "coordinates"), "missing; declare them, e.g. coordinates: {q: [q1, q2], "
+                                                         "p: [p1, p2]}")
+        if section.hamiltonian is None:
+            raise self.error(("problem", "hamiltonian"), "missing; give H as an expression of the coordinates and "
+                                                         "parameters")
+        name = section.name or (Path(self.source).stem if self.source != "<dict>" else "user")
+        coordinates = {"q": section.coordinates.q, "p": section.coordinates.p}
+        problem = problem_from_expressions(coordinates=coordinates, hamiltonian=section.hamiltonian,
+                                           invariants=section.invariants, parameters=section.parameters,
+                                           initial=section.initial, name=name)
+        return problem, {"name": name, "coordinates": {k: list(v) for k, v in coordinates.items()},
+                         "hamiltonian": section.hamiltonian, "invariants": dict(section.invariants or {}),
+                         "parameters": dict(problem.parameters), "initial": _initial_dict(problem)}
+
+
+def _method_parameters(family: str) -> list[str]:
+    from .methods import METHODS
+    return list(inspect.signature(METHODS[family]).parameters)
+
+
+def _initial_dict(problem: Problem) -> dict:
+    return {name: float(value) for name, value in zip(problem.coordinate_names, problem.y0)}
+
+
+def _plain(value):
+    """YAML-dumpable plain data: numpy scalars and arrays, tuples -> floats, ints, lists."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "tolist"):
+        return _plain(value.tolist())
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return float(value)
+    return str(value)

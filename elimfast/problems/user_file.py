@@ -1,0 +1,290 @@
+"""``python: path/to/file.py`` problems: plain Python functions, compiled with the fixed signatures.
+
+A Python problem file is code, run because the user explicitly names it (a YAML config
+itself can never run code: its expressions are data, see ``expressions.py``). The file
+defines, at module level:
+
+Required
+    ``H(y, params) -> float``            the Hamiltonian
+    ``grad_H(y, params, out)``           write dH/dy into out (2m,): dH/dq, then dH/dp
+Optional
+    ``invariants(y, params, out)``       write L_i(y) into out (n_inv,)
+    ``grad_invariants(y, params, out)``  write grad L_i(y) into row i of out (n_inv, 2m)
+    ``INVARIANT_NAMES``                  names of the L_i, in order (required with invariants)
+    ``Y0``                               default initial state, 2m numbers (q, then p)
+    ``Q_NAMES``, ``P_NAMES``             coordinate names (default q1..qm, p1..pm)
+    ``PARAMETERS``                       {name: default value}; the functions read them
+                                         as params[0], params[1], ... in this order
+    ``NAME``, ``DESCRIPTION``            for reports (default: the file name; the docstring)
+
+``y``, ``params`` and ``out`` are C-contiguous float64 arrays; the functions must be
+Numba-compilable (``math`` and NumPy on scalars; helpers they call must be decorated
+with ``numba.njit``). They may be plain functions or already ``@njit``-decorated: either
+way elimfast compiles them with exactly the signatures of ``kernels.signatures``
+(``njit(signature, cache=True, error_model="numpy")``), so they run as fast as a built-in;
+a division by zero gives inf/NaN, which the kernel reports as a non-finite failure. Each function is
+first called once in plain Python at the initial state with arrays of the right shape,
+so an out-of-range index or an output left unwritten is reported instead of corrupting
+memory in compiled code. The check at load (``check.py``) then tests the invariants.
+
+Caching: the file's text is copied to ``<cache>/problems/u_<sha256>.py`` (named by its
+content and the elimfast version) and imported from there with ``__file__`` still the
+original path, so Numba's cache lives in elimfast's cache directory, an edit of the
+file simply makes a new entry, and a second process loading the same file compiles
+nothing. Imports of sibling modules of the file are not supported (use installed packages).
+
+Example: ``configs/kepler_problem.py``.
+"""
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .. import cache
+from ..kernels import signatures
+from .base import Problem
+from .expressions import ProblemDefinitionError, check_name, did_you_mean, evaluate_number
+
+
+class UserProblemError(ProblemDefinitionError):
+    """A ``python:`` problem file that cannot be loaded, compiled or used."""
+
+
+_MODULES: dict[str, object] = {}
+_COMPILED: dict[tuple[str, str], object] = {}
+
+_SIGNATURES = {
+    "H": (signatures.H_SIGNATURE, "H(y, params) -> float"),
+    "grad_H": (signatures.GRAD_H_SIGNATURE, "grad_H(y, params, out)"),
+    "invariants": (signatures.INVARIANTS_SIGNATURE, "invariants(y, params, out)"),
+    "grad_invariants": (signatures.GRAD_INVARIANTS_SIGNATURE, "grad_invariants(y, params, out)"),
+}
+
+
+def problem_from_file(path, parameters=None, initial=None, name: str | None = None) -> Problem:
+    """The Problem defined by a Python file (see the module docstring for what it must define).
+
+    parameters: {name: value} overriding PARAMETERS; initial: {coordinate: value} overriding
+    Y0 entries (every coordinate when the file has no Y0). Values may be numeric strings
+    ('pi/3'); initial values may use the parameter names.
+    """
+    path = Path(path).expanduser()
+    label = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise UserProblemError(f"python problem file {label} does not exist; check the path (relative paths "
+                               "are relative to the config file)", key="python") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise UserProblemError(f"python problem file {label} cannot be read ({err})", key="python") from None
+    module = _load_module(path, text)
+
+    def get(attribute, default=None):
+        return module.__dict__.get(attribute, default)
+
+    functions = {}
+    for fname in ("H", "grad_H", "invariants", "grad_invariants"):
+        value = get(fname)
+        if value is not None and not callable(value):
+            raise UserProblemError(f"{label}: {fname} must be a function {_SIGNATURES[fname][1]}", key="python")
+        functions[fname] = value
+    for required in ("H", "grad_H"):
+        if functions[required] is None:
+            raise UserProblemError(f"{label} defines no {required}; define a function {_SIGNATURES[required][1]}",
+                                   key="python")
+    if (functions["invariants"] is None) != (functions["grad_invariants"] is None):
+        raise UserProblemError(f"{label}: define both invariants and grad_invariants, or neither", key="python")
+    invariant_names = tuple(get("INVARIANT_NAMES", ()))
+    if functions["invariants"] is not None and not invariant_names:
+        raise UserProblemError(f"{label}: invariants is defined but INVARIANT_NAMES is not; list their names",
+                               key="python")
+    if functions["invariants"] is None and invariant_names:
+        raise UserProblemError(f"{label}: INVARIANT_NAMES is given but no invariants function", key="python")
+
+    default_parameters = get("PARAMETERS", {}) or {}
+    if not isinstance(default_parameters, dict):
+        raise UserProblemError(f"{label}: PARAMETERS must be a dict name -> value", key="python")
+    param_values = {}
+    for pname, value in default_parameters.items():
+        param_values[str(pname)] = _number(value, f"{label}: PARAMETERS[{pname!r}]", "python")
+    for pname, value in (parameters or {}).items():
+        if pname not in param_values:
+            known = ", ".join(param_values) or "none"
+            raise UserProblemError(f"{label} has no parameter {pname!r}{did_you_mean(str(pname), param_values)} "
+                                   f"(its PARAMETERS: {known})", key=f"parameters.{pname}")
+        param_values[pname] = _number(value, f"parameter {pname}", f"parameters.{pname}")
+
+    q_names, p_names, y0 = _coordinates(label, get("Q_NAMES"), get("P_NAMES"), get("Y0"), initial, param_values)
+    n = 2 * len(q_names)
+    params = np.array(list(param_values.values()), dtype=np.float64)
+    _dry_run(label, functions, y0, params, n, len(invariant_names))
+
+    compiled = {fname: _compile(label, path, fname, function) for fname, function in functions.items()
+                if function is not None}
+    doc = (get("__doc__") or "").strip().splitlines()
+    return Problem(
+        name=name or str(get("NAME", path.stem)), q_names=q_names, p_names=p_names,
+        H=compiled["H"], grad_H=compiled["grad_H"],
+        invariants=compiled.get("invariants", signatures.no_invariants),
+        grad_invariants=compiled.get("grad_invariants", signatures.no_invariant_gradients),
+        invariant_names=invariant_names, y0=y0, params=params, parameters=param_values,
+        description=str(get("DESCRIPTION", doc[0] if doc else f"python problem {path.name}")),
+    )
+
+
+def _number(value, what, key) -> float:
+    try:
+        return evaluate_number(value, what=what)
+    except ProblemDefinitionError as err:
+        raise UserProblemError(str(err), key=key) from None
+
+
+def _load_module(path: Path, text: str):
+    digest = cache.content_hash("python-file-v1", text)
+    copy = cache.problems_dir() / f"u_{digest}.py"
+    if str(copy) in _MODULES and copy.exists():
+        return _MODULES[str(copy)]
+    try:
+        current = copy.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        current = None
+    if current != text:
+        cache.write_atomic(copy, text)
+    module_name = f"elimfast_user_{digest[:32]}"
+    spec = importlib.util.spec_from_file_location(module_name, copy)
+    module = importlib.util.module_from_spec(spec)
+    module.__file__ = str(path.resolve())  # the user's code sees its own location
+    sys.modules[module_name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as err:  # the user's file: report whatever it raised, in one line
+        sys.modules.pop(module_name, None)
+        where = ""
+        tb = err.__traceback__
+        while tb is not None:
+            if tb.tb_frame.f_code.co_filename == str(copy):
+                where = f" at line {tb.tb_lineno}"
+            tb = tb.tb_next
+        if isinstance(err, SyntaxError):
+            where = f" at line {err.lineno}"
+            message = err.msg
+        else:
+            message = str(err).splitlines()[0] if str(err) else ""
+        raise UserProblemError(f"python problem file {path}: running it raised {type(err).__name__}{where}: "
+                               f"{message}; fix the file", key="python") from None
+    _MODULES[str(copy)] = module
+    return module
+
+
+def _coordinates(label, q_names, p_names, default_y0, initial, param_values):
+    if default_y0 is not None:
+        try:
+            default_y0 = np.array(default_y0, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise UserProblemError(f"{label}: Y0 must be a list of numbers", key="python") from None
+    if q_names is None and p_names is None:
+        if default_y0 is None:
+            raise UserProblemError(f"{label}: define Y0 (the default initial state) or Q_NAMES and P_NAMES",
+                                   key="python")
+        if default_y0.size % 2 or default_y0.size == 0:
+            raise UserProblemError(f"{label}: Y0 must have an even, positive number of entries (q, then p), "
+                                   f"got {default_y0.size}", key="python")
+        m = default_y0.size // 2
+        q_names = [f"q{i + 1}" for i in range(m)]
+        p_names = [f"p{i + 1}" for i in range(m)]
+    if q_names is None or p_names is None:
+        raise UserProblemError(f"{label}: define both Q_NAMES and P_NAMES, or neither", key="python")
+    q_names, p_names = tuple(q_names), tuple(p_names)
+    for cname in q_names + p_names:
+        try:
+            check_name(cname, "coordinate name")
+        except ProblemDefinitionError as err:
+            raise UserProblemError(f"{label}: Q_NAMES/P_NAMES: {err}", key="python") from None
+    names = q_names + p_names
+    if len(q_names) != len(p_names) or not q_names or len(set(names)) != len(names):
+        raise UserProblemError(f"{label}: Q_NAMES and P_NAMES must be distinct names, as many of each",
+                               key="python")
+    if default_y0 is not None and default_y0.size != len(names):
+        raise UserProblemError(f"{label}: Y0 has {default_y0.size} entries for {len(names)} coordinates",
+                               key="python")
+    initial = dict(initial or {})
+    for cname in initial:
+        if cname not in names:
+            raise UserProblemError(f"{cname!r} is not a coordinate of {label}{did_you_mean(str(cname), names)} "
+                                   f"(coordinates: {', '.join(names)})", key=f"initial.{cname}")
+    if default_y0 is None:
+        missing = [c for c in names if c not in initial]
+        if missing:
+            raise UserProblemError(f"{label} has no Y0, so every coordinate needs an initial value; missing: "
+                                   f"{', '.join(missing)}", key="initial")
+        default_y0 = np.zeros(len(names))
+    y0 = default_y0.copy()
+    for i, cname in enumerate(names):
+        if cname in initial:
+            try:
+                y0[i] = evaluate_number(initial[cname], param_values, what=f"initial value of {cname}")
+            except ProblemDefinitionError as err:
+                raise UserProblemError(str(err), key=f"initial.{cname}") from None
+    if not np.all(np.isfinite(y0)):
+        raise UserProblemError(f"{label}: the initial state must be finite, got {y0.tolist()}", key="python")
+    return q_names, p_names, y0
+
+
+def _dry_run(label, functions, y0, params, n, n_inv) -> None:
+    """Call the plain Python functions once with exact-size arrays: catches wrong indices and
+    unwritten outputs before compiled code could write out of bounds."""
+    outputs = {"grad_H": np.full(n, np.nan), "invariants": np.full(n_inv, np.nan),
+               "grad_invariants": np.full((n_inv, n), np.nan)}
+    for fname, function in functions.items():
+        if function is None:
+            continue
+        py_function = getattr(function, "py_func", function)
+        args = (y0.copy(), params.copy()) + ((outputs[fname],) if fname != "H" else ())
+        try:
+            with np.errstate(all="ignore"):
+                value = py_function(*args)
+        except Exception as err:
+            first = str(err).splitlines()[0] if str(err) else ""
+            raise UserProblemError(f"{label}: calling {_SIGNATURES[fname][1]} at the initial state raised "
+                                   f"{type(err).__name__}: {first} (y has {n} entries, params {params.size}"
+                                   + (f", {n_inv} invariants" if fname.endswith("invariants") else "")
+                                   + ")", key="python") from None
+        if fname == "H":
+            try:
+                float(value)
+            except (TypeError, ValueError):
+                raise UserProblemError(f"{label}: H must return a number, got {value!r}", key="python") from None
+        elif np.isnan(outputs[fname]).any():
+            index = tuple(int(i) for i in np.argwhere(np.isnan(outputs[fname]))[0])
+            raise UserProblemError(f"{label}: {fname} left out{list(index)} unwritten (or NaN) at the initial "
+                                   f"state; it must fill all of out, shape {outputs[fname].shape}", key="python")
+
+
+def _compile(label, path, fname, function):
+    from numba import njit
+    from numba.core.errors import NumbaError
+
+    py_function = getattr(function, "py_func", function)
+    key = (str(getattr(py_function, "__code__", None) and py_function.__code__.co_filename), fname)
+    if key in _COMPILED and _COMPILED[key].py_func is py_function:
+        return _COMPILED[key]
+    signature, text = _SIGNATURES[fname]
+    try:
+        compiled = njit(signature, cache=True, error_model="numpy")(py_function)
+    except NumbaError as err:
+        message = str(err)
+        where = re.search(r'File "[^"]*", line (\d+)', message)
+        lines = [line.strip() for line in message.splitlines()
+                 if line.strip() and not line.startswith("Failed in nopython") and "During:" not in line
+                 and not line.strip().startswith("File ")]
+        detail = " ".join(lines[:1])[:300]
+        at = f" (line {where.group(1)})" if where else ""
+        raise UserProblemError(f"{label}: Numba cannot compile {fname} as {text}{at}: {detail}; only Numba-"
+                               "supported Python (math, NumPy on scalars, @njit helpers) can be used",
+                               key="python") from None
+    _COMPILED[key] = compiled
+    return compiled

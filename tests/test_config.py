@@ -1,0 +1,391 @@
+"""YAML run configs: every shipped config validates; every fault is one clear ConfigError line;
+nothing in a config can run code."""
+import copy
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import elimfast
+from elimfast import problems
+from elimfast.config import ConfigError, RunSpec, load_run, load_run_from_dict
+from elimfast.integrate import Integration
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+ALL_CONFIGS = sorted(CONFIGS.glob("*.yaml"))
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("ELIMFAST_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "elimfast-cache"))
+
+
+def kepler_data():
+    return yaml.safe_load((CONFIGS / "kepler.yaml").read_text())
+
+
+def expressions_data():
+    return yaml.safe_load((CONFIGS / "kepler_expressions.yaml").read_text())
+
+
+def config_error(data, overrides=(), source="run.yaml") -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        load_run_from_dict(data, source=source, overrides=overrides)
+    message = str(info.value)
+    assert "\n" not in message and "Traceback" not in message
+    assert message.startswith(f"{source}: ")
+    return info.value
+
+
+# --- the shipped configs ---------------------------------------------------------------
+
+@pytest.mark.parametrize("path", ALL_CONFIGS, ids=[p.stem for p in ALL_CONFIGS])
+def test_every_shipped_config_loads_and_validates(path):
+    spec = load_run(path)
+    assert isinstance(spec, RunSpec) and spec.source == str(path)
+    assert spec.n_steps >= 1 and spec.h > 0 and math.isclose(spec.t0 + spec.n_steps * spec.h, spec.t_end)
+    run = spec.integration()
+    assert isinstance(run, Integration) and run.conserve == spec.conserve
+    chunk = run.advance(3)
+    assert chunk.status == 0 and np.all(np.isfinite(chunk.y))
+    # The resolved config is plain YAML and describes the same run.
+    again = load_run_from_dict(yaml.safe_load(yaml.safe_dump(spec.resolved, sort_keys=False)), source="resolved")
+    assert again.n_steps == spec.n_steps and again.h == spec.h and again.method.name == spec.method.name
+    assert again.conserve == spec.conserve and np.array_equal(again.problem.y0, spec.problem.y0)
+    np.testing.assert_array_equal(again.problem.params, spec.problem.params)
+
+
+def test_every_builtin_problem_has_a_config():
+    shipped = {yaml.safe_load(p.read_text())["problem"].get("builtin") for p in ALL_CONFIGS}
+    assert set(problems.PROBLEMS) <= shipped
+
+
+def test_kepler_config_is_the_make_run_config():
+    spec = load_run(CONFIGS / "kepler.yaml")
+    assert spec.method.name == "EHBVM(12,3)" and spec.conserve == ("angular_momentum", "lrl_y")
+    assert (spec.h, spec.t0, spec.t_end, spec.n_steps) == (0.1, 0.0, 1000.0, 10000)
+    assert (spec.output_path, spec.output_every) == ("out/kepler.h5", 10)
+    assert (spec.tol, spec.max_iter, spec.rhs, spec.warm_start) == (None, 100, "stable", True)
+    assert spec.problem.name == "kepler" and spec.problem.parameters == {"eccentricity": 0.6}
+
+
+def test_user_problems_in_configs_are_the_builtin_kepler():
+    builtin = problems.kepler(0.6)
+    for name in ("kepler_expressions", "kepler_python"):
+        spec = load_run(CONFIGS / f"{name}.yaml")
+        np.testing.assert_allclose(spec.problem.y0, builtin.y0, rtol=0, atol=1e-15)
+        assert spec.problem.invariant_names == builtin.invariant_names
+        values, expected = spec.problem.invariant_values(builtin.y0), builtin.invariant_values(builtin.y0)
+        for key in expected:
+            assert values[key] == pytest.approx(expected[key], abs=1e-15)
+
+
+def test_numbers_are_arithmetic_and_integration_matches_the_python_api():
+    data = kepler_data()
+    data["integration"] = {"h": "pi/30", "t_end": "20*pi"}
+    data["solver"] = {"tol": "1e-15", "max_iter": "2*50"}
+    spec = load_run_from_dict(data)
+    assert spec.h == math.pi / 30 and spec.n_steps == 600 and spec.t_end == 20 * math.pi
+    assert spec.tol == 1e-15 and spec.max_iter == 100
+    run = spec.integration()
+    assert (run.h, run.n_steps, run.tol, run.store_every) == (math.pi / 30, 600, 1e-15, 10)
+
+
+def test_overrides_are_yaml_values_and_validated():
+    spec = load_run(CONFIGS / "kepler.yaml", overrides=["method.s=4", "integration.h=pi/60",
+                                                         "integration.t_end=2*pi", "output.every=1",
+                                                         "conserve=[angular_momentum]"])
+    assert spec.method.name == "EHBVM(12,4)" and spec.h == math.pi / 60 and spec.n_steps == 120
+    assert spec.conserve == ("angular_momentum",) and spec.output_every == 1
+    spec = load_run(CONFIGS / "kepler.yaml", overrides=["integration.t_end=null", "integration.n_steps=7",
+                                                         "problem.initial.p2=2.0"])
+    assert spec.n_steps == 7 and spec.t_end == pytest.approx(0.7) and spec.problem.y0[3] == 2.0
+    err = config_error(kepler_data(), overrides=["method.s=1"])
+    assert err.key == "method.s" and "(value from --set)" in str(err)
+
+
+def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
+    data = expressions_data()
+    data["integration"] = {"h": "pi/30", "n_steps": 60}
+    spec = load_run_from_dict(data)
+    resolved = spec.resolved
+    assert resolved["integration"] == {"h": math.pi / 30, "t0": 0.0, "t_end": 60 * (math.pi / 30), "n_steps": 60}
+    assert resolved["problem"]["initial"] == {"q1": 0.4, "q2": 0.0, "p1": 0.0, "p2": math.sqrt(1.6 / 0.4)}
+    assert resolved["method"] == {"name": "ehbvm", "k": 12, "s": 3}
+    assert resolved["solver"] == {"tol": None, "max_iter": 100, "rhs": "stable", "warm_start": True}
+    yaml.safe_dump(resolved)
+
+
+def test_builtin_parameters_and_initial_overrides():
+    data = {"problem": {"builtin": "fpu_beta", "parameters": {"n": "2*3", "beta": "1/2", "boundary": "fixed"},
+                        "initial": {"q1": "0.1*pi"}},
+            "method": {"name": "hbvm", "k": 6, "s": 3}, "integration": {"h": 0.1, "n_steps": 5}}
+    spec = load_run_from_dict(data)
+    assert spec.problem.parameters == {"n": 6, "beta": 0.5, "boundary": "fixed"}
+    assert spec.problem.y0[0] == 0.1 * math.pi
+    assert spec.problem.y0[1] == problems.fpu_beta(6, 0.5, "fixed").y0[1]
+    data["problem"]["initial"] = {"q1": "1 - beta"}      # initial values may use the parameters
+    assert load_run_from_dict(data).problem.y0[0] == 0.5
+
+
+# --- one-line errors ----------------------------------------------------------------------
+
+def _set(path, value):
+    def change(data):
+        node = data
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+        if value is DELETE:
+            node.pop(path[-1], None)
+        else:
+            node[path[-1]] = value
+        return data
+    return change
+
+
+DELETE = object()
+
+BAD = [
+    ("unknown top key", _set(("metod",), {"name": "gauss"}), "metod", r"unknown key; did you mean 'method'"),
+    ("unknown nested key", _set(("integration", "t_ned"), 5), "integration.t_ned", "did you mean 't_end'"),
+    ("missing section", _set(("method",), DELETE), "method", "missing; add e.g. method:"),
+    ("missing h", _set(("integration", "h"), DELETE), "integration.h", "missing; give the step size"),
+    ("h wrong type", _set(("integration", "h"), [0.1]), "integration.h", "must be a number"),
+    ("h bad expression", _set(("integration", "h"), "pi/"), "integration.h", "not a valid expression"),
+    ("h negative", _set(("integration", "h"), "-pi/30"), "integration.h", "must be > 0"),
+    ("t_end not whole steps", _set(("integration", "h"), 0.3), "integration.t_end", "not a whole number of steps"),
+    ("t_end before t0", _set(("integration", "t0"), 2000), "integration.t_end", "must be after t0"),
+    ("no t_end nor n_steps", _set(("integration", "t_end"), DELETE), "integration", "give t_end"),
+    ("n_steps not integer", _set(("integration", "n_steps"), 10.5), "integration.n_steps", "whole number"),
+    ("method unknown", _set(("method", "name"), "ehbmv"), "method.name", "did you mean 'ehbvm'"),
+    ("method k < s", _set(("method", "k"), 2), "method.k", "must be >= s = 3"),
+    ("method r < s", lambda d: {**d, "method": {"name": "elim", "r": 2, "k": 12, "s": 3}}, "method.r",
+     "r = 2 must be >= s = 3"),
+    ("method s missing", _set(("method", "s"), DELETE), "method.s", r"ehbvm\(k, s\) needs k, s"),
+    ("method extra r", _set(("method", "r"), 12), "method.r", "takes no r"),
+    ("method k too large", _set(("method", "k"), 65), "method.k", "must be <= 64"),
+    ("method k bool", _set(("method", "k"), True), "method.k", "whole number"),
+    ("s not above nu", _set(("method", "s"), 2), "method.s", r"at most s - 1 = 1 .* raise method.s to 3"),
+    ("conserve unknown", _set(("conserve",), ["angular_momentum", "lrl_z"]), "conserve[1]",
+     "no invariant 'lrl_z'; did you mean 'lrl_y'"),
+    ("conserve H", _set(("conserve",), ["H"]), "conserve[0]", "always conserved"),
+    ("conserve twice", _set(("conserve",), ["lrl_y", "lrl_y"]), "conserve[1]", "twice"),
+    ("conserve with gauss", lambda d: {**d, "method": {"name": "gauss", "s": 3}}, "conserve",
+     "cannot impose invariants"),
+    ("conserve not names", _set(("conserve",), [1, 2]), "conserve[0]", "must be a string"),
+    ("builtin unknown", _set(("problem", "builtin"), "keplr"), "problem.builtin", "did you mean 'kepler'"),
+    ("builtin parameter unknown", _set(("problem", "parameters"), {"eccentricty": 0.5}),
+     "problem.parameters.eccentricty", "did you mean 'eccentricity'"),
+    ("builtin parameter rejected", _set(("problem", "parameters"), {"eccentricity": 1.5}), "problem.parameters",
+     r"eccentricity must be in \[0, 1\)"),
+    ("initial unknown coordinate", _set(("problem", "initial"), {"q3": 1.0}), "problem.initial.q3",
+     "no coordinate 'q3'"),
+    ("initial bad value", _set(("problem", "initial"), {"q1": "sqrt(-1)"}), "problem.initial.q1", "not defined"),
+    ("no problem kind", _set(("problem",), {"parameters": {}}), "problem", "no problem given"),
+    ("two problem kinds", _set(("problem", "python"), "x.py"), "problem", "give only one of builtin, python"),
+    ("check not bool", _set(("problem", "check"), "yes please"), "problem.check", "true or false"),
+    ("rhs literal only", _set(("solver", "rhs"), "fancy"), "solver.rhs", "'stable' or 'literal'"),
+    ("tol negative", _set(("solver", "tol"), -1), "solver.tol", "must be >= 0"),
+    ("max_iter zero", _set(("solver", "max_iter"), 0), "solver.max_iter", "must be >= 1"),
+    ("every zero", _set(("output", "every"), 0), "output.every", "must be >= 1"),
+    ("section not mapping", _set(("solver",), "fast"), "solver", "must be a mapping"),
+    ("boolean key", _set(("problem", "initial"), {True: 1.0}), "problem.initial.True", "quote the key"),
+    ("missing python file", lambda d: {**d, "problem": {"python": "no_such_file.py"}}, "problem.python",
+     "does not exist"),
+]
+
+
+@pytest.mark.parametrize("label,change,key,match", BAD, ids=[b[0] for b in BAD])
+def test_each_fault_is_one_line_naming_file_key_and_fix(label, change, key, match):
+    err = config_error(change(kepler_data()))
+    assert err.key == key, str(err)
+    assert str(err).startswith(f"run.yaml: {key}: "), str(err)
+    assert __import__("re").search(match, str(err)), str(err)
+
+
+EXPRESSION_BAD = [
+    ("unknown name", ("hamiltonian",), "p1**2/2 - mu/sqrt(q1**2 + q3**2)", "problem.hamiltonian",
+     "unknown name 'q3'"),
+    ("syntax", ("hamiltonian",), "p1**2/2 +", "problem.hamiltonian", "not a valid expression"),
+    ("invariant bad", ("invariants", "lrl_y"), "p1.real", "problem.invariants.lrl_y", "attribute access"),
+    ("misprinted LRL", ("invariants", "lrl_y"), "p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)",
+     "problem.invariants.lrl_y", r"not conserved by the flow of H: .* = [0-9.]+e-0[0-9]"),
+    ("missing initial", ("initial", "p2"), DELETE, "problem.initial", "no initial value for p2"),
+    ("initial unknown", ("initial", "q3"), 0.0, "problem.initial.q3", "not a coordinate"),
+    ("unequal coordinates", ("coordinates", "p"), ["p1"], "problem.coordinates", "2 q names but 1 p names"),
+    ("reserved name", ("coordinates", "q"), ["q1", "pi"], "problem.coordinates.q", "reserved"),
+    ("parameter junk", ("parameters", "mu"), "1 +", "problem.parameters.mu", "not a valid expression"),
+    ("missing hamiltonian", ("hamiltonian",), DELETE, "problem.hamiltonian", "missing"),
+    ("invariant named H", ("invariants", "H"), "q1", "problem.invariants", "not 'H'"),
+]
+
+
+@pytest.mark.parametrize("label,path,value,key,match", EXPRESSION_BAD, ids=[b[0] for b in EXPRESSION_BAD])
+def test_expression_problem_faults(label, path, value, key, match):
+    data = _set(("problem",) + path, value)(expressions_data())
+    err = config_error(data)
+    assert err.key == key, str(err)
+    assert __import__("re").search(match, str(err)), str(err)
+
+
+def test_check_false_lets_a_wrong_invariant_through():
+    data = expressions_data()
+    data["problem"]["invariants"]["lrl_y"] = "p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)"
+    data["problem"]["check"] = False
+    spec = load_run_from_dict(data)
+    assert spec.resolved["problem"]["check"] is False
+
+
+# --- files and YAML -----------------------------------------------------------------------
+
+def write(tmp_path, text, name="run.yaml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("text,match", [
+    ("problem: {builtin: kepler\nmethod: x", r"line \d+, column \d+: invalid YAML"),
+    ("problem:\n  builtin: kepler\n   method: 3\n", r"line 3, column \d+: invalid YAML"),
+    ("", "the file is empty"),
+    ("- a\n- b\n", "must be a mapping of sections"),
+    ("a: &x [1]\nb: *x\n", "aliases .* not supported"),
+    ("problem: !!python/object/apply:os.system ['true']\n", "invalid YAML .*python/object/apply"),
+    ("problem: !!python/name:os.system\n", "invalid YAML"),
+    ("problem: !custom 3\n", "invalid YAML"),
+])
+def test_yaml_faults_are_config_errors_with_line_numbers(tmp_path, text, match):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError, match=match) as info:
+        load_run(path)
+    assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)
+
+
+def test_file_faults_are_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        load_run(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="is a directory"):
+        load_run(tmp_path)
+    (tmp_path / "binary.yaml").write_bytes(b"\xff\xfe\x00junk")
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        load_run(tmp_path / "binary.yaml")
+    with pytest.raises(ConfigError, match="expected KEY=VALUE"):
+        load_run(CONFIGS / "kepler.yaml", overrides=["method.s"])
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_run(CONFIGS / "kepler.yaml", overrides=["method.s=[1"])
+
+
+def test_python_problem_path_is_relative_to_the_config(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "problem.py").write_text((CONFIGS / "kepler_problem.py").read_text())
+    path = write(tmp_path / "sub", "problem: {python: problem.py, parameters: {mu: 2}, initial: {p2: sqrt(2*mu)}}\n"
+                                   "method: {name: gauss, s: 2}\nintegration: {h: 0.1, n_steps: 3}\n")
+    spec = load_run(path)
+    assert spec.problem.name == "kepler_python" and list(spec.problem.params) == [2.0]
+    assert spec.problem.y0[3] == 2.0
+    assert spec.resolved["problem"]["python"] == str(tmp_path / "sub" / "problem.py")
+
+
+# --- nothing runs -------------------------------------------------------------------------
+
+def malicious_configs(target):
+    command = f"__import__('os').system('touch {target}')"
+    expressions = expressions_data()
+    yield "hamiltonian", _set(("problem", "hamiltonian"), command)(copy.deepcopy(expressions))
+    yield "invariant", _set(("problem", "invariants", "lrl_y"), command)(copy.deepcopy(expressions))
+    yield "parameter", _set(("problem", "parameters", "mu"), command)(copy.deepcopy(expressions))
+    yield "initial", _set(("problem", "initial", "q1"), command)(copy.deepcopy(expressions))
+    yield "h", _set(("integration", "h"), command)(kepler_data())
+    yield "builtin parameter", _set(("problem", "parameters", "eccentricity"), command)(kepler_data())
+    yield "method k", _set(("method", "k"), command)(kepler_data())
+    yield "dunder", _set(("problem", "hamiltonian"), "q1.__class__.__base__.__subclasses__()")(
+        copy.deepcopy(expressions))
+    yield "lambda", _set(("problem", "hamiltonian"), f"(lambda: {command})()")(copy.deepcopy(expressions))
+    yield "builtins", _set(("problem", "hamiltonian"), "__builtins__")(copy.deepcopy(expressions))
+    yield "coordinate name", _set(("problem", "coordinates", "q"), ["q1", "__import__"])(copy.deepcopy(expressions))
+
+
+def test_malicious_configs_are_rejected_and_have_no_effect(tmp_path):
+    target = tmp_path / "owned"
+    for label, data in malicious_configs(target):
+        err = config_error(data)
+        assert err.key and err.key != "(top level)", label
+    yaml_text = f"problem: !!python/object/apply:os.system ['touch {target}']\n"
+    with pytest.raises(ConfigError):
+        load_run(write(tmp_path, yaml_text))
+    with pytest.raises(ConfigError):
+        load_run(CONFIGS / "kepler.yaml", overrides=[f"problem=!!python/object/apply:os.system ['touch {target}']"])
+    assert not target.exists()
+
+
+# --- junk: only ConfigError ----------------------------------------------------------------
+
+KEYS = ["problem", "method", "integration", "solver", "output", "conserve", "builtin", "python", "coordinates",
+        "hamiltonian", "invariants", "parameters", "initial", "check", "name", "k", "s", "r", "h", "t_end",
+        "n_steps", "t0", "tol", "max_iter", "rhs", "warm_start", "path", "every", "q", "p", "eccentricity",
+        "q1", "p2", "junk"]
+SCALARS = st.one_of(
+    st.none(), st.booleans(), st.integers(-5, 100), st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from(["kepler", "ehbvm", "gauss", "lim", "stable", "pi/30", "1e-15", "q1*p2", "__import__('os')",
+                     "sqrt(-1)", "1/0", "angular_momentum", "lrl_y", "toda", "nbody", "q1", "x.py", "p1**2/2",
+                     "", "10**10**10", "(((", "pendulum"]),
+    st.text(max_size=12),
+)
+JUNK = st.recursive(SCALARS, lambda inner: st.one_of(st.lists(inner, max_size=4),
+                                                   st.dictionaries(st.sampled_from(KEYS), inner, max_size=5)),
+                    max_leaves=20)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.dictionaries(st.sampled_from(KEYS), JUNK, max_size=7))
+def test_junk_configs_raise_only_config_errors(data):
+    try:
+        load_run_from_dict(data, source="junk.yaml")
+    except ConfigError as err:
+        assert "\n" not in str(err) and str(err).startswith("junk.yaml: ")
+
+
+SECTIONS = {
+    "problem": st.fixed_dictionaries({"builtin": st.sampled_from(["kepler", "pendulum", "toda", "keplr"])},
+                                     optional={"parameters": st.dictionaries(st.sampled_from(["eccentricity", "n",
+                                                                                              "omega", "x"]),
+                                                                             SCALARS, max_size=2),
+                                               "initial": st.dictionaries(st.sampled_from(["q1", "q", "p2", "x"]),
+                                                                          SCALARS, max_size=2),
+                                               "check": SCALARS}),
+    "method": st.fixed_dictionaries({"name": st.sampled_from(["gauss", "hbvm", "ehbvm", "elim", "lim", "ghbvm"])},
+                                    optional={"k": SCALARS, "s": SCALARS, "r": SCALARS}),
+    "integration": st.fixed_dictionaries({"h": SCALARS}, optional={"t_end": SCALARS, "n_steps": SCALARS,
+                                                                     "t0": SCALARS}),
+    "conserve": st.lists(st.sampled_from(["angular_momentum", "lrl_x", "lrl_y", "trace_L3", "H", "x"]), max_size=3),
+}
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.fixed_dictionaries(SECTIONS))
+def test_nearly_valid_configs_raise_only_config_errors(data):
+    try:
+        spec = load_run_from_dict(data, source="near.yaml")
+    except ConfigError as err:
+        assert "\n" not in str(err) and str(err).startswith("near.yaml: ")
+    else:
+        assert spec.n_steps >= 1 and spec.h > 0
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.text(max_size=200))
+def test_junk_yaml_text_raises_only_config_errors(text):
+    from elimfast.config import parse_yaml
+    try:
+        data = parse_yaml(text, "junk.yaml")
+        load_run_from_dict(data, source="junk.yaml")
+    except ConfigError as err:
+        assert "\n" not in str(err)
+
+
+def test_config_error_is_an_elimfast_error():
+    assert issubclass(ConfigError, elimfast.ElimfastError)
