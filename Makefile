@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: run test bench clean
+.PHONY: run test bench paper clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,8 +24,14 @@ run: $(VENV)/.installed
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
 
+paper: $(VENV)/.installed
+	$(BIN)/elimfast paper --out paper-out
+
 bench: $(VENV)/.installed-test
 	$(BIN)/python bench/kernel.py
+	$(BIN)/python bench/end_to_end.py
+	$(BIN)/python bench/sweep.py
+	$(BIN)/python bench/user_problem.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

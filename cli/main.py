@@ -1,16 +1,687 @@
-"""``elimfast``: click commands that parse, call the library and print; no numerics here."""
+"""``elimfast``: click commands that parse, call the library and print; no numerics here.
+
+Exit codes: 0 done; 1 the integration failed (or an internal error); 2 usage, config or
+file error; 130 interrupted. Every error is one line on stderr; set ELIMFAST_DEBUG=1 to
+get the traceback of an unexpected one. Heavy modules (numba kernels, h5py, matplotlib)
+are imported inside the commands that need them, so ``--help`` stays instant.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
 import click
 
-import elimfast
+DEBUG_ENV = "ELIMFAST_DEBUG"
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(elimfast.__version__, prog_name="elimfast")
-def cli():
-    """Invariant-conserving integrators for Hamiltonian problems.
+# --- the error boundary -------------------------------------------------------------------
+def one_line(text) -> str:
+    return " ".join(str(text).split())
 
-    Example: elimfast --version
+
+def error_line(exc: BaseException) -> tuple[str, int]:
+    """(message, exit code) for an exception that reached the command line."""
+    from elimfast.errors import ConvergenceError, ElimfastError
+
+    if isinstance(exc, ConvergenceError):
+        return f"run failed: {one_line(exc)}", EXIT_FAILED
+    if isinstance(exc, ElimfastError):
+        return one_line(exc), EXIT_USAGE
+    if isinstance(exc, OSError):
+        name = getattr(exc, "filename", None)
+        reason = exc.strerror or one_line(exc)
+        return (f"{name}: {reason}" if name else reason), EXIT_USAGE
+    yaml = sys.modules.get("yaml")
+    if yaml is not None and isinstance(exc, yaml.YAMLError):
+        return f"invalid YAML: {one_line(exc)}", EXIT_USAGE
+    if isinstance(exc, UnicodeDecodeError):
+        return f"not a UTF-8 text file ({one_line(exc)})", EXIT_USAGE
+    if isinstance(exc, MemoryError):
+        return "out of memory; lower output.every's sample count or the problem size", EXIT_FAILED
+    where = ""
+    tb = exc.__traceback__
+    while tb is not None:
+        where = f" at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno}"
+        tb = tb.tb_next
+    return (f"internal error: {type(exc).__name__}: {one_line(exc)}{where} "
+            f"(please report it; rerun with {DEBUG_ENV}=1 for the traceback)"), EXIT_FAILED
+
+
+class _Exit(Exception):
+    """Carries an exit code out of the error handlers to the one place that exits."""
+
+    def __init__(self, code: int):
+        super().__init__(code)
+        self.code = code
+
+
+def fail(message: str, code: int):
+    click.echo(f"error: {message}", err=True)
+    raise _Exit(code)
+
+
+def _leave(code: int, fast: bool):
+    """Exit with code. ``fast``: skip the interpreter's teardown (about 0.25 s of unloading
+    numba and llvmlite) once every file is closed and the streams are flushed; only for
+    a real command line (args from sys.argv), never inside a caller's process."""
+    if fast:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        except (BrokenPipeError, ValueError):
+            pass
+        os._exit(code)
+    sys.exit(code)
+
+
+class ElimfastGroup(click.Group):
+    """A click group whose every error is one line on stderr, with the documented exit codes."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        debug = bool(os.environ.get(DEBUG_ENV))
+        fast = args is None and standalone_mode and not debug
+        try:
+            try:
+                code = super().main(args, prog_name or "elimfast", complete_var, standalone_mode=False, **extra)
+            except click.UsageError as err:
+                command = err.ctx.command_path if err.ctx is not None else "elimfast"
+                fail(f"{one_line(err.format_message()).rstrip('.')} (see '{command} --help')", EXIT_USAGE)
+            except click.ClickException as err:
+                fail(one_line(err.format_message()), EXIT_USAGE)
+            except (click.Abort, KeyboardInterrupt):
+                fail("interrupted", EXIT_INTERRUPTED)
+            except BrokenPipeError:
+                # The reader went away (elimfast inspect ... | head): not an error of ours.
+                sys.stderr.close()
+                os._exit(EXIT_OK)
+            except Exception as err:
+                if debug:
+                    raise
+                fail(*error_line(err))
+        except _Exit as done:
+            code = done.code
+        code = code if isinstance(code, int) else EXIT_OK
+        if standalone_mode:
+            _leave(code, fast)
+        return code
+
+
+def _versions() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    def v(name):
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "?"
+    return (f"elimfast {v('elimfast')} (numba {v('numba')}, numpy {v('numpy')}, h5py {v('h5py')}, "
+            f"python {sys.version.split()[0]})")
+
+
+def _print_version(ctx, param, value):
+    if value and not ctx.resilient_parsing:
+        click.echo(_versions())
+        ctx.exit(EXIT_OK)
+
+
+@click.group(name="elimfast", cls=ElimfastGroup, context_settings=CONTEXT, invoke_without_command=True)
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
+              help="Show the versions of elimfast, numba, numpy, h5py and exit.")
+@click.pass_context
+def cli(ctx):
+    """Invariant-conserving integrators for Hamiltonian problems (GAUSS, HBVM, ELIM/EHBVM, LIM/GHBVM).
+
+    \b
+    Examples:
+      elimfast run configs/kepler.yaml -o out/kepler.h5
+      elimfast inspect out/kepler.h5
+      elimfast plot out/kepler.h5 --kind invariants -o errors.png
+
+    Exit codes: 0 done, 1 the integration failed, 2 usage/config/file error, 130 interrupted.
+    Set ELIMFAST_DEBUG=1 for the traceback of an unexpected error.
     """
+    if ctx.invoked_subcommand is None:
+        click.echo(ctx.get_help())
+
+
+# --- run, check -------------------------------------------------------------------------
+SET_HELP = "Override a config key, e.g. --set method.s=4 --set integration.t_end=100 (repeatable)."
+
+
+def _load(config: str, overrides):
+    from elimfast.config import load_run
+    return load_run(config, overrides=list(overrides))
+
+
+def _resolved_yaml(spec, output_path=None) -> str:
+    import copy
+
+    import yaml
+    resolved = copy.deepcopy(spec.resolved)
+    if output_path is not None:
+        resolved.setdefault("output", {})["path"] = str(output_path)
+    return yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None, width=100)
+
+
+@cli.command(context_settings=CONTEXT)
+@click.argument("config", metavar="CONFIG")
+@click.option("-o", "--output", metavar="OUT.h5", help="The HDF5 file to write (overrides output.path).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
+@click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
+@click.option("--resume", is_flag=True, help="Continue the interrupted or killed run stored in OUT.h5.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress and no summary line (errors only).")
+def run(config, output, overrides, overwrite, resume, quiet):
+    """Run the integration described by CONFIG into an HDF5 file.
+
+    The run proceeds in chunks, each appended to OUT.h5 and flushed, with a progress bar
+    on a terminal (a line every few seconds otherwise). Ctrl-C or SIGTERM stops at the
+    next chunk boundary (exit 130); --resume continues exactly where it stopped, even
+    after kill -9, and ends bit for bit where an uninterrupted run ends. A relative
+    output path is taken from the current directory.
+
+    \b
+    Examples:
+      elimfast run configs/kepler.yaml -o out/kepler.h5
+      elimfast run configs/kepler.yaml -o out/k.h5 --set method.s=4 --set integration.t_end=100
+      elimfast run configs/kepler.yaml -o out/kepler.h5 --resume
+    """
+    from elimfast.io.hdf5 import check_output_path
+
+    if overwrite and resume:
+        raise click.UsageError("--overwrite and --resume contradict each other; give one of them")
+    if output is not None:   # before loading the config: compiling a problem can take a while
+        output = str(Path(output).expanduser())
+        check_output_path(output, overwrite=overwrite, resume=resume)
+    spec = _load(config, overrides)
+    path = output if output is not None else spec.output_path
+    if path is None:
+        raise click.UsageError(f"no output file: give -o OUT.h5 or set output.path in {config}")
+    path = Path(path).expanduser()
+    check_output_path(path, overwrite=overwrite, resume=resume)
+    integration = spec.integration()
+
+    from elimfast import streaming
+    label = f"{spec.method.name} {spec.problem.name}"
+    outcome = streaming.run_to_file(
+        integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
+        resume=resume, progress=streaming.progress_for(quiet), label=label)
+    return _report_run(outcome, config, path, overrides, quiet)
+
+
+def _report_run(outcome, config, path, overrides, quiet) -> int:
+    import shlex
+
+    from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED
+
+    note = f" ({outcome.note})" if outcome.note else ""
+    if outcome.status == STATUS_COMPLETE:
+        if not quiet:
+            rate = outcome.session_steps / outcome.session_wall_s if outcome.session_wall_s > 0 else float("nan")
+            rate_text = f", {rate:,.0f} steps/s" if outcome.session_steps else ""
+            click.echo(f"{path}: complete, {outcome.steps_done} steps, wall time {outcome.wall_time_s:.3g} s"
+                       f"{rate_text}{note}", err=True)
+        return EXIT_OK
+    if outcome.status == STATUS_INTERRUPTED:
+        why = f" by {outcome.signal_name}" if outcome.signal_name else ""
+        click.echo(f"interrupted{why} at step {outcome.steps_done}/{outcome.n_steps} (t = {outcome.t:.17g}); "
+                   f"{path} is complete up to there; continue with: "
+                   + shlex.join(["elimfast", "run", str(config), "-o", str(path),
+                                 *(arg for item in overrides for arg in ("--set", item)), "--resume"]),
+                   err=True)
+        return EXIT_INTERRUPTED
+    click.echo(f"error: run {outcome.status} (the {outcome.steps_done} steps before it are in {path})", err=True)
+    return EXIT_FAILED
+
+
+@cli.command(context_settings=CONTEXT)
+@click.argument("config", metavar="CONFIG")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
+def check(config, overrides):
+    """Validate CONFIG, check its invariants, print the resolved config.
+
+    The invariant check evaluates |grad L^T J grad H| / (|grad L| |grad H|) at the initial
+    state and at seeded random points near it, for every invariant of the problem (also
+    when the config says problem.check: false). The output is YAML: comments with the
+    check, then the resolved config that 'run' would use and store in the HDF5 file.
+
+    \b
+    Examples:
+      elimfast check configs/kepler.yaml
+      elimfast check configs/kepler.yaml --set method.s=2
+    """
+    from elimfast.problems.check import DEFAULT_TOLERANCE, check_invariants, require_invariants
+
+    spec = _load(config, overrides)
+    problem, method = spec.problem, spec.method
+    lines = [f"# {config}: valid",
+             f"# problem {problem.name}, {method.name}"
+             + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "")
+             + f", {spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"]
+    residuals = check_invariants(problem)
+    if residuals:
+        lines.append(f"# invariant check (relative residual, tolerance {DEFAULT_TOLERANCE:.0e}):")
+        width = max(len(name) for name in residuals)
+        for name, value in residuals.items():
+            verdict = "ok" if value <= DEFAULT_TOLERANCE else "NOT CONSERVED"
+            lines.append(f"#   {name:<{width}}  {value:.3e}  {verdict}")
+    else:
+        lines.append(f"# invariant check: problem {problem.name} declares no invariants besides H")
+    if spec.output_path:
+        from elimfast.io.hdf5 import OutputError, check_output_path
+        try:
+            check_output_path(spec.output_path)
+            lines.append(f"# output {spec.output_path}: writable")
+        except OutputError as err:
+            lines.append(f"# output: {one_line(err)}")
+    click.echo("\n".join(lines))
+    click.echo(_resolved_yaml(spec), nl=False)
+    require_invariants(problem)   # exit 2 with the residual when one is not conserved
+    return EXIT_OK
+
+
+# --- inspect, plot ------------------------------------------------------------------------
+@cli.command(context_settings=CONTEXT)
+@click.argument("file", metavar="OUT.h5")
+def inspect(file):
+    """Summarise a run file: problem, method, progress, timing, invariant errors, iterations.
+
+    Reads files of finished, interrupted, failed, killed and still running runs (the last
+    two through HDF5's SWMR mode); memory stays bounded for any length.
+
+    \b
+    Example:
+      elimfast inspect out/kepler.h5
+    """
+    from elimfast.io.hdf5 import RunFile
+
+    from .report import summary
+
+    with RunFile(file) as run_file:
+        click.echo(summary(run_file))
+    return EXIT_OK
+
+
+@cli.command(context_settings=CONTEXT)
+@click.argument("file", metavar="OUT.h5")
+@click.option("--kind", type=click.Choice(["orbit", "invariants", "alpha", "iterations"]), default="invariants",
+              show_default=True, help="orbit: the trajectory; invariants: |I(t) - I(t0)| on a log scale; "
+                                      "alpha: the multipliers per step (lambda for LIM); iterations: per step.")
+@click.option("-o", "--output", metavar="FIG.png", help="Image file (default: OUT_<kind>.png beside OUT.h5); "
+                                                        "the suffix picks the format (png, pdf, svg).")
+@click.option("--overwrite", is_flag=True, help="Replace FIG if it exists.")
+def plot(file, kind, output, overwrite):
+    """Plot a run file with matplotlib (headless).
+
+    \b
+    Examples:
+      elimfast plot out/kepler.h5
+      elimfast plot out/kepler.h5 --kind orbit -o orbit.png
+      elimfast plot out/kepler.h5 --kind alpha -o alpha.pdf
+    """
+    from elimfast.io.hdf5 import OutputError, RunFile
+
+    from .plots import plot_run
+
+    path = Path(output) if output else Path(file).with_name(f"{Path(file).stem}_{kind}.png")
+    if path.exists() and not overwrite:
+        raise OutputError(f"{path}: already exists; pass --overwrite to replace it or -o another name")
+    if not path.parent.is_dir():
+        raise OutputError(f"{path}: directory {path.parent} does not exist; create it first")
+    with RunFile(file) as run_file:
+        plot_run(run_file, kind, path)
+    click.echo(str(path))
+    return EXIT_OK
+
+
+# --- problems, methods, tableau ---------------------------------------------------------------
+def _abbreviate(names, limit: int = 10) -> str:
+    names = list(names)
+    if len(names) <= limit:
+        return ", ".join(names) or "none"
+    return ", ".join(names[:4]) + f", ... ({len(names) - 6} more) ..., " + ", ".join(names[-2:])
+
+
+@cli.command(context_settings=CONTEXT)
+def problems():
+    """List the built-in problems with their parameters, coordinates and invariants.
+
+    \b
+    Example:
+      elimfast problems
+      then in a config:  problem: {builtin: kepler, parameters: {eccentricity: 0.6}}
+    """
+    import inspect as pyinspect
+
+    from elimfast.problems import PROBLEMS
+
+    blocks = []
+    for name, constructor in PROBLEMS.items():
+        defaults = {p.name: p.default for p in pyinspect.signature(constructor).parameters.values()}
+        try:
+            problem = constructor()
+        except Exception as err:   # a library bug should not hide the other problems
+            blocks.append(f"{name}\n    (cannot be built with its defaults: {one_line(err)})")
+            continue
+        description = problem.description or one_line((constructor.__doc__ or "").strip().split("\n")[0])
+        params = ", ".join(f"{k} = {v!r}" for k, v in defaults.items()) or "none"
+        invariants = ", ".join(["H"] + ([_abbreviate(problem.invariant_names)] if problem.invariant_names else []))
+        blocks.append(f"{name}: {description}\n"
+                      f"    parameters:  {params}\n"
+                      f"    coordinates: {_abbreviate(problem.coordinate_names)}\n"
+                      f"    invariants:  {invariants}")
+    click.echo("\n".join(blocks))
+    return EXIT_OK
+
+
+METHOD_NOTES = {
+    "gauss": "s-stage Gauss-Legendre collocation, order 2s, symplectic; imposes no invariant",
+    "hbvm": "Hamiltonian BVM, order 2s, conserves polynomial H of degree <= 2k/s; imposes no invariant",
+    "elim": "HBVM(k,s) with its last nu coefficients scaled to conserve nu < s invariants (r nodes for them)",
+    "ehbvm": "ELIM(k,k,s): conserves H and up to s-1 invariants",
+    "lim": "HBVM(k,s) with the correction -c h phi_0 lambda: H and any number of invariants (no RK form)",
+    "ghbvm": "LIM(k,k,s): conserves H and any number of invariants (no RK form)",
+}
+
+
+@cli.command(context_settings=CONTEXT)
+def methods():
+    """List the method families, their parameters and what they conserve.
+
+    \b
+    Example:
+      elimfast methods
+      then in a config:  method: {name: ehbvm, k: 12, s: 3}
+    """
+    import inspect as pyinspect
+
+    from elimfast.methods import METHODS
+
+    rows = []
+    for name, constructor in METHODS.items():
+        params = ", ".join(pyinspect.signature(constructor).parameters)
+        rows.append((f"{name}({params})", METHOD_NOTES.get(name, one_line((constructor.__doc__ or "").split("\n")[0]))))
+    width = max(len(r[0]) for r in rows)
+    click.echo("\n".join(f"{sig:<{width}}  {note}" for sig, note in rows))
+    click.echo("\nk, r: quadrature nodes (k >= s, r >= s, at most 64); s: the order is 2s. "
+               "Tableau: elimfast tableau NAME --k K --s S [--r R] [--eta ...]")
+    return EXIT_OK
+
+
+def _parse_floats(values) -> list[float] | None:
+    if not values:
+        return None
+    out = []
+    for value in values:
+        for item in str(value).replace(",", " ").split():
+            try:
+                out.append(float(item))
+            except ValueError:
+                raise click.BadParameter(f"{item!r} is not a number", param_hint="--eta") from None
+    return out
+
+
+@cli.command(context_settings=CONTEXT)
+@click.argument("name", metavar="NAME")
+@click.option("--k", "k", type=int, help="Quadrature nodes for H (hbvm, elim, ehbvm, lim, ghbvm).")
+@click.option("--s", "s", type=int, help="Number of Legendre coefficients; order 2s (every method).")
+@click.option("--r", "r", type=int, help="Quadrature nodes for the invariants (elim, lim).")
+@click.option("--eta", multiple=True, metavar="ETA",
+              help="ELIM scaling factors eta_1..eta_(s-1) (or eta_0..eta_(s-1), eta_0 = 1): "
+                   "repeat the option or separate by commas. Default: all 1 (the HBVM tableau).")
+def tableau(name, k, s, r, eta):
+    """Print the Butcher tableau (A, b, c) of a method exactly.
+
+    Every number is printed with Python's repr, so reading it back gives the same
+    double. Rows: c_i | a_i1 ... a_ik, then a rule and the weights b_j. LIM and GHBVM
+    have no fixed Runge-Kutta form.
+
+    \b
+    Examples:
+      elimfast tableau gauss --s 2
+      elimfast tableau hbvm --k 4 --s 2
+      elimfast tableau elim --r 3 --k 3 --s 2 --eta 0.999
+    """
+    import inspect as pyinspect
+
+    from elimfast.methods import METHODS
+
+    family = name.lower()
+    if family not in METHODS:
+        raise click.BadParameter(f"unknown method {name!r}; known: {', '.join(METHODS)}", param_hint="NAME")
+    expected = list(pyinspect.signature(METHODS[family]).parameters)
+    given = {key: value for key, value in (("r", r), ("k", k), ("s", s)) if value is not None}
+    missing = [f"--{p}" for p in expected if p not in given]
+    extra = [f"--{p}" for p in given if p not in expected]
+    if missing or extra:
+        raise click.UsageError(f"{family}({', '.join(expected)}) needs {' '.join('--' + p for p in expected)}"
+                               + (f"; missing {' '.join(missing)}" if missing else "")
+                               + (f"; {' '.join(extra)} does not apply" if extra else ""))
+    try:
+        method = METHODS[family](**given)
+        eta_values = _parse_floats(eta)
+        if eta_values is not None and family not in ("elim", "ehbvm"):
+            raise ValueError(f"--eta applies to elim and ehbvm only; {method.name} has eta = 1")
+        A, b, c = method.butcher(eta_values)
+    except (TypeError, ValueError) as err:
+        raise click.UsageError(one_line(err)) from None
+    click.echo(_format_tableau(method, A, b, c, eta_values))
+    return EXIT_OK
+
+
+def _format_tableau(method, A, b, c, eta) -> str:
+    cells = [[repr(float(x)) for x in row] for row in A]
+    c_text = [repr(float(x)) for x in c]
+    b_text = [repr(float(x)) for x in b]
+    width = max(len(t) for t in [*c_text, *b_text, *(x for row in cells for x in row)])
+    c_width = max(len(t) for t in c_text)
+    eta_text = "1 (the HBVM tableau)" if eta is None else ", ".join(repr(float(e)) for e in eta)
+    lines = [f"# {method.name}: Butcher tableau, {len(c)} stages, order {method.order}; eta = {eta_text}",
+             "# c_i | a_i1 ... a_ik, then | b_1 ... b_k; each number is repr(float): it reads back exactly"]
+    for ci, row in zip(c_text, cells):
+        lines.append(f"{ci:>{c_width}} | " + " ".join(f"{x:>{width}}" for x in row))
+    lines.append("-" * c_width + "-+-" + "-" * ((width + 1) * len(b_text) - 1))
+    lines.append(" " * c_width + " | " + " ".join(f"{x:>{width}}" for x in b_text))
+    return "\n".join(lines)
+
+
+# --- cache ---------------------------------------------------------------------------------
+# --- sweep, paper -------------------------------------------------------------------------
+def _method_of(resolved: dict):
+    from elimfast import methods
+    parameters = dict(resolved.get("method") or {})
+    name = parameters.pop("name", None)
+    try:
+        return methods.get(name, **parameters) if name else None
+    except (ValueError, TypeError):
+        return None
+
+
+@cli.command(context_settings=CONTEXT)
+@click.argument("sweep_file", metavar="SWEEP.yaml")
+@click.option("-o", "--output", metavar="OUT.h5", help="Store every run under /runs/<label>/ of this file.")
+@click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Worker processes (default: all cores).")
+@click.option("--format", "table_format", type=click.Choice(["markdown", "csv"]), default="markdown",
+              show_default=True, help="Format of the printed table.")
+@click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress lines (the table is still printed).")
+def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
+    """Run a grid of configs in parallel and print the error, order, iteration and invariant table.
+
+    SWEEP.yaml names a base config and the axes of the grid (see elimfast/sweep.py or the
+    README): each point is one run, labelled by its coordinates. Errors are taken against
+    the exact solution (error: {exact: initial}, a periodic orbit over whole periods) or a
+    reference run named in the sweep file; orders between successive values of order_axis.
+    A failed run does not stop the others: it is marked with its reason and the exit code is 1.
+
+    \b
+    Examples:
+      elimfast sweep configs/paper/table1.yaml
+      elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
+    """
+    from elimfast.sweep import format_table, load_sweep, run_sweep, table_rows
+
+    writer = None
+    if output is not None:
+        from elimfast.io.hdf5 import check_output_path
+        output = Path(output).expanduser()
+        check_output_path(output, overwrite=overwrite)
+    spec = load_sweep(sweep_file)
+    if output is not None:
+        from elimfast.io.hdf5 import SweepWriter
+        writer = SweepWriter(output, sweep_text=Path(sweep_file).read_text(),
+                             attributes={"source": str(sweep_file), "axes": list(spec.axes) or [""]})
+
+    def on_done(outcome, done, total):
+        if writer is not None and outcome.label != "\0reference":
+            writer.add_run(outcome, _method_of(outcome.resolved))
+        if not quiet:
+            name = "reference run" if outcome.label.startswith("\0") else outcome.label
+            click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
+
+    try:
+        outcomes, reference = run_sweep(spec, workers=workers, on_done=on_done)
+    finally:
+        if writer is not None:
+            writer.close()
+    header, rows = table_rows(spec, outcomes, reference)
+    click.echo(format_table(header, rows, table_format), nl=False)
+    if reference is not None and not reference.ok:
+        click.echo(f"error: the reference run failed, so there are no errors: {reference.status}", err=True)
+        return EXIT_FAILED
+    failed = [o for o in outcomes if not o.ok]
+    if failed:
+        click.echo(f"error: {len(failed)} of {len(outcomes)} runs failed (see the status column)", err=True)
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+@cli.command(context_settings=CONTEXT)
+@click.option("--configs", "config_dir", default="configs/paper", show_default=True, metavar="DIR",
+              help="The folder holding table1.yaml and long_run.yaml.")
+@click.option("--out", "out_dir", default="paper-out", show_default=True, metavar="DIR",
+              help="Where to write the tables (markdown) and figures (PNG).")
+@click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Worker processes (default: all cores).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress lines.")
+def paper(config_dir, out_dir, workers, quiet):
+    """Reproduce Brugnano & Sun (2014): Tables 1-3 and Figures 1-4, beside the paper's values.
+
+    \b
+    Example:
+      elimfast paper --out paper-out
+    """
+    from elimfast import paper as reproduction
+
+    def on_done(outcome, done, total):
+        if not quiet:
+            click.echo(f"[{done}/{total}] {outcome.label}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
+
+    for name in ("table1.yaml", "long_run.yaml"):
+        if not (Path(config_dir) / name).is_file():
+            fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps",
+                 EXIT_USAGE)
+    try:
+        result = reproduction.reproduce(config_dir, out_dir, workers=workers, on_done=on_done)
+    except RuntimeError as err:
+        fail(f"a paper run failed: {one_line(err)}", EXIT_FAILED)
+    worst = max(abs(row[4]) for row in result["table1"] if row[0] not in reproduction.ROUND_OFF_ROWS)
+    worst_alpha = max(abs(row[4]) for row in result["table3"] if row[0] not in reproduction.ROUND_OFF_ROWS)
+    click.echo(f"wrote {out_dir}/table1.md, table2.md, table3.md, long_run.md and {len(result['figures'])} figures")
+    click.echo(f"Table 1 at pi/30..pi/120: largest relative difference to the paper {worst:.1e}; "
+               f"Table 3: {worst_alpha:.1e} (tolerance {reproduction.TOLERANCE:g})")
+    return EXIT_OK if max(worst, worst_alpha) < reproduction.TOLERANCE else EXIT_FAILED
+
+
+@cli.group(context_settings=CONTEXT)
+def cache():
+    """Inspect or clear the cache of generated problem code and compiled kernels.
+
+    \b
+    Examples:
+      elimfast cache info
+      elimfast cache clear
+    """
+
+
+def _numba_cache_files():
+    """Numba's index and data files for elimfast's own kernels (built-in problems included):
+    in the package's __pycache__ folders, or with NUMBA_CACHE_DIR in the folders Numba
+    names after each package directory (``<dir>_<sha1 of its path>``)."""
+    import elimfast
+
+    package = Path(elimfast.__file__).resolve().parent
+    source_dirs = sorted({path.parent for path in package.rglob("*.py") if "__pycache__" not in path.parts})
+    override = os.environ.get("NUMBA_CACHE_DIR")
+    if override:
+        from numba.core.caching import UserProvidedCacheLocator
+        roots = [Path(override) / UserProvidedCacheLocator.get_suitable_cache_subpath(str(d / "x.py"))
+                 for d in source_dirs]
+        where = str(Path(override))
+    else:
+        roots = [d / "__pycache__" for d in source_dirs]
+        where = str(package / "**" / "__pycache__")
+    files = [path for root in roots if root.is_dir() for path in root.iterdir() if path.suffix in (".nbi", ".nbc")]
+    return where, files
+
+
+def _size(n_bytes: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n_bytes < 1024 or unit == "GiB":
+            return f"{n_bytes:.0f} {unit}" if unit == "B" else f"{n_bytes:.1f} {unit}"
+        n_bytes /= 1024
+    return f"{n_bytes} B"
+
+
+@cache.command("info", context_settings=CONTEXT)
+def cache_info():
+    """Where the caches are and how much they hold.
+
+    \b
+    Example:
+      elimfast cache info
+    """
+    from elimfast.cache import ENV_VAR, cache_info as info
+
+    data = info()
+    where, files = _numba_cache_files()
+    size = sum(f.stat().st_size for f in files if f.exists())
+    click.echo(f"problem cache:  {data['path']}  ({data['entries']} generated problems, {_size(data['bytes'])}; "
+               f"set {ENV_VAR} to move it)")
+    click.echo(f"kernel cache:   {where}  ({len(files)} Numba files, {_size(size)}; "
+               "set NUMBA_CACHE_DIR to move it)")
+    return EXIT_OK
+
+
+@cache.command("clear", context_settings=CONTEXT)
+@click.option("--kernels", is_flag=True, help="Also delete Numba's compiled kernels (the next run recompiles, ~10 s+).")
+def cache_clear(kernels):
+    """Delete the generated problem code (and with --kernels the compiled kernels).
+
+    \b
+    Examples:
+      elimfast cache clear
+      elimfast cache clear --kernels
+    """
+    from elimfast.cache import cache_dir, clear_cache
+
+    removed = clear_cache()
+    click.echo(f"removed {removed} files from {cache_dir()}")
+    if kernels:
+        where, files = _numba_cache_files()
+        count = 0
+        for path in files:
+            try:
+                path.unlink()
+                count += 1
+            except FileNotFoundError:
+                pass
+        click.echo(f"removed {count} Numba files from {where}")
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -248,7 +248,9 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
 
     outcome = RunOutcome(label=label, coordinates=coordinates, status="complete")
     try:
-        spec = load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]")
+        # python: paths in a sweep were made relative to the sweep file's folder (_rebase_paths)
+        spec = load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]",
+                                  base_dir=Path(source).parent)
     except ElimfastError as error:
         outcome.status = f"failed: {error}"
         return outcome
@@ -314,6 +316,10 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
             if on_done:
                 on_done(outcome, done, total)
     else:
+        # Load the kernels and the config machinery before forking: every worker then
+        # inherits them instead of loading them again.
+        from . import config  # noqa: F401
+        from .kernels import stepper  # noqa: F401
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         context = multiprocessing.get_context(method)
         with ProcessPoolExecutor(max_workers=min(workers, total), mp_context=context) as pool:

@@ -139,3 +139,37 @@ def test_paper_figures_are_drawn_and_show_what_the_paper_says(reproduction):
         assert last > 3 * first, method
     for method in ("EHBVM(12,3) L1,L2", "GHBVM(12,3) L1,L2"):
         assert summary[method]["lrl"][1] < 1e-11, method
+
+
+def test_cli_sweep_stores_every_run_marks_the_failed_one_and_exits_1(tmp_path):
+    import h5py
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    path = write_sweep(tmp_path, {
+        "base": {**BASE, "solver": {"max_iter": 30}},
+        "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/4"], "labels": ["small", "huge"]}],
+        "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}})
+    out = tmp_path / "sweep.h5"
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--workers", "2", "--format", "csv", "-q"])
+    assert result.exit_code == 1, result.output
+    lines = result.stdout.strip().splitlines()
+    assert lines[0].startswith("h,error,") and lines[1].startswith("small,") and "failed:" in lines[2]
+    assert "1 of 2 runs failed" in result.stderr
+    with h5py.File(out) as f:
+        assert f.attrs["format"] == "elimfast-sweep"
+        assert set(f["runs"]) == {"small", "huge"}
+        assert f["runs/small"].attrs["status"] == "complete"
+        assert f["runs/small/steps/alpha"].shape == (40, 1)
+        assert f["runs/small/y"].shape == (41, 4)
+        assert str(f["runs/huge"].attrs["status"]).startswith("failed:")
+
+
+def test_cli_sweep_bad_file_is_one_line_exit_2(tmp_path):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    path = write_sweep(tmp_path, {"base": BASE, "order_axis": "h"})
+    result = CliRunner().invoke(cli, ["sweep", str(path)])
+    assert result.exit_code == 2
+    assert result.stderr.count("\n") == 1 and "order_axis" in result.stderr and "Traceback" not in result.stderr

@@ -1,0 +1,89 @@
+"""The text of ``elimfast inspect``: a RunFile's summary, formatted (the numbers come from RunFile)."""
+from __future__ import annotations
+
+import math
+
+import yaml
+
+
+def _fmt_time(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    if seconds < 120:
+        return f"{seconds:.3g} s"
+    hours, rest = divmod(int(round(seconds)), 3600)
+    minutes, secs = divmod(rest, 60)
+    return f"{seconds:.0f} s ({hours}:{minutes:02d}:{secs:02d})"
+
+
+def _problem_text(run_file) -> str:
+    attrs = run_file.attrs
+    try:
+        config = yaml.safe_load(attrs.get("config", "")) or {}
+    except yaml.YAMLError:
+        config = {}
+    problem = config.get("problem") if isinstance(config, dict) else None
+    parameters = problem.get("parameters") if isinstance(problem, dict) else None
+    if parameters:
+        listed = ", ".join(f"{k} = {v}" for k, v in parameters.items())
+        if len(listed) > 80:
+            listed = listed[:77] + "..."
+        return f"{attrs.get('problem')} ({listed})"
+    return str(attrs.get("problem"))
+
+
+def summary(run_file) -> str:
+    """The inspect summary of an open RunFile."""
+    a = run_file.attrs
+    rows = []
+
+    def row(key, value):
+        rows.append(f"{key:<13}{value}")
+
+    conserve = list(a.get("conserve") or [])
+    row("file", f"{run_file.path}" + ("  (opened in SWMR mode: its writer did not close it)" if run_file.swmr else ""))
+    row("problem", _problem_text(run_file))
+    method = f"{a.get('method')}, order {2 * int(a.get('s', 0))}"
+    row("method", method + (f", imposing {', '.join(conserve)}" if conserve else ""))
+    row("h", f"{a.get('h')!r}  (t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, "
+             f"a sample every {a.get('output_every')} steps)")
+    n_steps = int(a.get("n_steps", 0))
+    done = run_file.steps_done
+    row("steps done", f"{done} / {n_steps}" + (f"  ({100.0 * done / n_steps:.1f}%)" if done < n_steps else ""))
+    status = run_file.status
+    if status == "killed":
+        status = "killed (the writer stopped without closing the file; continue with elimfast run ... --resume)"
+    elif status == "running":
+        status = "running (another process is writing it)"
+    row("status", status)
+    wall, kernel = run_file.wall_time_s, run_file.kernel_time_s
+    rate = f", {done / wall:,.0f} steps/s" if wall > 0 and done else ""
+    kernel_text = f"; kernel {_fmt_time(kernel)}, {done / kernel:,.0f} steps/s" if kernel > 0 and done else ""
+    row("wall time", f"{_fmt_time(wall)}{rate}{kernel_text}")
+    row("created", f"{a.get('created')} with elimfast {a.get('elimfast_version')}, numba {a.get('numba_version')}, "
+                   f"numpy {a.get('numpy_version')}, h5py {a.get('h5py_version')}")
+
+    drift = run_file.invariant_drift()
+    rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples")
+    width = max(len(n) for n in drift) if drift else 0
+    for name, value in drift.items():
+        tag = "  (imposed)" if name in conserve else ("  (H: kept by every HBVM/ELIM/LIM)" if name == "H" else "")
+        rows.append(f"  {name:<{width}}  {value:.3e}{tag}")
+
+    stats = run_file.iteration_stats()
+    if stats.get("count"):
+        row("iterations", f"mean {stats['mean']:.2f}, median {stats['median']}, 99% <= {stats['p99']}, "
+                          f"min {stats['min']}, max {stats['max']}, total {stats['total']:,}")
+    else:
+        row("iterations", "no steps yet")
+    if "failed_step_iterations" in a:
+        row("", f"the failed step used {a['failed_step_iterations']} iterations")
+    labels = run_file.multiplier_labels()
+    maxima = run_file.max_abs_multipliers()
+    if run_file.multiplier_name is None:
+        row("max |alpha|", f"none: {a.get('method')} imposes no invariant")
+    else:
+        symbol = "alpha" if run_file.multiplier_name == "alpha" else "lambda"
+        text = ", ".join(f"{v:.3e} ({label.split('[', 1)[1].rstrip(']')})" for v, label in zip(maxima, labels))
+        row(f"max |{symbol}|", text if done else "no steps yet")
+    return "\n".join(rows)

@@ -1,0 +1,238 @@
+"""The command line: every command through click's CliRunner, and a real process for run/inspect/plot."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from elimfast import methods
+from elimfast.config import load_run
+from elimfast.problems import PROBLEMS
+from elimfast_cli.main import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+KEPLER = str(ROOT / "configs" / "kepler.yaml")
+SHORT = ["--set", "integration.t_end=20"]          # 200 steps of the default config
+ELIMFAST = str(Path(sys.executable).with_name("elimfast"))
+
+
+def invoke(*args, env=None):
+    return CliRunner().invoke(cli, [str(a) for a in args], env=env)
+
+
+@pytest.fixture(scope="module")
+def kepler_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "kepler.h5"
+    result = invoke("run", KEPLER, "-o", path, *SHORT)
+    assert result.exit_code == 0, result.output
+    return path
+
+
+def test_run_writes_the_file_and_a_summary_line(kepler_file):
+    with h5py.File(kepler_file, "r") as f:
+        assert f.attrs["status"] == "complete" and f.attrs["steps_done"] == 200
+        assert f.attrs["method"] == "EHBVM(12,3)" and list(f.attrs["conserve"]) == ["angular_momentum", "lrl_y"]
+        config = yaml.safe_load(f.attrs["config"])
+        assert config["output"]["path"] == str(kepler_file) and config["integration"]["t_end"] == 20
+        assert f["t"].shape == (21,)      # output.every = 10 in configs/kepler.yaml
+        assert f["steps/alpha"].shape == (200, 2)
+
+
+def test_run_quiet_prints_nothing_and_the_default_prints_one_line(tmp_path):
+    quiet = invoke("run", KEPLER, "-o", tmp_path / "q.h5", "--quiet", *SHORT)
+    assert quiet.exit_code == 0 and quiet.stdout == "" and quiet.stderr == ""
+    loud = invoke("run", KEPLER, "-o", tmp_path / "q.h5", "--overwrite", *SHORT)
+    assert loud.exit_code == 0 and loud.stdout == ""
+    assert loud.stderr.count("\n") == 1 and "complete, 200 steps" in loud.stderr and "steps/s" in loud.stderr
+
+
+def test_inspect_summary(kepler_file):
+    result = invoke("inspect", kepler_file)
+    assert result.exit_code == 0, result.output
+    text = result.stdout
+    for expected in ("problem      kepler (eccentricity = 0.6)", "method       EHBVM(12,3), order 6, imposing "
+                     "angular_momentum, lrl_y", "h            0.1", "steps done   200 / 200", "status       complete",
+                     "wall time", "steps/s", "max |I(t) - I(t0)| over 21 samples", "iterations   mean",
+                     "max |alpha|"):
+        assert expected in text, expected
+    for name in ("H", "angular_momentum", "lrl_x", "lrl_y"):
+        assert f"\n  {name} " in text
+    # the numbers are those of the file
+    with h5py.File(kepler_file, "r") as f:
+        drift = np.max(np.abs(f["invariants/lrl_x"][:] - f["invariants/lrl_x"][0]))
+        alpha = np.max(np.abs(f["steps/alpha"][:]), axis=0)
+    assert f"lrl_x             {drift:.3e}" in text
+    assert f"{alpha[0]:.3e} (angular_momentum), {alpha[1]:.3e} (lrl_y)" in text
+
+
+@pytest.mark.parametrize("kind", ["orbit", "invariants", "alpha", "iterations"])
+def test_plot_is_not_blank(kepler_file, tmp_path, kind):
+    from matplotlib.image import imread
+    figure = tmp_path / f"{kind}.png"
+    result = invoke("plot", kepler_file, "--kind", kind, "-o", figure)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == str(figure)
+    pixels = imread(figure)[..., :3]
+    assert pixels.shape[0] > 200 and pixels.shape[1] > 300
+    assert pixels.var() > 1e-3                                    # not one flat colour
+    assert (np.abs(pixels - 1.0).sum(axis=2) > 0.3).mean() > 0.01  # ink on more than 1% of the canvas
+    again = invoke("plot", kepler_file, "--kind", kind, "-o", figure)
+    assert again.exit_code == 2 and "--overwrite" in again.stderr
+
+
+def test_plot_default_name(kepler_file):
+    result = invoke("plot", kepler_file)
+    expected = kepler_file.with_name("kepler_invariants.png")
+    assert result.exit_code == 0 and result.stdout.strip() == str(expected) and expected.stat().st_size > 1000
+
+
+def test_check_prints_the_resolved_config_as_yaml():
+    result = invoke("check", KEPLER, "--set", "method.s=4")
+    assert result.exit_code == 0, result.output
+    spec = load_run(KEPLER, overrides=["method.s=4"])
+    assert yaml.safe_load(result.stdout) == spec.resolved
+    assert "# invariant check" in result.stdout
+    for name in ("angular_momentum", "lrl_x", "lrl_y"):
+        assert any(line.startswith(f"#   {name}") and line.endswith("ok") for line in result.stdout.splitlines())
+    assert "EHBVM(12,4) imposing angular_momentum, lrl_y, 10000 steps" in result.stdout
+
+
+def test_problems_lists_the_library():
+    result = invoke("problems")
+    assert result.exit_code == 0, result.output
+    for name in PROBLEMS:
+        assert f"\n{name}: " in "\n" + result.stdout
+    assert "invariants:  H, angular_momentum, lrl_x, lrl_y" in result.stdout
+    assert "parameters:  eccentricity = 0.6" in result.stdout
+
+
+def test_methods_lists_the_families():
+    result = invoke("methods")
+    assert result.exit_code == 0
+    for signature in ("gauss(s)", "hbvm(k, s)", "elim(r, k, s)", "ehbvm(k, s)", "lim(r, k, s)", "ghbvm(k, s)"):
+        assert signature in result.stdout
+
+
+def parse_tableau(text):
+    rows = [line for line in text.splitlines() if not line.startswith("#") and "-+-" not in line]
+    c, A = [], []
+    for line in rows[:-1]:
+        left, right = line.split("|")
+        c.append(float(left))
+        A.append([float(x) for x in right.split()])
+    b = [float(x) for x in rows[-1].split("|")[1].split()]
+    return np.array(A), np.array(b), np.array(c)
+
+
+@pytest.mark.parametrize("args, method, eta", [
+    (["gauss", "--s", "3"], methods.gauss(3), None),
+    (["hbvm", "--k", "5", "--s", "3"], methods.hbvm(5, 3), None),
+    (["ehbvm", "--k", "4", "--s", "3", "--eta", "0.99", "--eta", "1.01"], methods.ehbvm(4, 3), [0.99, 1.01]),
+    (["elim", "--r", "5", "--k", "4", "--s", "3", "--eta", "1,0.9,1.1"], methods.elim(5, 4, 3), [1, 0.9, 1.1]),
+])
+def test_tableau_is_printed_exactly(args, method, eta):
+    result = invoke("tableau", *args)
+    assert result.exit_code == 0, result.output
+    A, b, c = parse_tableau(result.stdout)
+    A_ref, b_ref, c_ref = method.butcher(eta)
+    # bit for bit: repr round-trips every double
+    assert A.tobytes() == np.asarray(A_ref, dtype=float).tobytes()
+    assert b.tobytes() == b_ref.tobytes() and c.tobytes() == c_ref.tobytes()
+    assert method.name in result.stdout
+
+
+def test_version():
+    result = invoke("--version")
+    import elimfast
+    assert result.exit_code == 0 and result.stdout.startswith(f"elimfast {elimfast.__version__} (numba ")
+
+
+@pytest.mark.parametrize("command", [[], ["run"], ["check"], ["inspect"], ["plot"], ["problems"], ["methods"],
+                                     ["tableau"], ["cache"], ["cache", "info"], ["cache", "clear"]])
+def test_every_command_has_help_with_an_example(command):
+    result = invoke(*command, "--help")
+    assert result.exit_code == 0
+    assert "Example" in result.stdout and "elimfast " in result.stdout.split("Example", 1)[1]
+
+
+def test_no_command_prints_help():
+    result = invoke()
+    assert result.exit_code == 0 and "Commands:" in result.stdout
+
+
+def test_cache_info_and_clear(tmp_path):
+    env = {"ELIMFAST_CACHE_DIR": str(tmp_path / "cache")}
+    problems_dir = tmp_path / "cache" / "problems"
+    problems_dir.mkdir(parents=True)
+    (problems_dir / "p_0123.py").write_text("# generated\n")
+    info = invoke("cache", "info", env=env)
+    assert info.exit_code == 0 and str(tmp_path / "cache") in info.stdout and "1 generated problems" in info.stdout
+    assert "kernel cache" in info.stdout
+    cleared = invoke("cache", "clear", env=env)
+    assert cleared.exit_code == 0 and "removed 1 files" in cleared.stdout
+    assert not (problems_dir / "p_0123.py").exists()
+
+
+def test_a_real_process_runs_inspects_and_plots(tmp_path):
+    """The installed console script, as users call it (stderr is a pipe: plain progress lines)."""
+    out = tmp_path / "out" / "k.h5"      # the directory is created
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    run = subprocess.run([ELIMFAST, "run", KEPLER, "-o", str(out), *SHORT], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout == "" and "complete, 200 steps" in run.stderr and "Traceback" not in run.stderr
+    chained = subprocess.run(f"{ELIMFAST} inspect {out} && {ELIMFAST} plot {out} --kind orbit -o {tmp_path / 'o.png'}",
+                             shell=True, capture_output=True, text=True, timeout=300)
+    assert chained.returncode == 0, chained.stderr
+    assert "status       complete" in chained.stdout and (tmp_path / "o.png").stat().st_size > 1000
+
+
+def test_a_terminal_gets_a_progress_bar(tmp_path):
+    """stderr is a terminal (a pty of 100 columns): tqdm's bar with steps/s and ETA."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    pid, fd = pty.fork()
+    if pid == 0:   # the child: a terminal of 40 x 100
+        fcntl.ioctl(0, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 100, 0, 0))
+        os.execv(ELIMFAST, [ELIMFAST, "run", KEPLER, "-o", str(tmp_path / "tty.h5"), *SHORT])
+    output = b""
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:
+            break
+        if not data:
+            break
+        output += data
+    _, status = os.waitpid(pid, 0)
+    text = output.decode(errors="replace")
+    assert os.waitstatus_to_exitcode(status) == 0, text
+    assert "EHBVM(12,3) kepler: 100%|" in text and "200/200" in text and "step/s" in text and "<00:00" in text
+
+
+def test_cache_clear_kernels_removes_only_elimfasts_numba_files(tmp_path):
+    from numba.core.caching import UserProvidedCacheLocator
+
+    import elimfast.kernels.stepper as stepper
+    numba_dir = tmp_path / "numba"
+    ours = numba_dir / UserProvidedCacheLocator.get_suitable_cache_subpath(stepper.__file__)
+    ours.mkdir(parents=True)
+    (ours / "stepper.time_loop-1.py311.nbi").write_bytes(b"")
+    (ours / "stepper.time_loop-1.py311.1.nbc").write_bytes(b"")
+    other = numba_dir / "someone_else_0123"
+    other.mkdir()
+    (other / "f-1.py311.nbi").write_bytes(b"")
+    env = {"NUMBA_CACHE_DIR": str(numba_dir), "ELIMFAST_CACHE_DIR": str(tmp_path / "cache")}
+    info = invoke("cache", "info", env=env)
+    assert info.exit_code == 0 and "(2 Numba files" in info.stdout
+    cleared = invoke("cache", "clear", "--kernels", env=env)
+    assert cleared.exit_code == 0 and "removed 2 Numba files" in cleared.stdout
+    assert not any(ours.iterdir()) and (other / "f-1.py311.nbi").exists()

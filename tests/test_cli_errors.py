@@ -1,0 +1,140 @@
+"""Bad input at the command line: exit code 2 and one line on stderr, never a traceback.
+
+Table-driven through click's CliRunner; two cases again through a real process. Also
+exit 1 for a failed run and for an internal error (with the ELIMFAST_DEBUG hint).
+"""
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+from click.testing import CliRunner
+
+from elimfast_cli.main import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+KEPLER = str(ROOT / "configs" / "kepler.yaml")
+ELIMFAST = str(Path(sys.executable).with_name("elimfast"))
+
+GOOD = """\
+problem: {builtin: kepler}
+conserve: [angular_momentum, lrl_y]
+method: {name: ehbvm, k: 6, s: 3}
+integration: {h: 0.1, n_steps: 20}
+"""
+EVIL_MARK = "/tmp/elimfast-owned-by-test"
+
+
+def write(directory: Path, name: str, text: str) -> str:
+    path = directory / name
+    path.write_text(text)
+    return str(path)
+
+
+def make_case(name, tmp: Path):
+    """(arguments, a fragment of the expected message) for each bad input."""
+    existing = tmp / "exists.h5"
+    existing.write_bytes(b"")
+    a_file = tmp / "a_file"
+    a_file.write_text("x")
+    foreign = tmp / "foreign.h5"
+    with h5py.File(foreign, "w") as f:
+        f["data"] = [1.0, 2.0]
+    cases = {
+        "missing file": (["run", tmp / "nope.yaml", "-o", tmp / "o.h5"], "no such file"),
+        "bad yaml": (["run", write(tmp, "bad.yaml", "problem: {builtin: kepler\nmethod: [\n"), "-o", tmp / "o.h5"],
+                     "invalid YAML"),
+        "unknown key": (["run", write(tmp, "key.yaml", GOOD + "solver: {tolerance: 1e-15}\n"), "-o", tmp / "o.h5"],
+                        "unknown key"),
+        "unknown key by --set": (["run", write(tmp, "g.yaml", GOOD), "-o", tmp / "o.h5", "--set", "method.kk=3"],
+                                 "unknown key"),
+        "bad expression": (["run", write(tmp, "expr.yaml", GOOD.replace(
+            "problem: {builtin: kepler}",
+            "problem:\n  coordinates: {q: [q1], p: [p1]}\n"
+            f"  hamiltonian: \"__import__('os').system('touch {EVIL_MARK}')\"\n"
+            "  initial: {q1: 1.0, p1: 0.0}").replace("conserve: [angular_momentum, lrl_y]\n", "")),
+            "-o", tmp / "o.h5"], "hamiltonian"),
+        "bad number": (["run", write(tmp, "num.yaml", GOOD.replace("h: 0.1", "h: pi/")), "-o", tmp / "o.h5"],
+                       "integration.h"),
+        "impossible method s <= nu": (["run", write(tmp, "s.yaml", GOOD.replace("s: 3", "s: 2")), "-o", tmp / "o.h5"],
+                                      "at most s - 1 = 1"),
+        "existing output": (["run", write(tmp, "g.yaml", GOOD), "-o", existing], "already exists; pass --overwrite"),
+        "unwritable path": (["run", write(tmp, "g.yaml", GOOD), "-o", a_file / "o.h5"], "is a file, not a directory"),
+        "unwritable file system": (["run", write(tmp, "g.yaml", GOOD), "-o", "/proc/elimfast/o.h5"],
+                                   "choose another output path"),
+        "no output path": (["run", write(tmp, "g.yaml", GOOD)], "no output file: give -o"),
+        "overwrite and resume": (["run", KEPLER, "-o", tmp / "o.h5", "--overwrite", "--resume"], "contradict"),
+        "inspect a text file": (["inspect", a_file], "not an HDF5 file"),
+        "inspect a foreign hdf5 file": (["inspect", foreign], "not an elimfast run file"),
+        "inspect a missing file": (["inspect", tmp / "missing.h5"], "no such file"),
+        "plot a foreign file": (["plot", foreign], "not an elimfast run file"),
+        "check a bad config": (["check", write(tmp, "key2.yaml", GOOD + "extra: 1\n")], "unknown key"),
+        "unknown command": (["integrate"], "No such command"),
+        "unknown option": (["run", KEPLER, "--fast"], "No such option"),
+        "tableau without k": (["tableau", "hbvm", "--s", "2"], "missing --k"),
+        "tableau of lim": (["tableau", "ghbvm", "--k", "3", "--s", "2"], "no fixed Runge-Kutta form"),
+        "tableau k < s": (["tableau", "hbvm", "--k", "2", "--s", "3"], "k must be >= s"),
+        "tableau bad eta": (["tableau", "ehbvm", "--k", "3", "--s", "2", "--eta", "x"], "not a number"),
+    }
+    return cases[name]
+
+
+CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad expression", "bad number",
+         "impossible method s <= nu", "existing output", "unwritable path", "unwritable file system",
+         "no output path", "overwrite and resume", "inspect a text file", "inspect a foreign hdf5 file",
+         "inspect a missing file", "plot a foreign file", "check a bad config", "unknown command", "unknown option",
+         "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta"]
+
+
+def assert_one_line_error(stderr: str, fragment: str):
+    assert "Traceback" not in stderr
+    lines = stderr.splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("error: ") and fragment in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_bad_input_exits_2_with_one_line(name, tmp_path):
+    args, fragment = make_case(name, tmp_path)
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
+    assert result.stdout == ""
+    assert_one_line_error(result.stderr, fragment)
+    assert not Path(EVIL_MARK).exists()
+    assert not (tmp_path / "o.h5").exists()          # nothing computed, nothing written
+
+
+@pytest.mark.parametrize("name", ["bad yaml", "inspect a foreign hdf5 file"])
+def test_bad_input_in_a_real_process(name, tmp_path):
+    args, fragment = make_case(name, tmp_path)
+    done = subprocess.run([ELIMFAST, *map(str, args)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and done.stdout == ""
+    assert_one_line_error(done.stderr, fragment)
+
+
+def test_a_failed_run_exits_1_and_keeps_its_data(tmp_path):
+    out = tmp_path / "fail.h5"
+    result = CliRunner().invoke(cli, ["run", write(tmp_path, "g.yaml", GOOD), "-o", str(out),
+                                      "--set", "solver.max_iter=3"])
+    assert result.exit_code == 1
+    assert_one_line_error(result.stderr, "run failed: EHBVM(6,3): the fixed-point iteration did not converge")
+    with h5py.File(out, "r") as f:
+        assert f.attrs["status"].startswith("failed: EHBVM(6,3)")
+    inspect = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert inspect.exit_code == 0 and "status       failed: " in inspect.stdout
+
+
+def test_an_internal_error_is_one_line_with_a_hint(tmp_path, monkeypatch):
+    import elimfast.streaming
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("something\nunexpected")
+    monkeypatch.setattr(elimfast.streaming, "run_to_file", broken)
+    args = ["run", write(tmp_path, "g.yaml", GOOD), "-o", str(tmp_path / "x.h5")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 1
+    assert_one_line_error(result.stderr, "internal error: RuntimeError: something unexpected")
+    assert "ELIMFAST_DEBUG=1" in result.stderr
+    debug = CliRunner().invoke(cli, args, env={"ELIMFAST_DEBUG": "1"})
+    assert isinstance(debug.exception, RuntimeError)     # the traceback is there for developers
