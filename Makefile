@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: run test bench paper clean
+.PHONY: run test bench peers paper clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,12 @@ bench: $(VENV)/.installed-test
 	$(BIN)/python bench/end_to_end.py
 	$(BIN)/python bench/sweep.py
 	$(BIN)/python bench/user_problem.py
+	$(BIN)/python bench/ensemble.py
+
+# Comparison with scipy, REBOUND and heyoka (the optional bench extra).
+peers: $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]' > $(VENV)/install.log 2>&1 || (cat $(VENV)/install.log; exit 1)
+	$(BIN)/python bench/peers.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
