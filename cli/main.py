@@ -518,12 +518,16 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
     reference run named in the sweep file; orders between successive values of order_axis.
     A failed run does not stop the others: it is marked with its reason and the exit code is 1.
 
+    An ensemble sweep (an ensemble: section, one config from many initial states) runs
+    in the parallel Numba kernel on N threads instead, and stores /ensemble in OUT.h5.
+
     \b
     Examples:
       elimfast sweep configs/paper/table1.yaml
+      elimfast sweep configs/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
     """
-    from elimfast.sweep import format_table, load_sweep, run_sweep, table_rows
+    from elimfast.sweep import ensemble_table, format_table, load_sweep, run_ensemble_sweep, run_sweep, table_rows
 
     writer = None
     if output is not None:
@@ -535,6 +539,25 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
         from elimfast.io.hdf5 import SweepWriter
         writer = SweepWriter(output, sweep_text=Path(sweep_file).read_text(),
                              attributes={"source": str(sweep_file), "axes": list(spec.axes) or [""]})
+    if spec.ensemble is not None:   # one config, many initial states: the parallel kernel
+        try:
+            if not quiet:
+                click.echo(f"ensemble: running the trajectories on {workers or 'all'} thread(s)", err=True)
+            run_spec, states, result = run_ensemble_sweep(spec, threads=workers)
+            if writer is not None:
+                writer.add_ensemble(result, states, run_spec.resolved)
+        finally:
+            if writer is not None:
+                writer.close()
+        header, rows = ensemble_table(result)
+        click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "
+                   f"of {result.n_steps} steps, h = {result.h:g}")
+        click.echo(format_table(header, rows, table_format), nl=False)
+        if result.n_failed:
+            click.echo(f"error: {result.n_failed} of {result.n_trajectories} trajectories failed: "
+                       f"{result.failure_message(int(result.ok.argmin()))}", err=True)
+            return EXIT_FAILED
+        return EXIT_OK
 
     def on_done(outcome, done, total):
         if writer is not None and outcome.label != "\0reference":

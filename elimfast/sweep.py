@@ -16,6 +16,13 @@ A sweep file (YAML, data only) names a base run config and the axes of a grid:
     error: {exact: initial}         # or {reference: {set: {...}}}, or omitted (no error column)
     order_axis: h                   # observed orders between successive values of this axis
 
+An ensemble sweep runs one config from many initial states in the parallel Numba
+kernel (elimfast.ensemble), not one process per run; it has no grid:
+
+    base: ../henon_heiles.yaml
+    ensemble: {n: 1000, seed: 1, spread: 0.01}   # y0 + spread * N(0, 1) per component, seeded
+    # or: ensemble: {states: [[q1, q2, p1, p2], ...]}
+
 A variant's ``set`` replaces whole top-level values it names (a method mapping is
 replaced, not merged, so ``{name: gauss, s: 3}`` does not inherit ``k`` from the
 base); the sweep-wide ``set`` merges into nested mappings.
@@ -93,6 +100,8 @@ class SweepSpec:
     error_mode: str | None              # None, "initial" or "reference"
     reference: dict | None              # the reference run's config
     order_axis: str | None
+    ensemble: dict | None = None        # {"n", "seed", "spread"} or {"states"}; the base is the run
+    base: dict | None = None
 
 
 # --- reading the sweep file ----------------------------------------------------------
@@ -142,10 +151,15 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     data = _read_yaml(path, "sweep file")
     if not isinstance(data, dict):
         _fail(source, "(top level)", "a sweep file is a mapping with keys base, set, grid, error, order_axis")
-    known = {"base", "set", "grid", "error", "order_axis", "description"}
+    known = {"base", "set", "grid", "error", "order_axis", "description", "ensemble"}
     unknown = sorted(set(data) - known)
     if unknown:
         _fail(source, unknown[0], f"unknown key; a sweep file has {', '.join(sorted(known))}")
+    if data.get("ensemble") is not None:
+        for key in ("grid", "error", "order_axis"):
+            if data.get(key):
+                _fail(source, key, "an ensemble sweep runs one config from many initial states: "
+                                   "remove this key, or run the grid as a separate sweep")
     base = data.get("base")
     if isinstance(base, str):
         base_path = (path.parent / base)
@@ -225,8 +239,83 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     order_axis = data.get("order_axis")
     if order_axis is not None and order_axis not in axis_names:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
+    ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
-                     reference=reference, order_axis=order_axis)
+                     reference=reference, order_axis=order_axis, ensemble=ensemble, base=base)
+
+
+def _check_ensemble(source, ensemble) -> dict:
+    if not isinstance(ensemble, dict):
+        _fail(source, "ensemble", "must be {n: N, seed: S, spread: D} or {states: [[...], ...]}")
+    unknown = sorted(set(ensemble) - {"n", "seed", "spread", "states"})
+    if unknown:
+        _fail(source, f"ensemble.{unknown[0]}", "unknown key; use n, seed, spread or states")
+    if "states" in ensemble:
+        if set(ensemble) != {"states"}:
+            _fail(source, "ensemble", "give either states or n/seed/spread, not both")
+        states = ensemble["states"]
+        if not isinstance(states, list) or not states or not all(isinstance(r, list) for r in states):
+            _fail(source, "ensemble.states", "must be a non-empty list of initial states (lists of numbers)")
+        return {"states": states}
+    n = ensemble.get("n")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        _fail(source, "ensemble.n", f"must be a positive integer, got {n!r}")
+    seed = ensemble.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        _fail(source, "ensemble.seed", f"must be a non-negative integer, got {seed!r}")
+    spread = ensemble.get("spread", 0.01)
+    if isinstance(spread, bool) or not isinstance(spread, (int, float)) or not (0 <= spread < math.inf):
+        _fail(source, "ensemble.spread", f"must be a number >= 0, got {spread!r}")
+    return {"n": n, "seed": seed, "spread": float(spread)}
+
+
+def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None):
+    """Run an ensemble sweep in the parallel kernel: returns (RunSpec, Y0, EnsembleResult)."""
+    from .config import load_run_from_dict
+    from .ensemble import integrate_ensemble
+
+    run = load_run_from_dict(copy.deepcopy(spec.base), source=spec.source, base_dir=Path(spec.source).parent)
+    y0 = run.integration().y
+    if "states" in spec.ensemble:
+        try:
+            states = np.array(spec.ensemble["states"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise SweepError(f"{spec.source}: ensemble.states: every state must be a list of numbers") from None
+        if states.ndim != 2 or states.shape[1] != y0.size:
+            raise SweepError(f"{spec.source}: ensemble.states: each state needs {y0.size} numbers "
+                             f"({', '.join(run.problem.coordinate_names)})")
+    else:
+        rng = np.random.default_rng(spec.ensemble["seed"])
+        states = y0 + spec.ensemble["spread"] * rng.standard_normal((spec.ensemble["n"], y0.size))
+    try:
+        result = integrate_ensemble(run.problem, run.method, run.h, states, n_steps=run.n_steps,
+                                    conserve=run.conserve, tol=run.tol, max_iter=run.max_iter, rhs=run.rhs,
+                                    n_threads=threads, t0=run.t0, warm_start=run.warm_start)
+    except (ValueError, TypeError) as error:
+        raise SweepError(f"{spec.source}: ensemble: {error}") from None
+    return run, states, result
+
+
+def ensemble_table(result) -> tuple[list[str], list[list[str]]]:
+    """One row per invariant (and H): max and median over trajectories of max |I(t) - I(0)|."""
+    ok = result.ok
+    header = ["quantity", "max over trajectories", "median", "trajectories"]
+    rows = []
+    for name, errors in result.invariant_errors.items():
+        values = errors[ok]
+        rows.append([f"max err {name}", _fmt(float(values.max())) if values.size else "",
+                     _fmt(float(np.median(values))) if values.size else "", f"{int(ok.sum())} ok"])
+    iterations = result.iterations[ok]
+    if iterations.size:
+        rows.append(["iterations per trajectory", str(int(iterations.max())), str(int(np.median(iterations))),
+                     f"{int(ok.sum())} ok"])
+    multipliers = result.max_multiplier[ok]
+    has_multipliers = bool(result.conserve) or result.method.family in ("lim", "ghbvm")
+    if has_multipliers and multipliers.size and not np.all(np.isnan(multipliers)):
+        rows.append(["max |alpha|/|lambda|", _fmt(float(np.nanmax(multipliers))),
+                     _fmt(float(np.nanmedian(multipliers))), f"{int(ok.sum())} ok"])
+    rows.append(["failed trajectories", str(result.n_failed), "", f"of {result.n_trajectories}"])
+    return header, rows
 
 
 def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:

@@ -173,3 +173,49 @@ def test_cli_sweep_bad_file_is_one_line_exit_2(tmp_path):
     result = CliRunner().invoke(cli, ["sweep", str(path)])
     assert result.exit_code == 2
     assert result.stderr.count("\n") == 1 and "order_axis" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_ensemble_sweep_runs_in_the_parallel_kernel_and_matches_single_runs(tmp_path):
+    import h5py
+    from click.testing import CliRunner
+
+    import elimfast
+    from elimfast.sweep import run_ensemble_sweep
+    from elimfast_cli.main import cli
+
+    path = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "2*pi/60", "t_end": "2*pi"}},
+                                  "ensemble": {"n": 12, "seed": 3, "spread": 0.02}})
+    spec = load_sweep(path)
+    run, states, result = run_ensemble_sweep(spec, threads=2)
+    assert states.shape == (12, 4) and result.n_failed == 0
+    for i in (0, 7):
+        single = elimfast.integrate(run.problem, run.method, run.h, n_steps=run.n_steps, conserve=run.conserve,
+                                    y0=states[i])
+        np.testing.assert_array_equal(result.y_final[i], single.y_final)
+        assert result.iterations[i] == single.iterations.sum()
+    assert np.max(result.invariant_errors["angular_momentum"]) < 1e-14   # imposed
+    out = tmp_path / "ensemble.h5"
+    cli_result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--workers", "1", "-q"])
+    assert cli_result.exit_code == 0, cli_result.output
+    assert "max err angular_momentum" in cli_result.stdout and "12 ok" in cli_result.stdout
+    with h5py.File(out) as f:
+        np.testing.assert_array_equal(f["ensemble/y0"][()], states)
+        np.testing.assert_array_equal(f["ensemble/y_final"][()], result.y_final)   # same with 1 thread
+        assert f["ensemble/invariant_errors/H"].shape == (12,)
+
+
+@pytest.mark.parametrize("ensemble,extra,match", [
+    ({"n": 0}, {}, "ensemble.n"),
+    ({"n": 5, "spreed": 0.1}, {}, "ensemble.spreed: unknown key"),
+    ({"states": [[1, 2]]}, {}, None),
+    ({"n": 5}, {"order_axis": "h"}, "order_axis: an ensemble sweep"),
+])
+def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
+    from elimfast.sweep import run_ensemble_sweep
+    path = write_sweep(tmp_path, {"base": BASE, "ensemble": ensemble, **extra})
+    if match is not None:
+        with pytest.raises(SweepError, match=match):
+            load_sweep(path)
+    else:
+        with pytest.raises(SweepError, match="each state needs 4 numbers"):
+            run_ensemble_sweep(load_sweep(path))

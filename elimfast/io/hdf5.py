@@ -542,6 +542,28 @@ class SweepWriter:
                 _small_dataset(steps, arrays["multiplier_name"], arrays["multipliers"][:done])
         self._file.flush()
 
+    def add_ensemble(self, result, states, resolved: dict) -> None:
+        """Store an ensemble sweep under /ensemble: per trajectory y0, y_final, t_final,
+        iterations (totals), max_multiplier, status (0 ok), steps_done, and
+        invariant_errors/<name> (max |I(t) - I(0)|); the failure reasons as an attribute."""
+        import yaml
+
+        group = self._file.create_group("ensemble")
+        _set_attributes(group, {
+            "problem": result.problem.name, "method": result.method.name, "h": result.h,
+            "n_steps": result.n_steps, "conserve": list(result.conserve) or [""], "threads": result.n_threads,
+            "config": yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None, width=100),
+            "failed": result.n_failed, "reasons": list(result.reasons) or [""]})
+        y0 = _small_dataset(group, "y0", states)
+        _set_attributes(h5py.Dataset(y0), {"coordinates": list(result.problem.coordinate_names)})
+        for name in ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done"):
+            _small_dataset(group, name, getattr(result, name))
+        errors = group.create_group("invariant_errors")
+        for name, values in result.invariant_errors.items():
+            _small_dataset(errors, name, values)
+        _write_method(group.create_group("method"), result.method)
+        self._file.flush()
+
     def close(self) -> None:
         if self._file.id.valid:
             self._file.close()
