@@ -46,7 +46,6 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import yaml
 
 from .errors import ConvergenceError, ElimfastError
 
@@ -131,16 +130,17 @@ def _set_path(config: dict, dotted: str, value, source: str) -> None:
 
 
 def _read_yaml(path: Path, what: str) -> Any:
+    """The config files' reader (safe loader, no aliases or tags); its errors name the file and line."""
+    from .config import ConfigError, parse_yaml
+
     try:
         text = path.read_text()
-    except OSError as error:
-        raise SweepError(f"{path}: cannot read the {what}: {error.strerror or error}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise SweepError(f"{path}: cannot read the {what}: {getattr(error, 'strerror', None) or error}") from None
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise SweepError(f"{path}: not valid YAML{where}; check the indentation and quoting") from None
+        return parse_yaml(text, source=str(path))
+    except ConfigError as error:
+        raise SweepError(str(error)) from None
 
 
 def load_sweep(path: str | os.PathLike) -> SweepSpec:

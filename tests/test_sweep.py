@@ -219,3 +219,13 @@ def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
     else:
         with pytest.raises(SweepError, match="each state needs 4 numbers"):
             run_ensemble_sweep(load_sweep(path))
+
+
+def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
+    path = tmp_path / "aliases.yaml"
+    path.write_text("a: &x [1, 2]\nb: [*x, *x, *x]\nbase: {}\n")
+    with pytest.raises(SweepError, match="aliases.yaml"):
+        load_sweep(path)
+    path.write_text("base: [unclosed\n")
+    with pytest.raises(SweepError, match="line 2"):
+        load_sweep(path)
