@@ -524,7 +524,7 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
     \b
     Examples:
       elimfast sweep configs/paper/table1.yaml
-      elimfast sweep configs/henon_heiles_ensemble.yaml -o out/ensemble.h5
+      elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
     """
     from elimfast.sweep import ensemble_table, format_table, load_sweep, run_ensemble_sweep, run_sweep, table_rows

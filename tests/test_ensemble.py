@@ -122,20 +122,52 @@ def test_non_finite_trajectory_matches_integrate(quartic):
     assert_failure_matches_integrate(ensemble, 1, quartic, gauss(2), 0.5, states[1])
 
 
-def test_exception_in_a_problem_function_is_contained(kepler):
-    # H(q = 0) divides by zero: integrate raises ZeroDivisionError; the ensemble marks
-    # that trajectory only and keeps the others exact.
+def test_division_by_zero_marks_one_trajectory_non_finite(kepler):
+    # H(q = 0) divides by zero: with error_model="numpy" that is inf/NaN, which integrate
+    # reports as a non-finite ConvergenceError; the ensemble marks that trajectory only.
     states = kepler_states(3)
     states[1] = [0.0, 0.0, 1.0, 0.0]
-    with pytest.raises(ZeroDivisionError):
+    with pytest.raises(elimfast.ConvergenceError) as caught:
         elimfast.integrate(kepler, gauss(2), 0.1, n_steps=30, y0=states[1])
+    assert caught.value.reason == "non-finite"
     ensemble = integrate_ensemble(kepler, gauss(2), 0.1, states, n_steps=30)
+    assert ensemble.reasons == ["ok", "non-finite", "ok"]
+    assert ensemble.steps_done[1] == 0
+    for i in (0, 2):
+        alone = elimfast.integrate(kepler, gauss(2), 0.1, n_steps=30, y0=states[i])
+        np.testing.assert_array_equal(ensemble.y_final[i], alone.y_final)
+
+
+def _raising_problem():
+    """A harmonic oscillator whose gradient raises once |q| > 2 (Numba's default error model)."""
+    from numba import njit
+
+    from elimfast.kernels.signatures import GRAD_H_SIGNATURE
+    from elimfast.problems.oscillators import _harmonic_H, harmonic_oscillator
+
+    @njit(GRAD_H_SIGNATURE)
+    def grad_H(y, params, out):
+        if abs(y[0]) > 2.0:
+            raise ValueError("q out of range")
+        out[0] = params[0] * params[0] * y[0]
+        out[1] = y[1]
+
+    from dataclasses import replace
+    return replace(harmonic_oscillator(), H=_harmonic_H, grad_H=grad_H)
+
+
+def test_exception_in_a_problem_function_is_contained():
+    problem = _raising_problem()
+    states = np.array([[1.0, 0.0], [3.0, 0.0], [0.5, 0.5]])
+    with pytest.raises(ValueError, match="q out of range"):
+        elimfast.integrate(problem, gauss(2), 0.1, n_steps=30, y0=states[1])
+    ensemble = integrate_ensemble(problem, gauss(2), 0.1, states, n_steps=30)
     assert ensemble.reasons == ["ok", "exception", "ok"]
     assert ensemble.steps_done[1] == 0 and ensemble.t_final[1] == 0.0
     np.testing.assert_array_equal(ensemble.y_final[1], states[1])
     assert "raised an exception" in ensemble.failure_message(1)
     for i in (0, 2):
-        alone = elimfast.integrate(kepler, gauss(2), 0.1, n_steps=30, y0=states[i])
+        alone = elimfast.integrate(problem, gauss(2), 0.1, n_steps=30, y0=states[i])
         np.testing.assert_array_equal(ensemble.y_final[i], alone.y_final)
 
 
