@@ -44,23 +44,23 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("elimfast"))
 
 
-def problems_dir() -> Path:
-    """Where generated and copied problem modules go (created if needed)."""
-    path = cache_dir() / PROBLEMS_SUBDIR
+def _subdirectory(name: str) -> Path:
+    path = cache_dir() / name
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise _unwritable(path, err) from None
     return path
+
+
+def problems_dir() -> Path:
+    """Where generated and copied problem modules go (created if needed)."""
+    return _subdirectory(PROBLEMS_SUBDIR)
 
 
 def keys_dir() -> Path:
-    path = cache_dir() / KEYS_SUBDIR
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise _unwritable(path, err) from None
-    return path
+    """Where the keys mapping parsed inputs to generated files go (created if needed)."""
+    return _subdirectory(KEYS_SUBDIR)
 
 
 def content_hash(*parts: str) -> str:
