@@ -527,7 +527,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
       elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
     """
-    from elimfast.sweep import ensemble_table, format_table, load_sweep, run_ensemble_sweep, run_sweep, table_rows
+    from elimfast.sweep import (REFERENCE_LABEL, ensemble_table, format_table, load_sweep, run_ensemble_sweep,
+                                run_sweep, table_rows)
 
     writer = None
     if output is not None:
@@ -560,10 +561,10 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
         return EXIT_OK
 
     def on_done(outcome, done, total):
-        if writer is not None and outcome.label != "\0reference":
+        if writer is not None and outcome.label != REFERENCE_LABEL:
             writer.add_run(outcome, _method_of(outcome.resolved))
         if not quiet:
-            name = "reference run" if outcome.label.startswith("\0") else outcome.label
+            name = "reference run" if outcome.label == REFERENCE_LABEL else outcome.label
             click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
 
     try:

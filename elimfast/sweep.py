@@ -50,7 +50,7 @@ import numpy as np
 from .errors import ConvergenceError, ElimfastError
 
 
-_REFERENCE = "\0reference"  # the reference run's key: no grid label can collide with it
+REFERENCE_LABEL = "\0reference"  # the reference run's label: no grid label can collide with it
 
 
 class SweepError(ElimfastError):
@@ -395,7 +395,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         raise SweepError("--workers must be at least 1")
     jobs = [(run.label, run.coordinates, run.config) for run in spec.runs]
     if spec.reference is not None:
-        jobs.append((_REFERENCE, {}, spec.reference))
+        jobs.append((REFERENCE_LABEL, {}, spec.reference))
     total = len(jobs)
     results: dict[str, RunOutcome] = {}
     if workers == 1:
@@ -419,7 +419,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
                 results[outcome.label] = outcome
                 if on_done:
                     on_done(outcome, done, total)
-    reference = results.pop(_REFERENCE, None) if spec.reference is not None else None
+    reference = results.pop(REFERENCE_LABEL, None) if spec.reference is not None else None
     return [results[run.label] for run in spec.runs], reference
 
 
