@@ -20,11 +20,12 @@ from typing import Iterable
 import numba
 import numpy as np
 
-from .integrate import _FAILURE_ADVICE, _FAILURE_TEXT, DEFAULT_MAX_ITER, STAGNATION_THRESHOLD, Integration
+from .integrate import _FAILURE_ADVICE, _FAILURE_TEXT, DEFAULT_MAX_HALVINGS, DEFAULT_MAX_ITER, DEFAULT_SOLVER, Integration
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
-from .integrate import resolve_steps
+from .integrate import SolverSettings, resolve_steps
 from .kernels import stepper
-from .kernels.ensemble import STATUS_EXCEPTION, ensemble_loop
+from .kernels.codes import STATUS_EXCEPTION
+from .kernels.ensemble import ensemble_loop
 from .methods import Method
 from .problems import Problem
 
@@ -61,6 +62,8 @@ class EnsembleResult:
     max_multiplier: np.ndarray
     status: np.ndarray
     steps_done: np.ndarray
+    split_steps: np.ndarray
+    solver: SolverSettings
 
     @property
     def n_trajectories(self) -> int:
@@ -93,7 +96,7 @@ class EnsembleResult:
                     f"elimfast.integrate from this trajectory's y0 to see it")
         what = _FAILURE_TEXT[code]
         if code == stepper.STATUS_NOT_CONVERGED:
-            what += f" in max_iter = {self.max_iter} iterations"
+            what = f"the {self.solver.description} did not converge at any of {self.solver.max_halvings} halvings"
         return (f"{self.method.name}: trajectory {index}: {what} at step {step} "
                 f"(t = {t_start:.17g} -> {t_start + self.h:.17g}); {_FAILURE_ADVICE[code]}")
 
@@ -111,7 +114,8 @@ def _thread_count(n_threads) -> int:
 def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: float | None = None,
                        n_steps: int | None = None, conserve: Iterable[str] = (), tol: float | None = None,
                        max_iter: int = DEFAULT_MAX_ITER, rhs: str = "stable", n_threads: int | None = None,
-                       t0: float = 0.0, warm_start: bool = True) -> EnsembleResult:
+                       t0: float = 0.0, warm_start: bool = True, solver: str | SolverSettings = DEFAULT_SOLVER,
+                       predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS) -> EnsembleResult:
     """Integrate ``problem`` with ``method`` and step ``h`` from every row of Y0 (n_traj, 2m).
 
     Arguments as for ``elimfast.integrate`` (give exactly one of t_end and n_steps);
@@ -136,7 +140,8 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
                          + (" ..." if bad.size > 10 else ""))
     # The validation integrate does (problem, method, conserve, tol, max_iter, rhs), by the same code.
     run = Integration(problem, method, h, n_steps, conserve=conserve, tol=tol, max_iter=max_iter, rhs=rhs,
-                      warm_start=warm_start, t0=t0, y0=states[0])
+                      warm_start=warm_start, t0=t0, y0=states[0], solver=solver, predictor=predictor,
+                      max_halvings=max_halvings)
     threads = _thread_count(n_threads)
 
     n_traj = states.shape[0]
@@ -148,16 +153,14 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
     max_multiplier = np.empty(n_traj)
     status = np.empty(n_traj, dtype=np.int64)
     steps_done = np.empty(n_traj, dtype=np.int64)
+    split_steps = np.empty(n_traj, dtype=np.int64)
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(threads)
     try:
         ensemble_loop(
-            problem.H, problem.grad_H, problem.invariants, problem.grad_invariants, problem.params,
-            method.kernel_family, n_inv, int(run.rhs == "stable"), int(run.warm_start),
-            run.h, method.projection, method.Is, method.projection_hat, method.Is_hat,
-            run.conserve_idx, run.tol, STAGNATION_THRESHOLD, run.max_iter,
+            *run.kernel_settings(),
             states, float(t0), run.n_steps, run.multipliers.size, threads,
-            y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done)
+            y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps)
     finally:
         numba.set_num_threads(previous_threads)
     errors = {"H": inv_error[:, 0].copy()}
@@ -167,7 +170,7 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
         problem=problem, method=method, h=run.h, conserve=run.conserve, n_steps=run.n_steps,
         max_iter=run.max_iter, n_threads=threads, y0=states, y_final=y_final, t_final=t_final,
         invariant_errors=errors, iterations=iterations, max_multiplier=max_multiplier,
-        status=status, steps_done=steps_done)
+        status=status, steps_done=steps_done, split_steps=split_steps, solver=run.solver)
 
 
 __all__ = ["EnsembleResult", "STATUS_NAMES", "integrate_ensemble"]

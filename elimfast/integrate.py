@@ -12,34 +12,101 @@ from typing import Iterable
 import numpy as np
 
 from .errors import ConvergenceError
-from .kernels import stepper
+from .kernels import codes, stepper
 from .methods import Method
 from .problems import Problem
 
-# Defaults of the fixed-point iteration (all tunables in one place).
-DEFAULT_TOL = 2.0 ** -52          # relative stage increment at round-off (machine epsilon)
-STAGNATION_THRESHOLD = 1e-10      # below this (relative), an increment that stops decreasing ends the iteration
+# Defaults of the step solver (all tunables in one place; docs/solver.md).
+SOLVERS = {"newton": codes.SOLVER_NEWTON, "fixed_point": codes.SOLVER_FIXED_POINT}
+DEFAULT_SOLVER = "newton"
+DEFAULT_TOL = 2.0 ** -52          # relative increment at round-off (machine epsilon): accept at once
+MAX_TOL = 1e-8                    # a looser tol would accept iterates far from the solution
 DEFAULT_MAX_ITER = 100
+MAX_MAX_ITER = 10_000             # bounds the work of one kernel call (simplified Newton needs 5-15)
+DEFAULT_MAX_HALVINGS = 4          # step splitting depth (spec 8: one level always sufficed)
+MAX_MAX_HALVINGS = 20             # 2^20 substeps per step at most
 DEFAULT_CHUNK_STEPS = 1 << 16     # steps per kernel call in integrate()
 T_END_RELATIVE_TOLERANCE = 1e-9   # t_end must be a whole number of steps to this
+H_WARNING_RELATIVE = 1e-12        # an H error above this (relative) means k is too small for this h
 
 _FAILURE_TEXT = {
-    stepper.STATUS_NOT_CONVERGED: "the fixed-point iteration did not converge",
-    stepper.STATUS_SINGULAR: "the small system is singular or badly conditioned",
-    stepper.STATUS_NONFINITE: "the solution became NaN or infinite",
+    codes.STATUS_NOT_CONVERGED: "the iteration did not converge",
+    codes.STATUS_SINGULAR: "the small system is singular or badly conditioned",
+    codes.STATUS_NONFINITE: "the solution became NaN or infinite",
 }
 _FAILURE_ADVICE = {
-    stepper.STATUS_NOT_CONVERGED: "reduce h or raise max_iter",
-    stepper.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, spec 3); "
-                              "impose fewer or other invariants, or change h"),
-    stepper.STATUS_NONFINITE: "reduce h; check the initial state and the problem's singularities",
+    codes.STATUS_NOT_CONVERGED: "reduce h or raise solver.max_halvings",
+    codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
+                            "impose fewer or other invariants, or change h"),
+    codes.STATUS_NONFINITE: "reduce h; check the initial state and the problem's singularities",
 }
 STATUS_NAMES = {
-    stepper.STATUS_OK: "ok",
-    stepper.STATUS_NOT_CONVERGED: "not converged",
-    stepper.STATUS_SINGULAR: "singular",
-    stepper.STATUS_NONFINITE: "non-finite",
+    codes.STATUS_OK: "ok",
+    codes.STATUS_NOT_CONVERGED: "not converged",
+    codes.STATUS_SINGULAR: "singular",
+    codes.STATUS_NONFINITE: "non-finite",
 }
+
+
+def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
+    """value as an int in [low, high], or a ValueError naming the parameter and the range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(float(value)) or not float(value).is_integer():
+        raise ValueError(f"{name} must be a whole number from {low} to {high}, got {value!r}")
+    as_int = int(value)
+    if not low <= as_int <= high:
+        raise ValueError(f"{name} must be from {low} to {high}{why}, got {as_int}")
+    return as_int
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """How each step's nonlinear system is solved (spec 8; docs/solver.md).
+
+    method: 'newton' (simplified Newton, the default) or 'fixed_point' (the paper's
+    iteration, whose counts Table 2 reports); tol: accept an iterate whose relative
+    increment is at most this (default: machine epsilon; the rounding band of the
+    stopping rule accepts at round-off level in any case); max_iter: iterations per
+    solve; max_halvings: how often a failing step may be split in two (0: never);
+    predictor: start from the previous step's polynomial carried over; warm_start: start
+    from the previous step at all (False: every step cold, from y_n); rhs: 'stable'
+    (spec 3b, the default) or 'literal' (the paper's right-hand side).
+    """
+
+    method: str = DEFAULT_SOLVER
+    tol: float = DEFAULT_TOL
+    max_iter: int = DEFAULT_MAX_ITER
+    max_halvings: int = DEFAULT_MAX_HALVINGS
+    predictor: bool = True
+    warm_start: bool = True
+    rhs: str = "stable"
+
+    def __post_init__(self):
+        if self.method not in SOLVERS:
+            raise ValueError(f"solver must be one of {', '.join(map(repr, SOLVERS))}, got {self.method!r}")
+        try:
+            tol = DEFAULT_TOL if self.tol is None else float(self.tol)
+        except (TypeError, ValueError):
+            raise ValueError(f"tol must be a number, got {self.tol!r}") from None
+        if not (0.0 <= tol <= MAX_TOL):
+            raise ValueError(f"tol must be from 0 to {MAX_TOL:g} (it is a round-off stopping tolerance on the "
+                             f"relative increment; looser values accept unconverged steps), got {self.tol!r}")
+        object.__setattr__(self, "tol", tol)
+        object.__setattr__(self, "max_iter", _whole_number("max_iter", self.max_iter, 1, MAX_MAX_ITER))
+        object.__setattr__(self, "max_halvings", _whole_number(
+            "max_halvings", self.max_halvings, 0, MAX_MAX_HALVINGS, f" (2^{MAX_MAX_HALVINGS} substeps per step)"))
+        if self.rhs not in ("stable", "literal"):
+            raise ValueError(f"rhs must be 'stable' (spec 3b, the default) or 'literal' (the paper's), got {self.rhs!r}")
+        object.__setattr__(self, "predictor", bool(self.predictor))
+        object.__setattr__(self, "warm_start", bool(self.warm_start))
+
+    @property
+    def code(self) -> int:
+        return SOLVERS[self.method]
+
+    @property
+    def description(self) -> str:
+        return "simplified Newton" if self.method == "newton" else "fixed-point iteration"
 
 
 @dataclass
@@ -50,7 +117,8 @@ class Chunk:
     y: np.ndarray            # (samples, 2m)
     invariants: np.ndarray   # (samples, 1 + n_inv): H, then the problem's invariants
     multipliers: np.ndarray  # (steps, n_mult): alpha (ELIM) or lambda (LIM)
-    iterations: np.ndarray   # (steps,)
+    iterations: np.ndarray   # (steps,), plus the failed step's count when status is a failure
+    substeps: np.ndarray     # (steps,): 1, or the substeps of a split step
     first_step: int          # global index of the first step in this chunk
     status: int
 
@@ -61,8 +129,10 @@ class Result:
 
     t (samples,), y (samples, 2m); invariants: name -> (samples,), always with 'H' and
     every invariant of the problem, imposed or not; alpha (n_steps, nu) for ELIM and
-    lam (n_steps, nu+1) for LIM (None otherwise); iterations (n_steps,) per step;
-    y_final, t_final: the last state; status: 'complete' or the failure reason.
+    lam (n_steps, nu+1) for LIM (None otherwise); iterations (n_steps,) per step, every
+    try and substep counted; substeps (n_steps,): 1, or how many substeps a split step
+    took (spec 8, "Fallback"); y_final, t_final: the last state; status: 'complete' or
+    the failure reason; solver: the SolverSettings used.
     """
 
     problem: Problem
@@ -75,16 +145,48 @@ class Result:
     alpha: np.ndarray | None
     lam: np.ndarray | None
     iterations: np.ndarray
+    substeps: np.ndarray
     y_final: np.ndarray
     t_final: float
     n_steps: int
     steps_done: int
     status: str
+    solver: SolverSettings = field(default_factory=SolverSettings)
     extra: dict = field(default_factory=dict)
 
     def invariant_errors(self) -> dict[str, float]:
         """max over samples of |I(t) - I(t0)| for H and every invariant."""
         return {name: float(np.max(np.abs(v - v[0]))) if v.size else 0.0 for name, v in self.invariants.items()}
+
+    @property
+    def split_steps(self) -> int:
+        """How many steps were split into substeps (spec 8, "Fallback")."""
+        return int(np.count_nonzero(self.substeps > 1))
+
+    def energy_warning(self) -> str | None:
+        """A note when H drifts above round-off for a method that keeps H (k too small), else None."""
+        return energy_warning(self.method, self.h, self.invariants["H"])
+
+    def __repr__(self) -> str:
+        errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
+        return (f"<Result {self.method.name} on {self.problem.name}, h = {self.h:g}, "
+                f"{self.steps_done}/{self.n_steps} steps, {self.status}; max |I - I0|: {errors}>")
+
+
+def energy_warning(method: Method, h: float, H_values) -> str | None:
+    """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
+    quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s. Returns a
+    one-line note when max |H - H0| / |H0| exceeds H_WARNING_RELATIVE, else None."""
+    values = np.asarray(H_values, dtype=float)
+    if values.size < 2:
+        return None
+    drift = float(np.max(np.abs(values - values[0])))
+    reference = abs(float(values[0]))
+    relative = drift / reference if reference > 0 else drift
+    if not relative > H_WARNING_RELATIVE:
+        return None
+    return (f"H error {relative:.1e} (relative) is above round-off: {method.name} keeps H only up to the "
+            f"quadrature error of its k = {method.k} nodes at h = {h:g}; raise k or reduce h")
 
 
 def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) -> tuple[tuple[str, ...], np.ndarray]:
@@ -153,14 +255,18 @@ class Integration:
 
     ``advance(n)`` runs up to n more steps in one kernel call and returns a Chunk;
     consecutive calls continue the same run exactly (compensated y and t, last
-    coefficients). The state can be saved and restored (``state`` / ``restore``) so a
-    run resumed from it ends bit for bit where an uninterrupted one would.
+    coefficients, the predictor's last step size). The state can be saved and restored
+    (``state`` / ``restore``) so a run resumed from it ends bit for bit where an
+    uninterrupted one would. The solver settings may differ between the saved run and
+    the resumed one (a failed run continues with, say, more halvings); they only decide
+    how each step's system is solved, not which steps are taken.
     """
 
     def __init__(self, problem: Problem, method: Method, h: float, n_steps: int, conserve=(),
                  tol: float | None = None, max_iter: int = DEFAULT_MAX_ITER, store_every: int = 1,
                  rhs: str = "stable", warm_start: bool = True, t0: float = 0.0, y0=None,
-                 backward: bool = False):
+                 backward: bool = False, solver: str | SolverSettings = DEFAULT_SOLVER,
+                 predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS):
         if not isinstance(problem, Problem):
             raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
         if not isinstance(method, Method):
@@ -170,19 +276,13 @@ class Integration:
         self.conserve, self.conserve_idx = resolve_conserve(problem, method, conserve)
         self.h, self.n_steps = resolve_steps(h, n_steps=n_steps)
         self.backward = bool(backward)
-        self.tol = DEFAULT_TOL if tol is None else float(tol)
-        if not (self.tol >= 0.0 and math.isfinite(self.tol)):
-            raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
-        if isinstance(max_iter, bool) or not float(max_iter).is_integer() or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-        self.max_iter = int(max_iter)
-        if isinstance(store_every, bool) or not float(store_every).is_integer() or store_every < 1:
-            raise ValueError(f"store_every must be a positive integer, got {store_every!r}")
-        self.store_every = int(store_every)
-        if rhs not in ("stable", "literal"):
-            raise ValueError(f"rhs must be 'stable' (spec 3b, the default) or 'literal' (the paper's), got {rhs!r}")
-        self.rhs = rhs
-        self.warm_start = bool(warm_start)
+        if isinstance(solver, SolverSettings):
+            self.solver = solver
+        else:
+            self.solver = SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
+                                         max_halvings=max_halvings, predictor=predictor, warm_start=warm_start,
+                                         rhs=rhs)
+        self.store_every = _whole_number("store_every", store_every, 1, np.iinfo(np.int64).max)
 
         n = 2 * problem.degrees_of_freedom
         self.y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
@@ -194,11 +294,23 @@ class Integration:
         self.t0 = float(t0)
         self.coef = np.zeros((method.s, n))
         nu = len(self.conserve)
-        n_mult = nu + 1 if method.kernel_family == stepper.FAMILY_LIM else nu
+        n_mult = nu + 1 if method.kernel_family == codes.FAMILY_LIM else nu
         self.multipliers = np.zeros(n_mult)
+        self.last_h = np.array([self.signed_h])
         self.steps_done = 0
-        self.status = stepper.STATUS_OK
+        self.status = codes.STATUS_OK
+        self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
         self._progress = np.zeros(2, dtype=np.int64)
+
+    # Settings kept as attributes for callers that read them (and old pickles of runs).
+    tol = property(lambda self: self.solver.tol)
+    max_iter = property(lambda self: self.solver.max_iter)
+    rhs = property(lambda self: self.solver.rhs)
+    warm_start = property(lambda self: self.solver.warm_start)
+
+    @property
+    def signed_h(self) -> float:
+        return -self.h if self.backward else self.h
 
     # --- state -------------------------------------------------------------------------
     @property
@@ -207,21 +319,23 @@ class Integration:
 
     @property
     def finished(self) -> bool:
-        return self.steps_done >= self.n_steps or self.status != stepper.STATUS_OK
+        return self.steps_done >= self.n_steps or self.status != codes.STATUS_OK
 
     def state(self) -> dict[str, np.ndarray | int]:
         """Everything needed to continue the run exactly (for resume)."""
         return {"y": self.y.copy(), "y_comp": self.y_comp.copy(), "clock": self.clock.copy(),
-                "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "steps_done": self.steps_done}
+                "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "last_h": self.last_h.copy(),
+                "steps_done": self.steps_done}
 
     def restore(self, state: dict) -> None:
-        for key in ("y", "y_comp", "clock", "coef", "multipliers"):
+        for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h"):
             target = getattr(self, key)
             value = np.asarray(state[key], dtype=np.float64)
             if value.shape != target.shape:
                 raise ValueError(f"saved state {key!r} has shape {value.shape}, expected {target.shape}")
             target[...] = value
         self.steps_done = int(state["steps_done"])
+        self.status = codes.STATUS_OK
 
     def n_samples_between(self, first_step: int, n: int) -> int:
         """Samples stored by steps first_step+1 .. first_step+n (multiples of store_every, and the last)."""
@@ -238,12 +352,22 @@ class Integration:
         p.invariants(self.y, p.params, values)
         inv = np.concatenate(([p.H(self.y, p.params)], values))[None, :]
         return Chunk(np.array([self.t]), self.y[None, :].copy(), inv, np.zeros((0, self.multipliers.size)),
-                     np.zeros(0, dtype=np.int64), self.steps_done, stepper.STATUS_OK)
+                     np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), self.steps_done, codes.STATUS_OK)
 
     # --- stepping ----------------------------------------------------------------------
+    def kernel_settings(self) -> tuple:
+        """The problem's functions, the solver settings and the method's tables, in the order
+        of the kernels' signatures (stepper.time_loop and ensemble.ensemble_loop)."""
+        p, m, solver = self.problem, self.method, self.solver
+        return (p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
+                m.kernel_family, solver.code, int(solver.rhs == "stable"), int(solver.warm_start),
+                int(solver.predictor), solver.tol, solver.max_iter, solver.max_halvings,
+                self.signed_h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
+                m.predictor_nodes, m.predictor_basis, self.conserve_idx)
+
     def advance(self, max_steps: int) -> Chunk:
         """Run up to max_steps more steps in one kernel call."""
-        p, m = self.problem, self.method
+        p = self.problem
         n_run = int(min(max_steps, self.n_steps - self.steps_done))
         n_samples = self.n_samples_between(self.steps_done, n_run)
         dim = self.y.size
@@ -252,66 +376,87 @@ class Integration:
         inv_out = np.empty((n_samples, 1 + len(p.invariant_names)))
         mult_out = np.empty((n_run, self.multipliers.size))
         iter_out = np.zeros(n_run, dtype=np.int64)
-        if n_run <= 0 or self.status != stepper.STATUS_OK:
-            return Chunk(t_out, y_out, inv_out, mult_out, iter_out, self.steps_done, self.status)
-        h = -self.h if self.backward else self.h
+        substeps_out = np.zeros(n_run, dtype=np.int64)
+        if n_run <= 0 or self.status != codes.STATUS_OK:
+            return Chunk(t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self.steps_done, self.status)
         status = stepper.time_loop(
-            p.H, p.grad_H, p.invariants, p.grad_invariants, p.params,
-            m.kernel_family, len(p.invariant_names), int(self.rhs == "stable"), int(self.warm_start),
-            h, m.projection, m.Is, m.projection_hat, m.Is_hat,
-            self.conserve_idx, self.tol, STAGNATION_THRESHOLD, self.max_iter,
-            self.y, self.y_comp, self.clock, self.coef, self.multipliers,
+            *self.kernel_settings(),
+            self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h,
             self.steps_done, n_run, self.n_steps, self.store_every,
-            t_out, y_out, inv_out, mult_out, iter_out, self._progress)
+            t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self._progress, self.diagnostics)
         done, samples = int(self._progress[0]), int(self._progress[1])
         first = self.steps_done
         self.steps_done += done
         self.status = int(status)
         # On failure keep the failed step's iteration count: it says how hard the step was.
-        n_iter = done + (1 if status != stepper.STATUS_OK else 0)
+        n_iter = done + (1 if status != codes.STATUS_OK else 0)
         return Chunk(t_out[:samples], y_out[:samples], inv_out[:samples], mult_out[:done],
-                     iter_out[:n_iter], first, int(status))
+                     iter_out[:n_iter], substeps_out[:done], first, int(status))
 
     def failure_message(self) -> str:
-        """One line naming the step and time of a failure, and what to do."""
-        step = self.steps_done + 1
-        t_fail = self.t
-        h = -self.h if self.backward else self.h
-        what = _FAILURE_TEXT[self.status]
-        if self.status == stepper.STATUS_NOT_CONVERGED:
-            what += f" in max_iter = {self.max_iter} iterations"
-        return (f"{self.method.name}: {what} at step {step} (t = {t_fail:.17g} -> {t_fail + h:.17g}); "
-                f"{_FAILURE_ADVICE[self.status]}")
+        """One line naming the step and time of a failure, what the solver saw, and what to do."""
+        return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t, self.signed_h,
+                               self.diagnostics)
+
+
+def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
+                    diagnostics) -> str:
+    """The one-line report of a step that failed at every level of splitting (spec 8)."""
+    what = _FAILURE_TEXT[status]
+    if status == codes.STATUS_NOT_CONVERGED:
+        what = f"the {solver.description} did not converge"
+    d = diagnostics
+    depth = int(d[stepper.DIAG_DEPTH])
+    where = f"at step {step} (t = {t:.17g} -> {t + h:.17g})"
+    if depth > 0:
+        where += f", in its substep from t = {d[stepper.DIAG_TIME]:.17g} of h = {d[stepper.DIAG_STEP]:.6g} " \
+                 f"after {depth} halving{'s' if depth > 1 else ''}"
+    seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
+    if d[stepper.DIAG_CONDITION] != 0.0:
+        seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
+    advice = _FAILURE_ADVICE[status]
+    if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS:
+        advice = (f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now); "
+                  "a failed run can be continued with --resume after changing solver settings")
+    return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
 
 
 def integrate(problem: Problem, method: Method, h: float, t_end: float | None = None, n_steps: int | None = None,
               conserve: Iterable[str] = (), tol: float | None = None, max_iter: int = DEFAULT_MAX_ITER,
               store_every: int = 1, rhs: str = "stable", warm_start: bool = True, t0: float = 0.0,
-              y0=None, backward: bool = False, chunk_steps: int = DEFAULT_CHUNK_STEPS) -> Result:
+              y0=None, backward: bool = False, chunk_steps: int = DEFAULT_CHUNK_STEPS,
+              solver: str | SolverSettings = DEFAULT_SOLVER, predictor: bool = True,
+              max_halvings: int = DEFAULT_MAX_HALVINGS) -> Result:
     """Integrate ``problem`` with ``method`` and constant step ``h``; return a Result.
 
     Give t_end (a whole number of steps after t0, to 1e-9 relative) or n_steps.
     conserve: names of the problem's invariants to impose (ELIM/EHBVM: fewer than s;
-    LIM/GHBVM: any number; must be empty for GAUSS/HBVM). tol: stopping tolerance of the
-    fixed-point iteration on the relative stage increment (default: machine epsilon);
-    max_iter: iterations allowed per step. store_every: keep every n-th state (the
-    last one always). rhs: 'stable' (spec 3b, default) or 'literal' (the paper's form).
-    warm_start: start each step's iteration from the previous step's coefficients
-    (else from y_n). backward: integrate towards t0 - n_steps h.
+    LIM/GHBVM: any number; must be empty for GAUSS/HBVM). store_every: keep every n-th
+    state (the last one always). backward: integrate towards t0 - n_steps h.
 
-    Raises ConvergenceError (with the partial Result as ``.result``) when the
-    iteration fails to converge, Gamma is singular, or the solution stops being finite.
+    How each step is solved (docs/solver.md): solver 'newton' (simplified Newton, the
+    default) or 'fixed_point' (the paper's iteration), or a SolverSettings; tol: the
+    round-off acceptance on the relative increment (default machine epsilon, at most
+    1e-8); max_iter: iterations per solve; predictor: start from the previous step's
+    polynomial carried over; warm_start: start from the previous step at all (else from
+    y_n); max_halvings: a step that fails is retried from the unextrapolated guess, then
+    split into two half-steps, recursively to this depth (0: no splitting); rhs: 'stable'
+    (spec 3b, default) or 'literal' (the paper's form).
+
+    Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
+    every depth, Gamma is singular, or the solution stops being finite.
     """
     if t_end is not None and backward:
         raise ValueError("with backward=True give n_steps, not t_end")
     h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
     run = Integration(problem, method, h, n_steps, conserve=conserve, tol=tol, max_iter=max_iter,
-                      store_every=store_every, rhs=rhs, warm_start=warm_start, t0=t0, y0=y0, backward=backward)
+                      store_every=store_every, rhs=rhs, warm_start=warm_start, t0=t0, y0=y0, backward=backward,
+                      solver=solver, predictor=predictor, max_halvings=max_halvings)
     chunks = [run.initial_chunk()]
     while not run.finished:
         chunks.append(run.advance(chunk_steps))
     result = _collect(run, chunks)
-    if run.status != stepper.STATUS_OK:
+    if run.status != codes.STATUS_OK:
         message = run.failure_message()
         result.status = "failed: " + message
         raise ConvergenceError(message, step=run.steps_done + 1, time=run.t, result=result,
@@ -323,7 +468,7 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
     p, m = run.problem, run.method
     inv = np.concatenate([c.invariants for c in chunks])
     mult = np.concatenate([c.multipliers for c in chunks])
-    is_lim = m.kernel_family == stepper.FAMILY_LIM
+    is_lim = m.kernel_family == codes.FAMILY_LIM
     invariants = {"H": inv[:, 0].copy()}
     for i, name in enumerate(p.invariant_names):
         invariants[name] = inv[:, 1 + i].copy()
@@ -334,6 +479,8 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
         alpha=mult if (m.imposes_invariants and not is_lim) else None,
         lam=mult if is_lim else None,
         iterations=np.concatenate([c.iterations for c in chunks]),
+        substeps=np.concatenate([c.substeps for c in chunks]),
         y_final=run.y.copy(), t_final=run.t, n_steps=run.n_steps, steps_done=run.steps_done,
-        status="complete" if run.status == stepper.STATUS_OK else STATUS_NAMES[run.status],
+        status="complete" if run.status == codes.STATUS_OK else STATUS_NAMES[run.status],
+        solver=run.solver,
     )

@@ -1,10 +1,13 @@
-"""Small dense solves for the nu x nu systems of spec sections 3 and 4.
+"""Dense solves of the kernels: the nu x nu systems of spec sections 3 and 4, and the
+simplified-Newton matrix of spec section 8.
 
-nu is 1 to a few, so plain loops beat any BLAS call. Both solve in place and return a
-status (0 ok, 1 singular or badly conditioned) instead of raising.
+nu is 1 to a few and the Newton matrix is (s 2m) x (s 2m), so plain loops beat any BLAS
+call. Every function works in place and returns a status (0 ok, 1 singular or badly
+conditioned) instead of raising.
 """
 import math
 
+import numpy as np
 from numba import njit
 
 # A pivot smaller than this times the largest entry of the matrix is treated as zero:
@@ -12,15 +15,15 @@ from numba import njit
 RELATIVE_PIVOT_FLOOR = 1e-13
 
 
-@njit(cache=True)
-def lu_solve(a, x):
-    """Solve a z = x by Gaussian elimination with partial pivoting; z overwrites x.
+@njit(cache=True, inline="always")
+def lu_factor(a, pivots):
+    """LU factorisation with partial pivoting, in place: P a = L U.
 
-    Spec section 3, "Gamma alpha = bvec" (Assumption 1 of the paper: Gamma nonsingular).
-    a: (n, n), destroyed; x: (n,). Returns 0, or 1 if a pivot falls below
-    RELATIVE_PIVOT_FLOOR * max|a| (singular or badly conditioned), or if a is not finite.
+    a: (n, n), overwritten by L (unit lower, below the diagonal) and U; pivots: (n,)
+    int64, the row swapped with row i at step i. Returns 0, or 1 if a pivot falls below
+    RELATIVE_PIVOT_FLOOR * max|a| (singular or badly conditioned) or a is not finite.
     """
-    n = x.shape[0]
+    n = a.shape[0]
     scale = 0.0
     for i in range(n):
         for j in range(n):
@@ -38,6 +41,7 @@ def lu_solve(a, x):
             if abs(a[i, col]) > pivot_abs:
                 pivot_abs = abs(a[i, col])
                 pivot_row = i
+        pivots[col] = pivot_row
         if pivot_abs <= RELATIVE_PIVOT_FLOOR * scale:
             return 1
         if pivot_row != col:
@@ -45,31 +49,60 @@ def lu_solve(a, x):
                 tmp = a[col, j]
                 a[col, j] = a[pivot_row, j]
                 a[pivot_row, j] = tmp
-            tmp = x[col]
-            x[col] = x[pivot_row]
-            x[pivot_row] = tmp
         for i in range(col + 1, n):
             factor = a[i, col] / a[col, col]
-            for j in range(col + 1, n):
-                a[i, j] -= factor * a[col, j]
-            x[i] -= factor * x[col]
-    for i in range(n - 1, -1, -1):
-        acc = x[i]
-        for j in range(i + 1, n):
-            acc -= a[i, j] * x[j]
-        x[i] = acc / a[i, i]
+            a[i, col] = factor
+            if factor != 0.0:
+                for j in range(col + 1, n):
+                    a[i, j] -= factor * a[col, j]
     return 0
 
 
-@njit(cache=True)
-def cholesky_solve(a, x):
-    """Solve a z = x for symmetric positive definite a by Cholesky; z overwrites x.
-
-    Spec section 4, "(phi_0^T phi_0) lambda = ..." (the LIM Gram matrix).
-    a: (n, n), overwritten by its Cholesky factor; x: (n,). Returns 0, or 1 if a is not
-    (numerically) positive definite.
-    """
+@njit(cache=True, inline="always")
+def lu_solve_factored(lu, pivots, x):
+    """Solve a z = x with the factors of lu_factor; z overwrites x (n,)."""
     n = x.shape[0]
+    for col in range(n):
+        p = pivots[col]
+        if p != col:
+            tmp = x[col]
+            x[col] = x[p]
+            x[p] = tmp
+    for i in range(n):
+        acc = x[i]
+        for j in range(i):
+            acc -= lu[i, j] * x[j]
+        x[i] = acc
+    for i in range(n - 1, -1, -1):
+        acc = x[i]
+        for j in range(i + 1, n):
+            acc -= lu[i, j] * x[j]
+        x[i] = acc / lu[i, i]
+
+
+@njit(cache=True)
+def lu_solve(a, x):
+    """Solve a z = x by Gaussian elimination with partial pivoting; z overwrites x.
+
+    Spec section 3, "Gamma alpha = bvec" (Assumption 1 of the paper: Gamma nonsingular).
+    a: (n, n), destroyed; x: (n,). Returns 0, or 1 if a pivot falls below
+    RELATIVE_PIVOT_FLOOR * max|a| (singular or badly conditioned), or if a is not finite.
+    """
+    pivots = np.empty(x.shape[0], dtype=np.int64)
+    if lu_factor(a, pivots) != 0:
+        return 1
+    lu_solve_factored(a, pivots, x)
+    return 0
+
+
+@njit(cache=True, inline="always")
+def cholesky_factor(a):
+    """Cholesky factorisation a = L L^T in place (L in the lower triangle).
+
+    Spec section 4, "(phi_0^T phi_0) lambda = ..." (the LIM Gram matrix). a: (n, n).
+    Returns 0, or 1 if a is not (numerically) positive definite.
+    """
+    n = a.shape[0]
     scale = 0.0
     for i in range(n):
         if a[i, i] > scale:
@@ -89,14 +122,33 @@ def cholesky_solve(a, x):
             for p in range(j):
                 v -= a[i, p] * a[j, p]
             a[i, j] = v / d
+    return 0
+
+
+@njit(cache=True, inline="always")
+def cholesky_solve_factored(factor, x):
+    """Solve (L L^T) z = x with the factor of cholesky_factor; z overwrites x."""
+    n = x.shape[0]
     for i in range(n):
         acc = x[i]
         for p in range(i):
-            acc -= a[i, p] * x[p]
-        x[i] = acc / a[i, i]
+            acc -= factor[i, p] * x[p]
+        x[i] = acc / factor[i, i]
     for i in range(n - 1, -1, -1):
         acc = x[i]
         for p in range(i + 1, n):
-            acc -= a[p, i] * x[p]
-        x[i] = acc / a[i, i]
+            acc -= factor[p, i] * x[p]
+        x[i] = acc / factor[i, i]
+
+
+@njit(cache=True)
+def cholesky_solve(a, x):
+    """Solve a z = x for symmetric positive definite a by Cholesky; z overwrites x.
+
+    a: (n, n), overwritten by its Cholesky factor; x: (n,). Returns 0, or 1 if a is not
+    (numerically) positive definite.
+    """
+    if cholesky_factor(a) != 0:
+        return 1
+    cholesky_solve_factored(a, x)
     return 0

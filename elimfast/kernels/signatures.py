@@ -24,11 +24,13 @@ H_SIGNATURE = types.float64(VECTOR, VECTOR)
 GRAD_H_SIGNATURE = types.void(VECTOR, VECTOR, VECTOR)
 INVARIANTS_SIGNATURE = types.void(VECTOR, VECTOR, VECTOR)
 GRAD_INVARIANTS_SIGNATURE = types.void(VECTOR, VECTOR, MATRIX)
+HESS_H_SIGNATURE = types.void(VECTOR, VECTOR, MATRIX)
 
 H_TYPE = types.FunctionType(H_SIGNATURE)
 GRAD_H_TYPE = types.FunctionType(GRAD_H_SIGNATURE)
 INVARIANTS_TYPE = types.FunctionType(INVARIANTS_SIGNATURE)
 GRAD_INVARIANTS_TYPE = types.FunctionType(GRAD_INVARIANTS_SIGNATURE)
+HESS_H_TYPE = types.FunctionType(HESS_H_SIGNATURE)
 
 # Decorators for problem modules: compile eagerly with the signature the kernels expect.
 # error_model="numpy": a division by zero gives inf/NaN, which the kernel reports as a
@@ -37,6 +39,7 @@ jit_hamiltonian = njit(H_SIGNATURE, cache=True, error_model="numpy")
 jit_gradient = njit(GRAD_H_SIGNATURE, cache=True, error_model="numpy")
 jit_invariants = njit(INVARIANTS_SIGNATURE, cache=True, error_model="numpy")
 jit_invariant_gradients = njit(GRAD_INVARIANTS_SIGNATURE, cache=True, error_model="numpy")
+jit_hessian = njit(HESS_H_SIGNATURE, cache=True, error_model="numpy")
 
 
 @jit_invariants

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..kernels.quadrature import gauss_legendre, legendre_integral_table, legendre_table
-from ..kernels.stepper import FAMILY_ELIM, FAMILY_LIM
+from ..kernels.codes import FAMILY_ELIM, FAMILY_LIM
 
 MAX_NODES = 64  # the quadrature is verified to a few ulp up to here
 
@@ -58,6 +58,11 @@ class Method:
     stable right-hand side of spec 3b), Is (k x s); chat, bhat, Ps_hat (r x r),
     Is_hat (r x s) at the r nodes; projection[j, l] = b_l P_j(c_l) and
     projection_hat[j, i] = bhat_i P_j(chat_i), the kernels' form of Ps^T Omega.
+    Solver tables (spec 8): X (s x s) = Ps^T Omega Is, tridiagonal (X[0,0] = 1/2,
+    X[j,j-1] = -X[j-1,j] = 1/(2 sqrt(4j^2 - 1))), the simplified Newton matrix's;
+    abs_projection_hat (r,) = sum_i |bhat_i P_j(chat_i)| (the rounding estimate's S_j);
+    predictor_nodes (s+1,) and predictor_basis (s+1, s) = w_q P_i(x_q): the (s+1)-point
+    Gauss rule of the predictor's projection E(theta).
     """
 
     family: str
@@ -74,6 +79,10 @@ class Method:
     Is_hat: np.ndarray = field(repr=False)
     projection: np.ndarray = field(repr=False)
     projection_hat: np.ndarray = field(repr=False)
+    X: np.ndarray = field(repr=False)
+    abs_projection_hat: np.ndarray = field(repr=False)
+    predictor_nodes: np.ndarray = field(repr=False)
+    predictor_basis: np.ndarray = field(repr=False)
 
     @property
     def order(self) -> int:
@@ -158,5 +167,10 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     # Left writable: Numba types read-only arrays differently from the kernels' signatures.
     projection = (b[:, None] * Ps).T
     projection_hat = (bhat[:, None] * Ps_hat).T
-    arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat)]
+    X = projection[:s] @ Is                        # exact: the integrand has degree <= 2s - 1 <= 2k - 1
+    abs_projection_hat = np.abs(projection_hat).sum(axis=1)
+    predictor_nodes, predictor_weights = quadrature(s + 1)
+    predictor_basis = predictor_weights[:, None] * legendre_tables(predictor_nodes, s, 1)[0]
+    arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat,
+                                                 X, abs_projection_hat, predictor_nodes, predictor_basis)]
     return Method(family, r, k, s, *arrays)

@@ -1,0 +1,387 @@
+"""The residual maps of the methods: coefficients in, the map G(coefficients) out.
+
+Numba only. Each family supplies one map and the solver (solver.py) drives it, the
+way scipy's Radau separates ``solve_collocation_system`` from the method:
+
+    elim_map  ELIM(r,k,s) of spec 3 with the stable right-hand side of 3b (and HBVM,
+              GAUSS when no invariant is imposed, spec 2)
+    lim_map   LIM(r,k,s) of spec 4
+
+The unknowns are the *effective* coefficients ``coef[j]``: eta_j gamma_j (ELIM; eta_j = 1
+for HBVM) or coef[0] = gamma_0 - phi_0 lambda, coef[j>0] = gamma_j (LIM), so that every
+family's stages are ``u(c h) = y0 + h sum_j (int_0^c P_j) coef[j]`` and its new state is
+``y1 = y0 + h coef[0]``. A map evaluates the stages of ``coef``, the problem's gradients
+there, the Legendre coefficients gamma_j and phi_j, the small system (Gamma or the
+Gram matrix) and its multipliers, and writes G(coef) into ``work.new_coef``.
+
+Each map also has its rounding estimate (``*_rounding``): how far round-off alone moves
+G through the multipliers, the second term of the rounding level omega of spec 8.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+from .linalg import cholesky_factor, cholesky_solve_factored, lu_factor, lu_solve_factored
+
+EPS = 2.0 ** -52
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def stages(y, h, integrals, coef, n_coef, out):
+    """out[l] = y + h sum_{j<n_coef} integrals[l, j] coef[j]   (spec 2: u_l = u(c_l h))."""
+    n = y.shape[0]
+    for l in range(out.shape[0]):
+        for i in range(n):
+            acc = 0.0
+            for j in range(n_coef):
+                acc += integrals[l, j] * coef[j, i]
+            out[l, i] = y[i] + h * acc
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def project(projection, values, n_degrees, out):
+    """out[j] = sum_l projection[j, l] values[l] = sum_l b_l P_j(c_l) values[l], j < n_degrees.
+
+    The discrete Legendre coefficients of spec 2 (gamma_j) and 3 (phi_j) of the rows of
+    values (n_nodes, n); projection (>= n_degrees, n_nodes) holds b_l P_j(c_l).
+    Scalar accumulators, four components at a time: accumulating into out[j, i]
+    chains every update through memory (3x slower), and four independent sums let
+    LLVM use one vector FMA for them.
+    """
+    n = values.shape[1]
+    n_nodes = values.shape[0]
+    n4 = n - n % 4
+    for j in range(n_degrees):
+        for i in range(0, n4, 4):
+            acc0 = 0.0
+            acc1 = 0.0
+            acc2 = 0.0
+            acc3 = 0.0
+            for l in range(n_nodes):
+                w = projection[j, l]
+                acc0 += w * values[l, i]
+                acc1 += w * values[l, i + 1]
+                acc2 += w * values[l, i + 2]
+                acc3 += w * values[l, i + 3]
+            out[j, i] = acc0
+            out[j, i + 1] = acc1
+            out[j, i + 2] = acc2
+            out[j, i + 3] = acc3
+        for i in range(n4, n):
+            acc = 0.0
+            for l in range(n_nodes):
+                acc += projection[j, l] * values[l, i]
+            out[j, i] = acc
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def apply_J(projected, n_degrees, out):
+    """out[j] = J projected[j], J = [[0, I], [-I, 0]] (spec 1)."""
+    m = projected.shape[1] // 2
+    for j in range(n_degrees):
+        for i in range(m):
+            out[j, i] = projected[j, m + i]
+            out[j, m + i] = -projected[j, i]
+
+
+@njit(cache=True, inline="always")
+def elim_rhs_terms(stable_rhs, k, r, s):
+    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec (spec 3, 3b),
+    and whether gamma_j comes from the r nodes (spec 3b with r != k)."""
+    if not stable_rhs:
+        return 0, s, False
+    if r == k:
+        return s, k, False
+    return s, r, True
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, stable_rhs, tables,
+             conserve_idx, work):
+    """G(coef) of ELIM(r,k,s), spec section 3 (HBVM when nu = 0, spec 2), into work.new_coef.
+
+        u_l     = y + h sum_j Is[l,j] coef_j,     gamma_j = sum_l b_l P_j(c_l) J grad H(u_l)
+        phi_j   = sum_i bhat_i P_j(chat_i) grad L(uhat_i)          (nu imposed invariants)
+        Gamma alpha = bvec,  Gamma[:, c] = w_c phi_{s-nu+c}^T gamma_{s-nu+c},  w_c = h^(2(nu-1-c))
+        G_j     = eta_j gamma_j,   eta_j = 1 - w_{j-s+nu} alpha_{j-s+nu} for the last nu j
+    bvec is the stable tail -sum_{j=s}^{k-1} phi_j^T gamma_j (spec 3b) when stable_rhs, the
+    paper's sum_{j<s} phi_j^T gamma_j otherwise. plain_sweep: alpha = 0 (the first sweeps
+    of a cold start, when Gamma is singular or noise: spec 3, "practical points").
+
+    Shapes: y (n,), coef (s, n), alpha (nu,) in/out, conserve_idx (nu,); work.h_powers holds
+    w_c for this h. Leaves Gamma unfactored in work.small_copy and factored in
+    work.small_matrix/small_pivots (the solver's rounding estimate and checks use them).
+    Returns 0, or 1 when Gamma is singular (alpha then keeps its previous value).
+    """
+    # Every array is bound once here: an attribute read inside a loop costs a reference
+    # count update per read (Numba does not hoist it out of loops with opaque calls).
+    projection, Is, projection_hat, Ihat = tables.projection, tables.Is, tables.projection_hat, tables.Ihat
+    u, grads, proj, gamma, uhat, gamma_hat = work.u, work.grads, work.proj, work.gamma, work.uhat, work.gamma_hat
+    grads_hat, phi, inv_grads, h_powers = work.grads_hat, work.phi, work.inv_grads, work.h_powers
+    big_gamma, bvec, small_matrix, small_pivots = work.small_copy, work.small_vector, work.small_matrix, work.small_pivots
+    new_coef = work.new_coef
+    n = y.shape[0]
+    k = Is.shape[0]
+    r = Ihat.shape[0]
+    s = coef.shape[0]
+    nu = conserve_idx.shape[0]
+    first_rhs, last_rhs, rhs_from_hat = elim_rhs_terms(stable_rhs, k, r, s)
+    # Legendre coefficients needed: the stable tail runs up to k-1 (r-1 at the r nodes).
+    n_gamma = last_rhs if (nu > 0 and stable_rhs and not rhs_from_hat) else s
+    n_phi = max(last_rhs, s) if nu > 0 else s
+
+    stages(y, h, Is, coef, s, u)
+    for l in range(k):
+        grad_H(u[l], params, grads[l])
+    project(projection, grads, n_gamma, proj)
+    apply_J(proj, n_gamma, gamma)
+
+    singular = 0
+    if nu > 0:
+        if r == k:
+            stage_hat = u
+        else:
+            stages(y, h, Ihat, coef, s, uhat)
+            stage_hat = uhat
+        for i in range(r):
+            grad_invariants(stage_hat[i], params, inv_grads)
+            for a in range(nu):
+                for p in range(n):
+                    grads_hat[a, i, p] = inv_grads[conserve_idx[a], p]
+        for a in range(nu):
+            project(projection_hat, grads_hat[a], n_phi, phi[a])
+        for col in range(nu):
+            j = s - nu + col
+            for a in range(nu):
+                acc = 0.0
+                for p in range(n):
+                    acc += phi[a, j, p] * gamma[j, p]
+                big_gamma[a, col] = h_powers[col] * acc
+        if rhs_from_hat:
+            # Spec 3b for r != k: the tail with J grad H taken at the r nodes too.
+            for i in range(r):
+                grad_H(uhat[i], params, grads_hat[nu, i])
+            project(projection_hat, grads_hat[nu], r, proj)
+            apply_J(proj, r, gamma_hat)
+            tail = gamma_hat
+        else:
+            tail = gamma
+        sign = -1.0 if stable_rhs else 1.0
+        for a in range(nu):
+            acc = 0.0
+            for j in range(first_rhs, last_rhs):
+                for p in range(n):
+                    acc += phi[a, j, p] * tail[j, p]
+            bvec[a] = sign * acc
+        if plain_sweep:
+            for a in range(nu):
+                alpha[a] = 0.0
+        else:
+            for a in range(nu):
+                for c in range(nu):
+                    small_matrix[a, c] = big_gamma[a, c]
+            if lu_factor(small_matrix, small_pivots) == 0:
+                lu_solve_factored(small_matrix, small_pivots, bvec)
+                for a in range(nu):
+                    alpha[a] = bvec[a]
+            else:
+                singular = 1
+
+    for j in range(s):
+        eta = 1.0
+        if j >= s - nu:
+            eta = 1.0 - h_powers[j - (s - nu)] * alpha[j - (s - nu)]
+        for p in range(n):
+            new_coef[j, p] = eta * gamma[j, p]
+    return singular
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_idx, work):
+    """G(coef) of LIM(r,k,s), spec section 4, into work.new_coef.
+
+    Ltilde = (H, L_conserve...) has nu + 1 components:
+        gamma_j = sum_l b_l Ps[l,j] J grad H(u_l)                 (k nodes)
+        phi_j   = sum_i bhat_i P_j(chat_i) grad Ltilde(uhat_i)    (r nodes)
+        (phi_0^T phi_0) lambda = sum_{j<s} phi_j^T gamma_j        (SPD solve)
+        G_0 = gamma_0 - phi_0 lambda,  G_j = gamma_j
+    lam (nu+1,) in/out. Leaves the Gram matrix in work.small_copy and its Cholesky factor
+    in work.small_matrix. Returns 0, or 1 when the Gram matrix is not positive definite.
+    """
+    projection, Is, projection_hat, Ihat = tables.projection, tables.Is, tables.projection_hat, tables.Ihat
+    u, grads, proj, gamma, uhat = work.u, work.grads, work.proj, work.gamma, work.uhat
+    grads_hat, phi, gram, rhs = work.grads_hat, work.phi, work.small_copy, work.small_vector
+    inv_grads, factor, new_coef = work.inv_grads, work.small_matrix, work.new_coef
+    n = y.shape[0]
+    k = Is.shape[0]
+    r = Ihat.shape[0]
+    s = coef.shape[0]
+    n_tilde = conserve_idx.shape[0] + 1
+
+    stages(y, h, Is, coef, s, u)
+    for l in range(k):
+        grad_H(u[l], params, grads[l])
+    project(projection, grads, s, proj)
+    apply_J(proj, s, gamma)
+
+    if r == k:
+        stage_hat = u
+        for i in range(r):
+            for p in range(n):
+                grads_hat[0, i, p] = grads[i, p]
+    else:
+        stages(y, h, Ihat, coef, s, uhat)
+        stage_hat = uhat
+        for i in range(r):
+            grad_H(uhat[i], params, grads_hat[0, i])
+    if n_tilde > 1:
+        for i in range(r):
+            grad_invariants(stage_hat[i], params, inv_grads)
+            for a in range(1, n_tilde):
+                for p in range(n):
+                    grads_hat[a, i, p] = inv_grads[conserve_idx[a - 1], p]
+    for a in range(n_tilde):
+        project(projection_hat, grads_hat[a], s, phi[a])
+    for a in range(n_tilde):
+        for c in range(n_tilde):
+            acc = 0.0
+            for p in range(n):
+                acc += phi[a, 0, p] * phi[c, 0, p]
+            gram[a, c] = acc
+            factor[a, c] = acc
+        acc = 0.0
+        for j in range(s):
+            for p in range(n):
+                acc += phi[a, j, p] * gamma[j, p]
+        rhs[a] = acc
+    if cholesky_factor(factor) != 0:
+        return 1
+    cholesky_solve_factored(factor, rhs)
+    for a in range(n_tilde):
+        lam[a] = rhs[a]
+
+    for j in range(s):
+        for p in range(n):
+            new_coef[j, p] = gamma[j, p]
+    for a in range(n_tilde):
+        for p in range(n):
+            new_coef[0, p] -= lam[a] * phi[a, 0, p]
+    return 0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _one_norm(row):
+    acc = 0.0
+    for p in range(row.shape[0]):
+        acc += abs(row[p])
+    return acc
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _gradient_sizes(work, n_rows, n_nodes):
+    """F = max |f_l| over the k nodes (|J g| has the entries of |g|), A_a = max |grad L_a| at the r nodes
+    (written into work.small_rounding[1]); returns F."""
+    grads, grads_hat, sizes = work.grads, work.grads_hat, work.small_rounding
+    F = 0.0
+    for l in range(grads.shape[0]):
+        for p in range(grads.shape[1]):
+            F = max(F, abs(grads[l, p]))
+    for a in range(n_rows):
+        A = 0.0
+        for i in range(n_nodes):
+            for p in range(grads_hat.shape[2]):
+                A = max(A, abs(grads_hat[a, i, p]))
+        sizes[1, a] = A
+    return F
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def condition_number(work, n_t, symmetric_positive):
+    """work.small_inverse = the inverse of the small matrix from its factors; returns
+    ||M||_inf ||M^-1||_inf, the condition number in the infinity norm."""
+    unit, factor, pivots, matrix, inverse = (work.small_vector, work.small_matrix, work.small_pivots,
+                                             work.small_copy, work.small_inverse)
+    norm = 0.0
+    inverse_norm = 0.0
+    for c in range(n_t):
+        for a in range(n_t):
+            unit[a] = 1.0 if a == c else 0.0
+        if symmetric_positive:
+            cholesky_solve_factored(factor, unit)
+        else:
+            lu_solve_factored(factor, pivots, unit)
+        for a in range(n_t):
+            inverse[a, c] = unit[a]
+    for a in range(n_t):
+        row = 0.0
+        inverse_row = 0.0
+        for c in range(n_t):
+            row += abs(matrix[a, c])
+            inverse_row += abs(inverse[a, c])
+        norm = max(norm, row)
+        inverse_norm = max(inverse_norm, inverse_row)
+    return norm * inverse_norm
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def elim_rounding(h, alpha, stable_rhs, tables, nu, s, work):
+    """Spec 8, the multipliers' share of the rounding level, for ELIM with nu >= 1.
+
+    dalpha = |Gamma^-1| (db + dGamma |alpha|) with
+        db_a       = eps sum_{j in bvec} S_j (A_a |gamma_j|_1 + F |phi_j^a|_1)
+        dGamma_ac  = eps w_c S_{j_c} (A_a |gamma_{j_c}|_1 + F |phi_{j_c}^a|_1),  j_c = s - nu + c
+    S_j = sum_i |bhat_i P_j(chat_i)|, A_a = max |grad L_a(u_l)|, F = max |f_l|.
+    Writes dalpha into work.small_rounding[0] and returns cond(Gamma) (infinity norm).
+    Needs Gamma factored (the last map solved it) and work.small_copy unfactored.
+    """
+    k = tables.Is.shape[0]
+    r = tables.Ihat.shape[0]
+    first_rhs, last_rhs, rhs_from_hat = elim_rhs_terms(stable_rhs, k, r, s)
+    gamma, phi, h_powers, sizes, inverse = work.gamma, work.phi, work.h_powers, work.small_rounding, work.small_inverse
+    tail = work.gamma_hat if rhs_from_hat else gamma
+    S = tables.abs_projection_hat
+    F = _gradient_sizes(work, nu, r)
+    cond = condition_number(work, nu, False)
+    d_rhs = work.small_vector
+    for a in range(nu):
+        A = sizes[1, a]
+        acc = 0.0
+        for j in range(first_rhs, last_rhs):
+            acc += S[j] * (A * _one_norm(tail[j]) + F * _one_norm(phi[a, j]))
+        for c in range(nu):
+            j = s - nu + c
+            acc += h_powers[c] * S[j] * (A * _one_norm(gamma[j]) + F * _one_norm(phi[a, j])) * abs(alpha[c])
+        d_rhs[a] = EPS * acc
+    for c in range(nu):
+        acc = 0.0
+        for a in range(nu):
+            acc += abs(inverse[c, a]) * d_rhs[a]
+        sizes[0, c] = acc
+    return cond
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def lim_rounding(tables, n_tilde, s, work):
+    """Spec 8's rounding level carried over to LIM: dlambda = |Gram^-1| db with
+    db_a = eps sum_{j<s} S_j (A_a |gamma_j|_1 + F |phi_j^a|_1) (a = 0 is H). The Gram
+    matrix is O(1), so this stays near eps (spec 3b). Writes dlambda into
+    work.small_rounding[0]; returns cond(Gram)."""
+    gamma, phi, sizes, inverse = work.gamma, work.phi, work.small_rounding, work.small_inverse
+    r = tables.Ihat.shape[0]
+    S = tables.abs_projection_hat
+    F = _gradient_sizes(work, n_tilde, r)
+    cond = condition_number(work, n_tilde, True)
+    d_rhs = work.small_vector
+    for a in range(n_tilde):
+        A = sizes[1, a]
+        acc = 0.0
+        for j in range(s):
+            acc += S[j] * (A * _one_norm(gamma[j]) + F * _one_norm(phi[a, j]))
+        d_rhs[a] = EPS * acc
+    for a in range(n_tilde):
+        acc = 0.0
+        for b in range(n_tilde):
+            acc += abs(inverse[a, b]) * d_rhs[b]
+        sizes[0, a] = acc
+    return cond

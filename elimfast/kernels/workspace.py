@@ -1,0 +1,137 @@
+"""Named bundles the step kernels pass around: method tables, solver settings, workspace.
+
+Numba compiles ``collections.namedtuple`` instances to plain structs, so naming the
+slots costs nothing at run time; it replaces positional 13-tuples whose slots changed
+meaning between families. Everything here is built once per kernel call (or per
+trajectory), never inside the step loop.
+
+Borrowed arrays. Numba reference-counts every array variable and view; in the
+iteration, with opaque calls to the problem's functions between them, it cannot prune
+those updates, and they were measured at 21% of the run time of a Kepler step (atomic
+increments in NRT_incref/NRT_decref). ``borrow_tables`` and ``borrow_workspace`` hand
+the step kernels views that own no reference (a NULL meminfo, on which Numba's
+reference counting returns at once). They are valid while their owners are alive: the
+kernel that allocates the owners keeps them in a local until it returns.
+"""
+from collections import namedtuple
+
+import numpy as np
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from .codes import FAMILY_LIM
+
+# The tables of a method (spec sections 1-4 and 8), built once by elimfast.methods:
+#   projection (k, k): b_l P_j(c_l) indexed [j, l];  Is (k, s): int_0^{c_l} P_j;
+#   projection_hat (r, r), Ihat (r, s): the same at the r nodes of the invariants;
+#   X (s, s): Ps^T Omega Is, the tridiagonal matrix of the simplified Newton iteration;
+#   abs_projection_hat (r,): S_j = sum_i |bhat_i P_j(chat_i)| (the rounding estimate);
+#   predictor_nodes (s+1,), predictor_basis (s+1, s): Gauss nodes x_q on [0, 1] and
+#     w_q P_i(x_q), the quadrature of the predictor's projection E(theta).
+Tables = namedtuple("Tables", ["projection", "Is", "projection_hat", "Ihat", "X", "abs_projection_hat",
+                               "predictor_nodes", "predictor_basis"])
+
+# The solver's settings (spec 8): family and solver codes (codes.py), whether the
+# ELIM right-hand side is the stable tail (spec 3b), whether each step starts from the
+# previous one (warm_start) extrapolated by the predictor, the round-off acceptance
+# tol, and the caps max_iter (per solve) and max_halvings (depth of step splitting).
+Settings = namedtuple("Settings", ["family", "solver", "stable_rhs", "warm_start", "predictor", "tol",
+                                   "max_iter", "max_halvings"])
+
+Workspace = namedtuple("Workspace", [
+    "u",                 # (k, n) stages at the k nodes
+    "grads",             # (k, n) grad H at the stages
+    "proj",              # (n_big, n) Legendre coefficients of grads
+    "gamma",             # (n_big, n) gamma_j = J proj_j
+    "uhat",              # (r, n) stages at the r nodes (r != k)
+    "grads_hat",         # (n_tilde + 1, r, n) imposed invariants' gradients at the r nodes (LIM: H first)
+    "inv_grads",         # (n_inv, n) one call of grad_invariants
+    "phi",               # (max(n_tilde, 1), n_big, n) phi_j per imposed invariant
+    "gamma_hat",         # (n_big, n) gamma_j from the r nodes (spec 3b, r != k)
+    "small_matrix",      # (n_t, n_t) Gamma (ELIM) or the Gram matrix (LIM), factored in place
+    "small_copy",        # (n_t, n_t) the same matrix unfactored
+    "small_inverse",     # (n_t, n_t) its inverse (rounding level and condition number)
+    "small_vector",      # (n_t,) right-hand side, then the multipliers
+    "small_pivots",      # (n_t,) int64
+    "small_rounding",    # (2, n_t) rounding of the right-hand side and of the multipliers
+    "h_powers",          # (max(nu, 1),) w_c = h^(2(nu-1-c)) of the step being solved
+    "new_coef",          # (s, n) the map G(coef)
+    "delta",             # (s n,) the increment (Newton: M^-1 (G - coef))
+    "scale",             # (n,) sc_i of the stopping rule
+    "newton_matrix",     # (s n, s n) M = I - h X (x) J0, factored
+    "newton_pivots",     # (s n,) int64
+    "hessian",           # (n, n) Hess(H)(y0)
+    "jacobian",          # (n, n) J0 = J Hess(H)(y0)
+    "y_start",           # (n,) the state at the start of the step (restored on failure)
+    "y_comp_start",      # (n,)
+    "coef_start",        # (s, n) the coefficients before the step (restored on failure)
+    "mult_start",        # (n_mult,)
+    "coef_base",         # (s, n) the previous (sub)step's coefficients, base of the predictor
+    "mult_base",         # (n_mult,)
+    "predictor_points",  # (s + 1,) 1 + theta x_q
+    "predictor_values",  # (s + 1, s) P_j(1 + theta x_q)
+    "extrapolation",     # (s, s) E(theta)
+    "info",              # (4,) of the last solve: last increment, cond(Gamma), iterations, rounding band
+])
+
+
+@intrinsic
+def borrowed(typingctx, array):
+    """A view of ``array`` that owns no reference (meminfo and parent NULL)."""
+    if not isinstance(array, types.Array):
+        return None
+
+    def codegen(context, builder, signature, args):
+        source = context.make_array(array)(context, builder, args[0])
+        view = context.make_array(array)(context, builder)
+        context.populate_array(view, data=source.data, shape=source.shape, strides=source.strides,
+                               itemsize=source.itemsize, meminfo=cgutils.get_null_value(source.meminfo.type))
+        return view._getvalue()
+    return array(array), codegen
+
+
+@njit(cache=True)
+def keep_alive(owner):
+    """A use of ``owner`` that the compiler cannot drop: called after the last use of the
+    borrowed views into it, it keeps Numba from releasing owner earlier."""
+    return owner is not None
+
+
+@njit(cache=True, inline="always")
+def borrow_tables(t):
+    """The same Tables, as borrowed views (see the module docstring)."""
+    return Tables(borrowed(t.projection), borrowed(t.Is), borrowed(t.projection_hat), borrowed(t.Ihat),
+                  borrowed(t.X), borrowed(t.abs_projection_hat), borrowed(t.predictor_nodes),
+                  borrowed(t.predictor_basis))
+
+
+@njit(cache=True, inline="always")
+def borrow_workspace(w):
+    """The same Workspace, as borrowed views (see the module docstring)."""
+    return Workspace(
+        borrowed(w.u), borrowed(w.grads), borrowed(w.proj), borrowed(w.gamma), borrowed(w.uhat),
+        borrowed(w.grads_hat), borrowed(w.inv_grads), borrowed(w.phi), borrowed(w.gamma_hat),
+        borrowed(w.small_matrix), borrowed(w.small_copy), borrowed(w.small_inverse), borrowed(w.small_vector),
+        borrowed(w.small_pivots), borrowed(w.small_rounding), borrowed(w.h_powers), borrowed(w.new_coef),
+        borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
+        borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
+        borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
+        borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info))
+
+
+@njit(cache=True)
+def make_workspace(n, k, r, s, nu, family, n_inv, n_mult):
+    """Allocate every array a step needs (sizes as in the Workspace comments)."""
+    n_tilde = nu + 1 if family == FAMILY_LIM else nu
+    n_big = max(k, r, s)
+    n_t = max(n_tilde, 1)
+    return Workspace(
+        np.zeros((k, n)), np.zeros((k, n)), np.zeros((n_big, n)), np.zeros((n_big, n)), np.zeros((r, n)),
+        np.zeros((n_tilde + 1, r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)), np.zeros((n_big, n)),
+        np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros(n_t),
+        np.zeros(n_t, dtype=np.int64), np.zeros((2, n_t)), np.zeros(max(nu, 1)),
+        np.zeros((s, n)), np.zeros(s * n), np.zeros(n),
+        np.zeros((s * n, s * n)), np.zeros(s * n, dtype=np.int64), np.zeros((n, n)), np.zeros((n, n)),
+        np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
+        np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(4))
