@@ -13,6 +13,12 @@ All arrays are C-contiguous float64; ``params`` is the problem's parameter vecto
 - ``grad_H(y, params, out)``: out (2m,) = dH/dy
 - ``invariants(y, params, out)``: out (n_inv,) = L_i(y)
 - ``grad_invariants(y, params, out)``: out (n_inv, 2m), row i = grad L_i(y)
+- ``hess_H(y, params, out)``: out (2m, 2m) = the symmetric matrix d^2 H / dy^2, rows and
+  columns in the order q then p (so out[i, j] = d^2 H / dy_i dy_j); every entry is written.
+  The simplified Newton solver of spec section 8 factorises I - h X_s (x) J Hess(H)(y0)
+  once per step with it. Built-ins compute it analytically, expression problems by sympy,
+  ``python:`` files with their own ``hess_H`` or by central differences of ``grad_H``
+  (``Problem.hessian_source`` says which).
 """
 from numba import njit, types
 
@@ -24,11 +30,13 @@ H_SIGNATURE = types.float64(VECTOR, VECTOR)
 GRAD_H_SIGNATURE = types.void(VECTOR, VECTOR, VECTOR)
 INVARIANTS_SIGNATURE = types.void(VECTOR, VECTOR, VECTOR)
 GRAD_INVARIANTS_SIGNATURE = types.void(VECTOR, VECTOR, MATRIX)
+HESS_H_SIGNATURE = types.void(VECTOR, VECTOR, MATRIX)
 
 H_TYPE = types.FunctionType(H_SIGNATURE)
 GRAD_H_TYPE = types.FunctionType(GRAD_H_SIGNATURE)
 INVARIANTS_TYPE = types.FunctionType(INVARIANTS_SIGNATURE)
 GRAD_INVARIANTS_TYPE = types.FunctionType(GRAD_INVARIANTS_SIGNATURE)
+HESS_H_TYPE = types.FunctionType(HESS_H_SIGNATURE)
 
 # Decorators for problem modules: compile eagerly with the signature the kernels expect.
 # error_model="numpy": a division by zero gives inf/NaN, which the kernel reports as a
@@ -37,6 +45,7 @@ jit_hamiltonian = njit(H_SIGNATURE, cache=True, error_model="numpy")
 jit_gradient = njit(GRAD_H_SIGNATURE, cache=True, error_model="numpy")
 jit_invariants = njit(INVARIANTS_SIGNATURE, cache=True, error_model="numpy")
 jit_invariant_gradients = njit(GRAD_INVARIANTS_SIGNATURE, cache=True, error_model="numpy")
+jit_hessian = njit(HESS_H_SIGNATURE, cache=True, error_model="numpy")
 
 
 @jit_invariants
