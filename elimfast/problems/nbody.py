@@ -132,7 +132,8 @@ def hess_H(y, params, out):
             for a in range(3):
                 da = y[3 * i + a] - y[3 * j + a]
                 for b in range(3):
-                    block = -w3 * da * (y[3 * i + b] - y[3 * j + b])   # B_ij[a, b]
+                    # B_ij[a, b], with d_a d_b formed first: B_ij[b, a] is then the same double
+                    block = -w3 * (da * (y[3 * i + b] - y[3 * j + b]))
                     if a == b:
                         block += w
                     out[3 * i + a, 3 * i + b] += block
