@@ -35,6 +35,7 @@ from elimfast_cli.main import cli
 
 # The package exports the constructor under the module's name: reach the module through importlib.
 kepler_module = importlib.import_module("elimfast.problems.kepler")
+fpu_module = importlib.import_module("elimfast.problems.fpu_beta")
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -140,6 +141,23 @@ def test_a_wrong_sign_or_factor_in_any_gradient_component_fails(component, facto
     assert report.function == "grad_H" and report.entry == f"dH/d{kepler.coordinate_names[component]}"
     assert report.relative_error == pytest.approx(abs(factor - 1.0), rel=1e-6)
     assert info.value.key == "hamiltonian"
+
+
+@jit_gradient
+def _scaled_fpu_grad_H(y, params, out):
+    """The periodic FPU chain's grad_H (it reads params[0] = beta) with component params[1]
+    multiplied by params[2]."""
+    fpu_module._periodic_grad_H(y, params, out)
+    out[int(params[1])] *= params[2]
+
+
+@pytest.mark.parametrize("component", [0, 57, 79])
+def test_every_component_is_checked_at_the_initial_state_of_a_large_problem(component):
+    """80 components: nearby points difference 64 of them, y0 all of them."""
+    chain = problems.fpu_beta(40)
+    wrong = replace(chain, grad_H=_scaled_fpu_grad_H, params=np.array([1.0, component, -1.0]))
+    with pytest.raises(DerivativeCheckError, match="at the initial state: dH/d" + chain.coordinate_names[component]):
+        require_derivatives(wrong)
 
 
 @pytest.mark.parametrize("factor", [-1.0, 2.0])

@@ -30,6 +30,9 @@ the entry, so they pass by orders of magnitude; a sign error is a relative error
 a factor 2 one of 0.5 or 1, which fail in every entry that central differences resolve
 (|F'| above ~1e-9 of |F|/s_j). Where F is not smooth within 2h (abs at its kink),
 |D(2h) - D(h)| is as large as the difference itself, and no false alarm is raised.
+Every component is differenced at y0; at each nearby point, at most NEARBY_COMPONENTS
+of them, chosen by the seeded generator: fpu_beta with 1000 masses (n = 2000) is checked
+in 0.47 s instead of 2.3 s for every component at all 9 points.
 
 **Invariants** (``check_invariants``, ``require_invariants``). For an invariant L of
 y' = J grad H(y), dL/dt = grad L(y)^T J grad H(y) = 0 everywhere (spec section 1). The
@@ -68,6 +71,7 @@ STEP = EPS ** (1.0 / 3.0)   # h_j = STEP * s_j
 MARGIN = 10.0
 ROUNDING = 16.0
 RTOL = 1e-6
+NEARBY_COMPONENTS = 64      # differenced components per nearby point (all of them at y0)
 
 
 class InvariantCheckError(ProblemDefinitionError):
@@ -204,18 +208,18 @@ def _step_scales(centre: np.ndarray) -> np.ndarray:
     return scales
 
 
-def _compare(evaluate, analytic: np.ndarray, y: np.ndarray, scales: np.ndarray):
+def _compare(evaluate, analytic: np.ndarray, y: np.ndarray, scales: np.ndarray, columns):
     """The worst entry of each row of the Jacobian ``analytic`` (k, n) of ``evaluate``
-    (y -> (k,)) at y against central differences with steps h and 2h (module docstring):
-    arrays (ratio, relative error, column, analytic value, difference quotient), each (k,);
-    or None when F is not finite near y."""
+    (y -> (k,)) at y against central differences with steps h and 2h along the given
+    columns (module docstring): arrays (ratio, relative error, column, analytic value,
+    difference quotient), each (k,); or None when F is not finite near y."""
     k = analytic.shape[0]
     ratio, relative = np.zeros(k), np.zeros(k)
     column = np.zeros(k, dtype=int)
     exact_at, differences_at = np.zeros(k), np.zeros(k)
     size = np.abs(evaluate(y))
     rows = np.arange(k)
-    for j in range(y.size):
+    for j in columns:
         h = STEP * max(abs(float(y[j])), float(scales[j]))
         quotients = []
         for multiple in (1.0, 2.0):
@@ -248,6 +252,9 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
     points = check_points(problem, n_points, seed, radius, y0)
     scales = _step_scales(points[0])
     n = 2 * problem.degrees_of_freedom
+    rng = np.random.default_rng(seed)
+    columns = [range(n)] + [range(n) if n <= NEARBY_COMPONENTS else np.sort(rng.choice(n, NEARBY_COMPONENTS, False))
+                            for _ in points[1:]]
     names = problem.coordinate_names
     params = problem.params
     inv_names = problem.invariant_names
@@ -285,7 +292,7 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
                     exact = jacobian(y)
                     finite = bool(np.all(np.isfinite(exact)))
                     # None: F is not finite within 2h of y (an edge of its domain): nothing to compare
-                    result = _compare(evaluate, exact, y, scales) if finite else None
+                    result = _compare(evaluate, exact, y, scales, columns[index]) if finite else None
                 except ArithmeticError:   # functions compiled with Numba's default error model raise on 1/0
                     finite, result = False, None
             if not finite and index == 0:
