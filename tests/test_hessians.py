@@ -60,12 +60,14 @@ def case(request):
 
 
 def points_near_y0(problem, seed, count=4):
+    """(y0 and seeded points within ~5% of it per component, the per-component scales):
+    a component's scale is max(|y0_i|, the rms of its block q or p)."""
     rng = np.random.default_rng(seed)
     y0 = problem.y0
     m = y0.size // 2
     block = np.concatenate([np.full(m, math.sqrt(np.mean(y0[s] ** 2)) or 1.0) for s in (slice(0, m), slice(m, None))])
-    sigma = 0.05 * np.maximum(np.abs(y0), block)
-    return [y0.copy()] + [y0 + sigma * rng.standard_normal(y0.size) for _ in range(count)], np.maximum(np.abs(y0), block)
+    scales = np.maximum(np.abs(y0), block)
+    return [y0.copy()] + [y0 + 0.05 * scales * rng.standard_normal(y0.size) for _ in range(count)], scales
 
 
 # --- the interface -----------------------------------------------------------------------

@@ -218,7 +218,6 @@ def _compare(evaluate, analytic: np.ndarray, y: np.ndarray, scales: np.ndarray, 
     column = np.zeros(k, dtype=int)
     exact_at, differences_at = np.zeros(k), np.zeros(k)
     size = np.abs(evaluate(y))
-    rows = np.arange(k)
     for j in columns:
         h = STEP * max(abs(float(y[j])), float(scales[j]))
         quotients = []
@@ -309,7 +308,9 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
                         function=function, name=labels[row][0], label=labels[row][1], of=of, ratio=float(ratio[i]),
                         relative_error=float(relative[i]), point=index, entry=entry_name(i, int(column[i])),
                         analytic=float(exact_at[i]), differences=float(differences_at[i]), key=keys[row])
-        reports += worst
+        reports += [report or DerivativeReport(function=function, name=name, label=label, of=of, key=key,
+                                               entry="(not finite near any check point: nothing compared)")
+                    for report, (name, label), key in zip(worst, labels, keys)]
     return reports
 
 

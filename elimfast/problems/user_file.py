@@ -43,9 +43,10 @@ cached like the file's own functions.
 Caching: the file's text, followed by elimfast's finite-difference Hessian, is copied to
 ``<cache>/problems/u_<sha256>.py`` (named by that content and the elimfast version) and
 imported from there with ``__file__`` still the original path (``Problem.source_file``
-too, so that messages name the user's file), so Numba's cache lives in elimfast's cache directory, an edit of the
-file simply makes a new entry, and a second process loading the same file compiles
-nothing. Imports of sibling modules of the file are not supported (use installed packages).
+too, so that messages name the user's file). So Numba's cache lives in elimfast's cache
+directory, an edit of the file (or of the appended Hessian) simply makes a new entry,
+and a second process loading the same file compiles nothing. Imports of sibling modules
+of the file are not supported (use installed packages).
 
 Example: ``configs/kepler_problem.py``.
 """
