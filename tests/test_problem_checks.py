@@ -312,7 +312,7 @@ def test_non_ascii_names_in_a_python_file_are_refused(cache_root, tmp_path, chan
 # --- bounded symbolic work ---------------------------------------------------------------------
 
 BIG_INPUT = textwrap.dedent("""
-    import json, resource, sys, time
+    import json, re, sys, time
     import sympy  # imported before the clock starts: the bound is on the work, not on sympy's import
     from elimfast.problems.symbolic import problem_from_expressions
     from elimfast.problems.expressions import ProblemDefinitionError
@@ -327,9 +327,15 @@ BIG_INPUT = textwrap.dedent("""
         error = None
     except ProblemDefinitionError as err:
         error = [str(err), err.key]
+    # The peak resident memory of this process image: VmHWM restarts at exec, whereas
+    # ru_maxrss keeps the high-water mark of the forking parent (pytest).
+    try:
+        with open("/proc/self/status") as status:
+            peak_mb = int(re.search(r"VmHWM:\\s*(\\d+) kB", status.read()).group(1)) / 1024
+    except OSError:
+        peak_mb = None
     print(json.dumps({"seconds": time.perf_counter() - start, "error": error,
-                      "characters": len(H) + sum(map(len, L.values())),
-                      "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                      "characters": len(H) + sum(map(len, L.values())), "peak_mb": peak_mb}))
 """)
 
 
@@ -352,7 +358,7 @@ def test_huge_expressions_are_refused_within_seconds_and_bounded_memory(tmp_path
     assert "\n" not in message and re.search(match, message), message
     assert error_key == key
     assert report["seconds"] < 10.0, report
-    assert report["max_rss_mb"] < 600, report
+    assert report["peak_mb"] is None or report["peak_mb"] < 600, report   # measured: ~200 MB
     assert report["characters"] > 11_000
 
 
