@@ -36,6 +36,7 @@ about the barycentre. ``frame="given"`` keeps the data as given (p_i = m_i v_i).
 import math
 
 import numpy as np
+from numba import njit
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants)
@@ -86,6 +87,16 @@ def H(y, params):
     return kinetic - G * potential
 
 
+@njit(cache=True, inline="always")
+def _pair(y, params, G, i, j):
+    """(d_x, d_y, d_z, |d|^2, G m_i m_j / |d|^3) for d = q_i - q_j."""
+    dx = y[3 * i] - y[3 * j]
+    dy = y[3 * i + 1] - y[3 * j + 1]
+    dz = y[3 * i + 2] - y[3 * j + 2]
+    d2 = dx * dx + dy * dy + dz * dz
+    return dx, dy, dz, d2, G * params[1 + i] * params[1 + j] / (d2 * math.sqrt(d2))
+
+
 @jit_gradient
 def grad_H(y, params, out):
     G = params[0]
@@ -98,11 +109,7 @@ def grad_H(y, params, out):
             out[offset + 3 * i + c] = y[offset + 3 * i + c] * inv_m
     for i in range(n_bodies):
         for j in range(i + 1, n_bodies):
-            dx = y[3 * i] - y[3 * j]
-            dy = y[3 * i + 1] - y[3 * j + 1]
-            dz = y[3 * i + 2] - y[3 * j + 2]
-            d2 = dx * dx + dy * dy + dz * dz
-            w = G * params[1 + i] * params[1 + j] / (d2 * math.sqrt(d2))
+            dx, dy, dz, d2, w = _pair(y, params, G, i, j)
             out[3 * i] += w * dx
             out[3 * i + 1] += w * dy
             out[3 * i + 2] += w * dz
@@ -123,11 +130,7 @@ def hess_H(y, params, out):
             out[offset + 3 * i + c, offset + 3 * i + c] = inv_m
     for i in range(n_bodies):
         for j in range(i + 1, n_bodies):
-            dx = y[3 * i] - y[3 * j]
-            dy = y[3 * i + 1] - y[3 * j + 1]
-            dz = y[3 * i + 2] - y[3 * j + 2]
-            d2 = dx * dx + dy * dy + dz * dz
-            w = G * params[1 + i] * params[1 + j] / (d2 * math.sqrt(d2))   # G m_i m_j / d^3
+            _, _, _, d2, w = _pair(y, params, G, i, j)   # w = G m_i m_j / d^3
             w3 = 3.0 * w / d2
             for a in range(3):
                 da = y[3 * i + a] - y[3 * j + a]
