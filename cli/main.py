@@ -241,19 +241,22 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
 @click.argument("config", metavar="CONFIG")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
 def check(config, overrides):
-    """Validate CONFIG, check its invariants, print the resolved config.
+    """Validate CONFIG, check its derivatives and invariants, print the resolved config.
 
-    The invariant check evaluates |grad L^T J grad H| / (|grad L| |grad H|) at the initial
-    state and at seeded random points near it, for every invariant of the problem (also
-    when the config says problem.check: false). The output is YAML: comments with the
-    check, then the resolved config that 'run' would use and store in the HDF5 file.
+    The derivative check compares grad_H, the invariants' gradients and hess_H with
+    central differences of H, the invariants and grad_H; the invariant check evaluates
+    |grad L^T J grad H| / (|grad L| |grad H|). Both look at the initial state and at seeded
+    random points near it (also when the config says problem.check: false). The output is
+    YAML: comments with the checks, then the resolved config that 'run' would use and
+    store in the HDF5 file.
 
     \b
     Examples:
       elimfast check configs/kepler.yaml
       elimfast check configs/kepler.yaml --set method.s=2
     """
-    from elimfast.problems.check import DEFAULT_TOLERANCE, check_invariants, require_invariants
+    from elimfast.problems.check import (DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_derivatives,
+                                         require_invariants)
 
     spec = _load(config, overrides)
     problem, method = spec.problem, spec.method
@@ -261,6 +264,12 @@ def check(config, overrides):
              f"# problem {problem.name}, {method.name}"
              + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "")
              + f", {spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"]
+    reports = check_derivatives(problem)
+    lines.append("# derivative check (error / what central differences allow; fails above 1):")
+    width = max(len(report.name) for report in reports)
+    lines += [f"#   {report.name:<{width}}  {report.ratio:.1e}  {'ok' if report.ok else 'DOES NOT MATCH'}"
+              for report in reports]
+    lines.append(f"# hess_H: {problem.hessian_description}")
     residuals = check_invariants(problem)
     if residuals:
         lines.append(f"# invariant check (relative residual, tolerance {DEFAULT_TOLERANCE:.0e}):")
@@ -279,6 +288,7 @@ def check(config, overrides):
             lines.append(f"# output: {one_line(err)}")
     click.echo("\n".join(lines))
     click.echo(_resolved_yaml(spec), nl=False)
+    require_derivatives(problem)  # exit 2 with the mismatch when a derivative is wrong
     require_invariants(problem)   # exit 2 with the residual when one is not conserved
     return EXIT_OK
 

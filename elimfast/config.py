@@ -12,7 +12,7 @@ Format (every section but ``problem``, ``method`` and ``integration`` is optiona
       parameters: {eccentricity: 0.6}  # keyword parameters of the problem
       initial: {q1: 0.4, p2: 2.0}      # builtin/python: overrides of the default state;
                                        # expressions: every coordinate (may use parameters)
-      check: true                      # check the invariants at load (false: skip)
+      check: true                      # check the derivatives and invariants at load (false: skip)
     conserve: [angular_momentum, lrl_y]  # invariants to impose (ELIM/EHBVM: < s; LIM/GHBVM: any)
     method: {name: ehbvm, k: 12, s: 3}   # gauss(s) hbvm(k,s) elim(r,k,s) ehbvm(k,s) lim(r,k,s) ghbvm(k,s)
     integration: {h: pi/30, t_end: 20*pi, t0: 0}   # or n_steps instead of t_end (both: must agree)
@@ -530,7 +530,8 @@ class _Builder:
             else:
                 problem, resolved = self.expressions(section)
             if section.check:
-                from .problems.check import require_invariants
+                from .problems.check import require_derivatives, require_invariants
+                require_derivatives(problem)   # first: the invariant check trusts the gradients
                 require_invariants(problem)
         except CacheError as err:
             raise self.error(("problem",), str(err)) from None

@@ -1,4 +1,5 @@
 """The expression language of configs: a whitelist over ``ast``, nothing else runs."""
+import ast
 import math
 
 import pytest
@@ -8,7 +9,7 @@ from hypothesis import strategies as st
 
 from elimfast.errors import ElimfastError
 from elimfast.problems.expressions import (MAX_DEPTH, MAX_EXPONENT, MAX_LENGTH, ExpressionError, canonical,
-                                           check_name, evaluate, evaluate_number, parse, to_sympy)
+                                           check_name, evaluate, evaluate_number, node_count, parse, to_sympy)
 
 NAMES = ("q1", "q2", "p1", "p2", "mu")
 SYMBOLS = {n: sympy.Symbol(n, real=True) for n in NAMES}
@@ -152,6 +153,43 @@ def test_declared_names_must_be_plain_identifiers(name, ok):
     else:
         with pytest.raises(ExpressionError):
             check_name(name)
+
+
+FULLWIDTH_Q1 = "\uff51\uff11"          # fullwidth q and 1
+FULLWIDTH_SQRT = "\uff53\uff51\uff52\uff54"
+
+
+def test_pythons_parser_reads_fullwidth_names_as_ascii():
+    """Why non-ASCII is refused: NFKC normalisation makes a fullwidth q1 the declared q1."""
+    assert ast.parse(FULLWIDTH_Q1, mode="eval").body.id == "q1"
+    assert ast.parse(f"{FULLWIDTH_SQRT}(2)", mode="eval").body.func.id == "sqrt"
+
+
+@pytest.mark.parametrize("text,character", [
+    (f"{FULLWIDTH_Q1}*p2 - q2*p1", "U+FF51 FULLWIDTH LATIN SMALL LETTER Q"),
+    (f"q\uff11*p2", "U+FF11 FULLWIDTH DIGIT ONE"),
+    (f"{FULLWIDTH_SQRT}(q1**2 + q2**2)", "U+FF53 FULLWIDTH LATIN SMALL LETTER S"),
+    ("q1 + 1\u00a0", "U+00A0 NO-BREAK SPACE"),
+    ("q1 # \u00e9", "U+00E9 LATIN SMALL LETTER E WITH ACUTE"),
+])
+def test_non_ascii_expressions_are_refused_naming_the_character(text, character):
+    with pytest.raises(ExpressionError, match="contains the non-ASCII character") as info:
+        parse(text, NAMES, what="invariant L")
+    assert character in str(info.value) and "\n" not in str(info.value)
+    with pytest.raises(ExpressionError, match="non-ASCII"):
+        evaluate_number(text.replace("q1", "1").replace("q2", "2").replace("p1", "3").replace("p2", "4"))
+
+
+@pytest.mark.parametrize("name", [FULLWIDTH_Q1, "q\uff11", "\u0430", "theta\u2082"])
+def test_non_ascii_names_are_refused_as_such(name):
+    with pytest.raises(ExpressionError, match=r"contains the non-ASCII character .* \(U\+[0-9A-F]{4} ") as info:
+        check_name(name, "coordinate name")
+    assert info.value.token == name
+
+
+def test_node_count_counts_expression_nodes():
+    assert node_count(parse("q1", NAMES)) == 1
+    assert node_count(parse("sin(q1 + 2)*p1", NAMES)) == 7   # Mul, Call, sin, Add, q1, 2, p1
 
 
 # --- sympy ---------------------------------------------------------------------------

@@ -329,22 +329,84 @@ ANGULAR = ("angular_momentum_x", "angular_momentum_y", "angular_momentum_z")
 LINEAR = ("linear_momentum_x", "linear_momentum_y", "linear_momentum_z")
 
 
-def test_nbody_default_is_the_hlw_outer_solar_system():
-    problem = problems.nbody()
-    masses = np.array([1.00000597682, 0.000954786104043, 0.000285583733151,
+HLW_MASSES = np.array([1.00000597682, 0.000954786104043, 0.000285583733151,
                        0.0000437273164546, 0.0000517759138449, 1 / 1.3e8])
-    np.testing.assert_array_equal(problem.params, np.concatenate(([2.95912208286e-4], masses)))
+HLW_POSITIONS = np.array([[0.0, 0.0, 0.0], [-3.5023653, -3.8169847, -1.5507963], [9.0755314, -3.0458353, -1.6483708],
+                          [8.3101420, -16.2901086, -7.2521278], [11.4707666, -25.7294829, -10.8169456],
+                          [-15.5387357, -25.2225594, -3.1902382]])
+HLW_VELOCITIES = np.array([[0.0, 0.0, 0.0], [0.00565429, -0.00412490, -0.00190589],
+                           [0.00168318, 0.00483525, 0.00192462], [0.00354178, 0.00137102, 0.00055029],
+                           [0.00288930, 0.00114527, 0.00039677], [0.00276725, -0.00170702, -0.00136504]])
+HLW_G = 2.95912208286e-4
+
+
+def test_nbody_default_is_the_hlw_outer_solar_system_moved_to_the_barycentre():
+    """HLW I.2.4's heliocentric data (copied here from the book), moved to the barycentre."""
+    problem = problems.nbody()
+    masses = HLW_MASSES
+    np.testing.assert_array_equal(problem.params, np.concatenate(([HLW_G], masses)))
+    assert problem.parameters["positions"] == HLW_POSITIONS.tolist()      # the source data, as printed
+    assert problem.parameters["frame"] == "barycentric"
+    assert problem.units == {"length": "AU", "time": "day", "mass": "solar mass"}
     q = problem.y0[:18].reshape(6, 3)
     v = problem.y0[18:].reshape(6, 3) / masses[:, None]
-    np.testing.assert_array_equal(q[0], 0.0)
-    np.testing.assert_array_equal(q[5], [-15.5387357, -25.2225594, -3.1902382])
-    np.testing.assert_allclose(v[1], [0.00565429, -0.00412490, -0.00190589], rtol=1e-15)
-    assert problem.q_names[:4] == ("x0", "y0", "z0", "x1") and problem.p_names[:4] == ("px0", "py0", "pz0", "px1")
+    M = masses.sum()
+    centre, drift_velocity = masses @ HLW_POSITIONS / M, masses @ HLW_VELOCITIES / M
+    np.testing.assert_allclose(q, HLW_POSITIONS - centre, rtol=1e-15, atol=1e-17)
+    np.testing.assert_allclose(v, HLW_VELOCITIES - drift_velocity, rtol=1e-13, atol=1e-19)
+    # The relative motion, hence every orbit, is the book's.
+    np.testing.assert_allclose(q[5] - q[0], HLW_POSITIONS[5], rtol=1e-15)
+    np.testing.assert_allclose(v[1] - v[0], HLW_VELOCITIES[1], rtol=1e-13)
+    assert problem.q_names == tuple(f"{body}_{c}" for body in ("sun", "jupiter", "saturn", "uranus", "neptune",
+                                                                "pluto") for c in "xyz")
+    assert problem.p_names[:4] == ("sun_px", "sun_py", "sun_pz", "jupiter_px")
     # H against a direct NumPy evaluation.
-    G = 2.95912208286e-4
     kinetic = 0.5 * np.sum(masses[:, None] * v * v)
-    potential = sum(G * masses[i] * masses[j] / np.linalg.norm(q[i] - q[j]) for i in range(6) for j in range(i))
+    potential = sum(HLW_G * masses[i] * masses[j] / np.linalg.norm(q[i] - q[j]) for i in range(6) for j in range(i))
     assert problem.hamiltonian(problem.y0) == pytest.approx(kinetic - potential, rel=1e-13)
+
+
+def test_nbody_barycentric_start_has_zero_momentum_and_centre_of_mass_at_the_origin():
+    problem = problems.nbody()
+    p = problem.y0[18:].reshape(6, 3)
+    q = problem.y0[:18].reshape(6, 3)
+    assert np.max(np.abs(p.sum(axis=0))) < 1e-18                  # |p_i| ~ 5e-6: round-off is ~1e-21
+    assert np.max(np.abs(HLW_MASSES @ q)) < 1e-15                 # sum m_i |q_i| ~ 0.03
+    values = problem.invariant_values(problem.y0)
+    assert max(abs(values[name]) for name in LINEAR) < 1e-18
+    # The heliocentric frame of the book, kept by frame="given", carries the planets' momentum.
+    given = problems.nbody(frame="given")
+    np.testing.assert_array_equal(given.y0[:18].reshape(6, 3), HLW_POSITIONS)
+    assert np.max(np.abs(given.y0[18:].reshape(6, 3).sum(axis=0))) > 1e-6
+
+
+def test_nbody_centre_of_mass_stays_at_the_origin_while_the_heliocentric_one_drifts():
+    """Issue 10, point 8: the centre of mass drifted 480 AU over 7e7 days, |P| t / M."""
+    t_end = 2e5
+    drifts_by_frame = {}
+    for frame in ("barycentric", "given"):
+        problem = problems.nbody(frame=frame)
+        result = elimfast.integrate(problem, gauss(2), 100.0, t_end=t_end)
+        assert result.status == "complete"
+        start, end = (HLW_MASSES @ y[:18].reshape(6, 3) / HLW_MASSES.sum() for y in (problem.y0, result.y_final))
+        drifts_by_frame[frame] = (float(np.linalg.norm(start)), float(np.linalg.norm(end - start)))
+    velocity = np.linalg.norm(HLW_MASSES @ HLW_VELOCITIES) / HLW_MASSES.sum()
+    assert drifts_by_frame["given"][1] == pytest.approx(velocity * t_end, rel=1e-9)   # 1.35 AU
+    assert max(drifts_by_frame["barycentric"]) < 1e-14
+
+
+def test_nbody_coordinate_names_work_as_config_initial_keys(tmp_path):
+    from elimfast.config import load_run
+    from elimfast.problems.expressions import check_name
+    for name in problems.nbody().coordinate_names + three_body().coordinate_names:
+        check_name(name, "coordinate name")
+    config = tmp_path / "nbody.yaml"
+    config.write_text("problem: {builtin: nbody, initial: {jupiter_x: -3.6, pluto_pz: 0.0}}\n"
+                      "method: {name: gauss, s: 2}\nintegration: {h: 50, n_steps: 2}\n")
+    problem = load_run(config).problem
+    assert problem.y0[problem.coordinate_names.index("jupiter_x")] == -3.6
+    assert problem.y0[problem.coordinate_names.index("pluto_pz")] == 0.0
+    assert three_body().q_names[:4] == ("body0_x", "body0_y", "body0_z", "body1_x")
 
 
 def test_nbody_invariants_against_numpy():
@@ -383,8 +445,14 @@ def test_solar_system_ehbvm_keeps_the_normal_angular_momentum():
 def test_solar_system_ghbvm_imposes_all_six_momenta():
     problem = problems.nbody()
     imposed = elimfast.integrate(problem, ghbvm(12, 2), 100.0, n_steps=200, conserve=problem.invariant_names)
-    for name in ("H",) + problem.invariant_names:
+    for name in ("H",) + ANGULAR:
         assert drift(imposed, name) < ROUND_OFF, (name, drifts(imposed, ("H",) + problem.invariant_names))
+    # The barycentric linear momenta start at ~1e-22: their drift is measured against the
+    # momenta that cancel in them, sum_i |p_i|.
+    scale = np.abs(problem.y0[18:].reshape(6, 3)).sum(axis=0)
+    for axis, name in enumerate(LINEAR):
+        values = imposed.invariants[name]
+        assert np.max(np.abs(values - values[0])) < ROUND_OFF * scale[axis], name
 
 
 # --- pendulum -------------------------------------------------------------------------------

@@ -13,6 +13,12 @@ All arrays are C-contiguous float64; ``params`` is the problem's parameter vecto
 - ``grad_H(y, params, out)``: out (2m,) = dH/dy
 - ``invariants(y, params, out)``: out (n_inv,) = L_i(y)
 - ``grad_invariants(y, params, out)``: out (n_inv, 2m), row i = grad L_i(y)
+- ``hess_H(y, params, out)``: out (2m, 2m) = the symmetric matrix d^2 H / dy^2, rows and
+  columns in the order q then p (so out[i, j] = d^2 H / dy_i dy_j); every entry is written.
+  The simplified Newton solver of spec section 8 factorises I - h X_s (x) J Hess(H)(y0)
+  once per step with it. Built-ins compute it analytically, expression problems by sympy,
+  ``python:`` files with their own ``hess_H`` or by central differences of ``grad_H``
+  (``Problem.hessian_source`` says which).
 """
 from numba import njit, types
 

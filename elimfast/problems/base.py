@@ -1,8 +1,8 @@
 """The Problem object: a Hamiltonian system with its invariants, as compiled functions.
 
-A problem carries four compiled functions with the fixed signatures of
-``elimfast.kernels.signatures`` (H, grad_H, invariants, grad_invariants), its
-parameter vector, default initial state and names. Kernels never see the Problem:
+A problem carries five compiled functions with the fixed signatures of
+``elimfast.kernels.signatures`` (H, grad_H, hess_H, invariants, grad_invariants), its
+parameter vector, default initial state, names and units. Kernels never see the Problem:
 the driver passes its functions and arrays, so new problems (built-in, generated
 from expressions, or user files) never touch the kernels.
 """
@@ -13,6 +13,14 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
+
+# Where a problem's hess_H comes from -> how reports say it.
+HESSIAN_SOURCES = {
+    "analytic": "analytic (written by hand in the built-in problem)",
+    "symbolic": "symbolic (sympy's second derivatives of the expression for H)",
+    "user": "the python file's own hess_H",
+    "finite differences": "finite differences of grad_H (the python file defines no hess_H)",
+}
 
 
 def _vector(y) -> np.ndarray:
@@ -25,10 +33,17 @@ class Problem:
     """y' = J grad H(y), y = (q, p), with named invariants L_i (grad L_i^T J grad H = 0).
 
     name: short identifier; q_names, p_names: coordinate names (m each);
-    H, grad_H, invariants, grad_invariants: compiled functions (see kernels.signatures);
-    invariant_names: names of the invariants, in the order ``invariants`` writes them;
-    y0: default initial state (2m,); params: parameter vector passed to every function;
-    parameters: the named parameters the problem was built with (for reports).
+    H, grad_H, hess_H, invariants, grad_invariants: compiled functions (see
+    kernels.signatures; hess_H is d^2 H/dy^2, needed by the simplified Newton solver of
+    spec section 8); invariant_names: names of the invariants, in the order ``invariants``
+    writes them; y0: default initial state (2m,);
+    hessian_source: where hess_H comes from, a key of ``HESSIAN_SOURCES``;
+    params: parameter vector passed to every function;
+    parameters: the named parameters the problem was built with (for reports);
+    units: {quantity: unit} when the problem has physical units, e.g. {"length": "AU",
+    "time": "day", "mass": "solar mass"}, else empty;
+    source_file: the user's own file of a ``python:`` problem (error messages name it
+    rather than its copy in the cache), else None.
     """
 
     name: str
@@ -36,13 +51,17 @@ class Problem:
     p_names: tuple[str, ...]
     H: Any = field(repr=False)
     grad_H: Any = field(repr=False)
+    hess_H: Any = field(repr=False)
     invariants: Any = field(repr=False)
     grad_invariants: Any = field(repr=False)
     invariant_names: tuple[str, ...]
     y0: np.ndarray = field(repr=False)
+    hessian_source: str
     params: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
     parameters: dict = field(default_factory=dict)
     description: str = ""
+    units: dict = field(default_factory=dict)
+    source_file: str | None = None
 
     def __post_init__(self):
         if len(self.q_names) != len(self.p_names):
@@ -60,10 +79,21 @@ class Problem:
         object.__setattr__(self, "invariant_names", tuple(self.invariant_names))
         if len(set(self.invariant_names)) != len(self.invariant_names) or "H" in self.invariant_names:
             raise ValueError(f"problem {self.name!r}: invariant names must be distinct and not 'H'")
+        if self.hessian_source not in HESSIAN_SOURCES:
+            raise ValueError(f"problem {self.name!r}: hessian_source must be one of "
+                             f"{', '.join(map(repr, HESSIAN_SOURCES))}, got {self.hessian_source!r}")
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in dict(self.units).items()):
+            raise ValueError(f"problem {self.name!r}: units must map quantity names to unit names (strings)")
+        object.__setattr__(self, "units", dict(self.units))
 
     @property
     def degrees_of_freedom(self) -> int:
         return len(self.q_names)
+
+    @property
+    def hessian_description(self) -> str:
+        """Where hess_H comes from, in words (for ``elimfast check`` and reports)."""
+        return HESSIAN_SOURCES[self.hessian_source]
 
     @property
     def coordinate_names(self) -> tuple[str, ...]:
@@ -81,6 +111,13 @@ class Problem:
     def gradient(self, y) -> np.ndarray:
         out = np.empty(2 * self.degrees_of_freedom)
         self.grad_H(_vector(y), self.params, out)
+        return out
+
+    def hessian(self, y) -> np.ndarray:
+        """(2m, 2m): d^2 H / dy^2 at y, rows and columns q then p."""
+        n = 2 * self.degrees_of_freedom
+        out = np.empty((n, n))
+        self.hess_H(_vector(y), self.params, out)
         return out
 
     def invariant_values(self, y) -> dict[str, float]:

@@ -13,9 +13,13 @@ before anything is built from it; nothing is ever evaluated by Python (no ``eval
 
 Everything else (attributes, subscripts, lambdas, comprehensions, strings, keyword
 arguments, comparisons, unknown names, dunder names, ...) raises ``ExpressionError``
-naming the offending token. Sizes are bounded (``MAX_LENGTH`` characters, ``MAX_NODES``
-nodes, ``MAX_DEPTH`` nesting, constant exponents up to ``MAX_EXPONENT``), so no input
-can make the parser or sympy run away.
+naming the offending token. So does any non-ASCII character: Python's parser
+NFKC-normalises identifiers, so ``q1`` or ``sqrt`` typed in fullwidth letters and digits
+(U+FF51 U+FF11, ...) would silently become ``q1`` or ``sqrt``; names (``check_name``)
+must be ASCII for the same reason. Sizes are bounded (``MAX_LENGTH`` characters,
+``MAX_NODES`` nodes, ``MAX_DEPTH`` nesting, constant exponents up to ``MAX_EXPONENT``),
+so no input can make the parser or sympy run away (a problem's total size and the
+size of its derivatives are bounded in ``symbolic.py``).
 
 The same validated tree serves three consumers:
 - ``to_sympy``: a sympy expression built node by node (exact integers and rationals,
@@ -32,6 +36,7 @@ import difflib
 import keyword
 import math
 import re
+import unicodedata
 import warnings
 from typing import Mapping
 
@@ -107,11 +112,24 @@ def _segment(text: str, node: ast.AST) -> str:
     return _short(segment if segment else type(node).__name__)
 
 
+def non_ascii(text: str) -> str | None:
+    """The first non-ASCII character of text, described (``'１' (U+FF11 FULLWIDTH DIGIT ONE)``), or None."""
+    for char in text:
+        if ord(char) > 127:
+            return f"{char!r} (U+{ord(char):04X} {unicodedata.name(char, 'unnamed')})"
+    return None
+
+
 def check_name(name, what: str = "name") -> str:
     """A coordinate, parameter or invariant name: an ASCII identifier, not a keyword,
     not a function or constant of the expression language, no leading underscore."""
     if not isinstance(name, str):
         raise ExpressionError(f"{what} must be a string, got {name!r}", token=repr(name))
+    character = non_ascii(name)
+    if character:
+        raise ExpressionError(f"{what} {name!r} contains the non-ASCII character {character}; use ASCII "
+                              "letters, digits and '_' (Python's parser would read a fullwidth name as its ASCII "
+                              "twin)", token=name)
     if not _IDENTIFIER.match(name) or keyword.iskeyword(name):
         raise ExpressionError(f"{what} {name!r} is not a valid name: use letters, digits and '_', "
                               "starting with a letter", token=name)
@@ -137,6 +155,11 @@ def parse(text, names=(), what: str = "expression") -> ast.Expression:
         raise ExpressionError(f"{what} is too long ({len(text)} characters, at most {MAX_LENGTH})")
     if not text.strip():
         raise ExpressionError(f"{what} is empty")
+    character = non_ascii(text)
+    if character:
+        detail = (f"contains the non-ASCII character {character}; write names, numbers and operators in ASCII "
+                  "(Python's parser would silently read a fullwidth letter or digit as its ASCII twin)")
+        raise ExpressionError(f"{what} {_short(text)!r} {detail}", token=character, detail=detail)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. SyntaxWarning: invalid decimal literal
@@ -253,6 +276,12 @@ def _unchain(node):
         node = node.left
     rest.reverse()
     return node, rest
+
+
+def node_count(tree: ast.Expression) -> int:
+    """The number of expression nodes (``ast.expr``) of a tree: a problem's total is bounded by
+    ``symbolic.MAX_TOTAL_NODES``."""
+    return sum(1 for node in ast.walk(tree) if isinstance(node, ast.expr))
 
 
 def canonical(tree: ast.Expression) -> str:

@@ -11,6 +11,9 @@ with r the stretch q_{i+1} - q_i of each spring (indices 1..n below, 0-based in 
 - boundary="fixed": n + 1 springs, q_0 = q_{n+1} = 0 (both ends clamped). No invariant
   besides H.
 grad_q H_i = V'(r_{i-1}) - V'(r_i), V'(r) = r + beta r^3 (r_i: the spring right of mass i).
+Hessian: each spring between masses a and b adds its stiffness V''(r) = 1 + 3 beta r^2 to
+the (a, a) and (b, b) entries and subtracts it from (a, b) and (b, a) (a clamped end has no
+entry); the p block is the identity.
 H is a quartic polynomial: HBVM(k,s) keeps it to round-off when 4 <= 2k/s.
 
 Default initial states, with amplitude 1 in the lowest mode:
@@ -24,9 +27,10 @@ Physics 728 (2008), chapter 1.
 import math
 
 import numpy as np
+from numba import njit
 
-from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_invariant_gradients, jit_invariants,
-                                  no_invariant_gradients, no_invariants)
+from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
+                                  jit_invariants, no_invariant_gradients, no_invariants)
 from .base import Problem
 
 BOUNDARIES = ("periodic", "fixed")
@@ -57,6 +61,29 @@ def _periodic_grad_H(y, params, out):
         force = r + beta * r * r * r   # V'(r) of the spring between i and i+1
         out[i] -= force
         out[right] += force
+
+
+@njit(cache=True, inline="always")
+def _clear_with_unit_momentum_block(out, n):
+    """out = [[0, 0], [0, I_n]]: the kinetic part of every chain's Hessian."""
+    out[:] = 0.0
+    for i in range(n):
+        out[n + i, n + i] = 1.0
+
+
+@jit_hessian
+def _periodic_hess_H(y, params, out):
+    beta = params[0]
+    n = y.shape[0] // 2
+    _clear_with_unit_momentum_block(out, n)
+    for i in range(n):
+        right = (i + 1) % n
+        r = y[right] - y[i]
+        stiffness = 1.0 + 3.0 * beta * r * r   # V''(r); n = 2: both springs join the same pair, and add up
+        out[i, i] += stiffness
+        out[right, right] += stiffness
+        out[i, right] -= stiffness
+        out[right, i] -= stiffness
 
 
 @jit_invariants
@@ -112,6 +139,26 @@ def _fixed_grad_H(y, params, out):
         left = right
 
 
+@jit_hessian
+def _fixed_hess_H(y, params, out):
+    beta = params[0]
+    n = y.shape[0] // 2
+    _clear_with_unit_momentum_block(out, n)
+    left = 0.0
+    for i in range(n + 1):
+        right = y[i] if i < n else 0.0
+        r = right - left
+        stiffness = 1.0 + 3.0 * beta * r * r   # V''(r) of the spring between masses i-1 and i (0-based)
+        if i > 0:
+            out[i - 1, i - 1] += stiffness
+        if i < n:
+            out[i, i] += stiffness
+        if 0 < i < n:
+            out[i - 1, i] -= stiffness
+            out[i, i - 1] -= stiffness
+        left = right
+
+
 def fpu_beta(n: int = 8, beta: float = 1.0, boundary: str = "periodic") -> Problem:
     """FPU-beta chain of n >= 2 unit masses, beta >= 0, boundary 'periodic' or 'fixed'."""
     if isinstance(n, bool) or not float(n).is_integer() or n < 2:
@@ -126,17 +173,17 @@ def fpu_beta(n: int = 8, beta: float = 1.0, boundary: str = "periodic") -> Probl
     if boundary == "periodic":
         omega_1 = 2.0 * math.sin(math.pi / n)
         y0 = np.concatenate((np.sin(2.0 * math.pi * j / n), 0.1 + omega_1 * np.cos(2.0 * math.pi * j / n)))
-        functions = dict(H=_periodic_H, grad_H=_periodic_grad_H, invariants=_periodic_invariants,
-                         grad_invariants=_periodic_grad_invariants)
+        functions = dict(H=_periodic_H, grad_H=_periodic_grad_H, hess_H=_periodic_hess_H,
+                         invariants=_periodic_invariants, grad_invariants=_periodic_grad_invariants)
         invariant_names = ("momentum",)
     else:
         y0 = np.concatenate((np.sin(math.pi * j / (n + 1)), np.zeros(n)))
-        functions = dict(H=_fixed_H, grad_H=_fixed_grad_H, invariants=no_invariants,
+        functions = dict(H=_fixed_H, grad_H=_fixed_grad_H, hess_H=_fixed_hess_H, invariants=no_invariants,
                          grad_invariants=no_invariant_gradients)
         invariant_names = ()
     return Problem(
         name="fpu_beta", q_names=tuple(f"q{i}" for i in j), p_names=tuple(f"p{i}" for i in j),
-        invariant_names=invariant_names, y0=y0, params=np.array([beta]),
+        invariant_names=invariant_names, y0=y0, params=np.array([beta]), hessian_source="analytic",
         parameters={"n": n, "beta": beta, "boundary": boundary},
         description=f"FPU-beta chain, {n} masses, {boundary} ends, V(r) = r^2/2 + beta r^4/4",
         **functions,

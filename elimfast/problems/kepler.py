@@ -1,6 +1,8 @@
 """Planar Kepler problem with angular momentum and the Laplace-Runge-Lenz vector.
 
 H = |p|^2/2 - 1/|q| (spec section 5: the paper prints +1/|q| by mistake),
+grad_q H = q/|q|^3, grad_p H = p; Hessian: d^2 H/dq_i dq_j = delta_ij/|q|^3 - 3 q_i q_j/|q|^5,
+d^2 H/dp_i dp_j = delta_ij, no q-p coupling.
 L1 = q1 p2 - q2 p1 (angular momentum), A = (p2 L1 - q1/|q|, -p1 L1 - q2/|q|) (LRL vector;
 the paper's L2 is A_y, with the sign the paper drops restored).
 Initial state for eccentricity e: q0 = (1-e, 0), p0 = (0, sqrt((1+e)/(1-e))): period 2 pi,
@@ -12,7 +14,8 @@ import math
 
 import numpy as np
 
-from ..kernels.signatures import jit_gradient, jit_hamiltonian, jit_invariant_gradients, jit_invariants
+from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
+                                  jit_invariants)
 from .base import Problem
 
 
@@ -29,6 +32,19 @@ def grad_H(y, params, out):
     out[1] = y[1] * inv_r3
     out[2] = y[2]
     out[3] = y[3]
+
+
+@jit_hessian
+def hess_H(y, params, out):
+    r2 = y[0] * y[0] + y[1] * y[1]
+    inv_r3 = 1.0 / (r2 * math.sqrt(r2))
+    inv_r5 = inv_r3 / r2
+    out[:] = 0.0
+    out[0, 0] = inv_r3 - 3.0 * y[0] * y[0] * inv_r5
+    out[1, 1] = inv_r3 - 3.0 * y[1] * y[1] * inv_r5
+    out[0, 1] = out[1, 0] = -3.0 * y[0] * y[1] * inv_r5
+    out[2, 2] = 1.0
+    out[3, 3] = 1.0
 
 
 @jit_invariants
@@ -73,7 +89,8 @@ def kepler(eccentricity: float = 0.6) -> Problem:
     y0 = np.array([1.0 - e, 0.0, 0.0, math.sqrt((1.0 + e) / (1.0 - e))])
     return Problem(
         name="kepler", q_names=("q1", "q2"), p_names=("p1", "p2"),
-        H=H, grad_H=grad_H, invariants=invariants, grad_invariants=grad_invariants,
+        H=H, grad_H=grad_H, hess_H=hess_H, hessian_source="analytic",
+        invariants=invariants, grad_invariants=grad_invariants,
         invariant_names=("angular_momentum", "lrl_x", "lrl_y"),
         y0=y0, params=np.zeros(0), parameters={"eccentricity": e},
         description="planar Kepler problem, H = |p|^2/2 - 1/|q|, period 2 pi",

@@ -1,10 +1,15 @@
 """Gravitational N-body problem in 3D, with total linear and angular momentum.
 
-q = (x0, y0, z0, x1, ...) positions (3N), p = (px0, py0, pz0, px1, ...) momenta (3N),
-params = [G, m_0, ..., m_{N-1}] (N is read from y.shape: 6N = len(y)).
+q = (x_0, y_0, z_0, x_1, ...) positions (3N), p = (px_0, py_0, pz_0, px_1, ...) momenta (3N),
+params = [G, m_0, ..., m_{N-1}] (N is read from y.shape: 6N = len(y)). Coordinate names:
+``<body>_x``, ``<body>_y``, ``<body>_z`` and ``<body>_px``, ``<body>_py``, ``<body>_pz``, with the
+bodies named sun, jupiter, saturn, uranus, neptune, pluto for the default data and body0,
+body1, ... otherwise (valid identifiers: usable in a config's ``initial:``).
 
 H = sum_i |p_i|^2/(2 m_i) - G sum_{i<j} m_i m_j / |q_i - q_j|,
 grad_{q_i} H = G sum_{j != i} m_i m_j (q_i - q_j)/|q_i - q_j|^3,  grad_{p_i} H = p_i/m_i.
+Hessian: d^2 H/dp_i^2 = I/m_i; each pair adds B_ij = G m_i m_j (I/d^3 - 3 d d^T/d^5),
+d = q_i - q_j, to the (q_i, q_i) and (q_j, q_j) blocks and -B_ij to (q_i, q_j) and (q_j, q_i).
 Invariants (the potential depends on differences only and is rotation invariant):
   linear_momentum_{x,y,z} = sum_i p_i  (linear: every Runge-Kutta method keeps them, and
   ELIM/EHBVM cannot impose them: their phi_j, j >= 1, vanish and Gamma is singular, spec 3),
@@ -16,19 +21,30 @@ Invariants (the potential depends on differences only and is rotation invariant)
 
 Reference and default data: the outer solar system of Hairer, Lubich & Wanner, Geometric
 Numerical Integration, 2nd ed., I.2.4: the Sun (mass including the inner planets),
-Jupiter, Saturn, Uranus, Neptune, Pluto; units: solar masses, astronomical units, days,
-G = 2.95912208286e-4; heliocentric positions and velocities (Sun at rest at the origin),
-p_i = m_i v_i.
+Jupiter, Saturn, Uranus, Neptune, Pluto; units: astronomical units, days, solar masses
+(``Problem.units``), G = 2.95912208286e-4. HLW give heliocentric positions and velocities
+(the Sun at rest at the origin); that frame moves: its total momentum is that of the
+planets, and the centre of mass drifts by |P| t / M (480 AU over 7e7 days). The data are
+kept as HLW print them, and ``frame="barycentric"`` (the default) moves any given data to
+the barycentre, as astronomers expect:
+  M = sum_i m_i,  q_cm = sum_i m_i q_i / M,  v_cm = sum_i m_i v_i / M,
+  q_i <- q_i - q_cm,  p_i = m_i (v_i - v_cm),
+so sum_i p_i = 0 and sum_i m_i q_i = 0 up to round-off (~eps sum_i |p_i|, eps sum_i m_i |q_i|).
+The relative motion, hence every orbit, is unchanged; the angular momentum is now the one
+about the barycentre. ``frame="given"`` keeps the data as given (p_i = m_i v_i).
 """
 import math
 
 import numpy as np
+from numba import njit
 
-from ..kernels.signatures import jit_gradient, jit_hamiltonian, jit_invariant_gradients, jit_invariants
+from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
+                                  jit_invariants)
 from .base import Problem
 
 # Hairer, Lubich & Wanner, GNI, I.2.4.
 SOLAR_SYSTEM_G = 2.95912208286e-4
+SOLAR_SYSTEM_UNITS = {"length": "AU", "time": "day", "mass": "solar mass"}   # those of SOLAR_SYSTEM_G
 SOLAR_SYSTEM_BODIES = ("sun", "jupiter", "saturn", "uranus", "neptune", "pluto")
 SOLAR_SYSTEM_MASSES = (1.00000597682, 0.000954786104043, 0.000285583733151,
                        0.0000437273164546, 0.0000517759138449, 1.0 / 1.3e8)
@@ -71,6 +87,16 @@ def H(y, params):
     return kinetic - G * potential
 
 
+@njit(cache=True, inline="always")
+def _pair(y, params, G, i, j):
+    """(d_x, d_y, d_z, |d|^2, G m_i m_j / |d|^3) for d = q_i - q_j."""
+    dx = y[3 * i] - y[3 * j]
+    dy = y[3 * i + 1] - y[3 * j + 1]
+    dz = y[3 * i + 2] - y[3 * j + 2]
+    d2 = dx * dx + dy * dy + dz * dz
+    return dx, dy, dz, d2, G * params[1 + i] * params[1 + j] / (d2 * math.sqrt(d2))
+
+
 @jit_gradient
 def grad_H(y, params, out):
     G = params[0]
@@ -83,17 +109,40 @@ def grad_H(y, params, out):
             out[offset + 3 * i + c] = y[offset + 3 * i + c] * inv_m
     for i in range(n_bodies):
         for j in range(i + 1, n_bodies):
-            dx = y[3 * i] - y[3 * j]
-            dy = y[3 * i + 1] - y[3 * j + 1]
-            dz = y[3 * i + 2] - y[3 * j + 2]
-            d2 = dx * dx + dy * dy + dz * dz
-            w = G * params[1 + i] * params[1 + j] / (d2 * math.sqrt(d2))
+            dx, dy, dz, d2, w = _pair(y, params, G, i, j)
             out[3 * i] += w * dx
             out[3 * i + 1] += w * dy
             out[3 * i + 2] += w * dz
             out[3 * j] -= w * dx
             out[3 * j + 1] -= w * dy
             out[3 * j + 2] -= w * dz
+
+
+@jit_hessian
+def hess_H(y, params, out):
+    G = params[0]
+    n_bodies = y.shape[0] // 6
+    offset = 3 * n_bodies
+    out[:] = 0.0
+    for i in range(n_bodies):
+        inv_m = 1.0 / params[1 + i]
+        for c in range(3):
+            out[offset + 3 * i + c, offset + 3 * i + c] = inv_m
+    for i in range(n_bodies):
+        for j in range(i + 1, n_bodies):
+            _, _, _, d2, w = _pair(y, params, G, i, j)   # w = G m_i m_j / d^3
+            w3 = 3.0 * w / d2
+            for a in range(3):
+                da = y[3 * i + a] - y[3 * j + a]
+                for b in range(3):
+                    # B_ij[a, b], with d_a d_b formed first: B_ij[b, a] is then the same double
+                    block = -w3 * (da * (y[3 * i + b] - y[3 * j + b]))
+                    if a == b:
+                        block += w
+                    out[3 * i + a, 3 * i + b] += block
+                    out[3 * j + a, 3 * j + b] += block
+                    out[3 * i + a, 3 * j + b] -= block
+                    out[3 * j + a, 3 * i + b] -= block
 
 
 @jit_invariants
@@ -159,16 +208,33 @@ def _bodies_array(value, name, n_bodies=None):
     return array
 
 
-def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_G) -> Problem:
+FRAMES = ("barycentric", "given")
+
+
+def barycentric(masses: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and velocities relative to the centre of mass and its velocity (module docstring)."""
+    total = masses.sum()
+    centre = (masses[:, None] * positions).sum(axis=0) / total
+    drift = (masses[:, None] * velocities).sum(axis=0) / total
+    return positions - centre, velocities - drift
+
+
+def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_G,
+          frame: str = "barycentric") -> Problem:
     """Gravitational N-body problem; defaults: the outer solar system of HLW I.2.4.
 
     masses (N,), positions (N, 3) and velocities (N, 3) default to the HLW data (each
-    separately, so e.g. only the masses can be changed); momenta are m_i v_i.
+    separately, so e.g. only the masses can be changed); frame "barycentric" moves them
+    to the centre of mass (momenta m_i (v_i - v_cm)), "given" keeps them (momenta m_i v_i).
+    The bodies are named after the planets while the positions are HLW's. Units are
+    stated (AU, day, solar mass) when G is HLW's, whose value fixes them.
     """
     default_data = masses is None and positions is None and velocities is None
     G = float(G)
     if not (math.isfinite(G) and G > 0.0):
         raise ValueError(f"G must be a positive finite number, got {G}")
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be 'barycentric' or 'given', got {frame!r}")
     masses = np.array(SOLAR_SYSTEM_MASSES if masses is None else masses, dtype=np.float64)
     if masses.ndim != 1 or masses.size < 2:
         raise ValueError(f"masses must be a list of at least 2 numbers, got {masses.tolist()!r}")
@@ -176,21 +242,27 @@ def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_
         raise ValueError(f"masses must be positive finite numbers, got {masses.tolist()!r}")
     n_bodies = masses.size
     q = _bodies_array(SOLAR_SYSTEM_POSITIONS if positions is None else positions, "positions", n_bodies)
+    # By value, not by "positions is None": a resolved config passes HLW's positions explicitly.
+    hlw_positions = q.shape == (6, 3) and np.array_equal(q, SOLAR_SYSTEM_POSITIONS)
+    bodies = SOLAR_SYSTEM_BODIES if hlw_positions else tuple(f"body{i}" for i in range(n_bodies))
     v = _bodies_array(SOLAR_SYSTEM_VELOCITIES if velocities is None else velocities, "velocities", n_bodies)
     for i in range(n_bodies):
         for j in range(i + 1, n_bodies):
             if np.array_equal(q[i], q[j]):
                 raise ValueError(f"bodies {i} and {j} start at the same position {q[i].tolist()}: "
                                  "the potential is singular there")
-    p = masses[:, None] * v
-    q_names = tuple(f"{c}{i}" for i in range(n_bodies) for c in "xyz")
-    p_names = tuple(f"p{c}{i}" for i in range(n_bodies) for c in "xyz")
+    q_start, v_start = barycentric(masses, q, v) if frame == "barycentric" else (q, v)
+    p = masses[:, None] * v_start
+    q_names = tuple(f"{body}_{c}" for body in bodies for c in "xyz")
+    p_names = tuple(f"{body}_p{c}" for body in bodies for c in "xyz")
     return Problem(
         name="nbody", q_names=q_names, p_names=p_names,
-        H=H, grad_H=grad_H, invariants=invariants, grad_invariants=grad_invariants,
-        invariant_names=INVARIANT_NAMES,
-        y0=np.concatenate((q.ravel(), p.ravel())), params=np.concatenate(([G], masses)),
-        parameters={"G": G, "masses": masses.tolist(), "positions": q.tolist(), "velocities": v.tolist()},
-        description=f"gravitational {n_bodies}-body problem in 3D"
+        H=H, grad_H=grad_H, hess_H=hess_H, hessian_source="analytic",
+        invariants=invariants, grad_invariants=grad_invariants, invariant_names=INVARIANT_NAMES,
+        y0=np.concatenate((q_start.ravel(), p.ravel())), params=np.concatenate(([G], masses)),
+        parameters={"G": G, "masses": masses.tolist(), "positions": q.tolist(), "velocities": v.tolist(),
+                    "frame": frame},
+        units=dict(SOLAR_SYSTEM_UNITS) if G == SOLAR_SYSTEM_G else {},
+        description=f"gravitational {n_bodies}-body problem in 3D, {frame} frame"
                     + (" (outer solar system, HLW I.2.4)" if default_data else ""),
     )

@@ -1,6 +1,7 @@
 """The mathematical pendulum, one degree of freedom.
 
-H = p^2/2 - omega^2 cos q,   q' = p,  p' = -omega^2 sin q.
+H = p^2/2 - omega^2 cos q,   q' = p,  p' = -omega^2 sin q,
+Hessian diag(omega^2 cos q, 1).
 No invariant besides H (HBVM keeps H only to O(h^(2k+1)) per step: H is not a polynomial).
 Default initial state: q0 = 1 (radian), p0 = 0, a libration of amplitude 1 for every omega
 (the separatrix is H = omega^2).
@@ -10,7 +11,7 @@ import math
 
 import numpy as np
 
-from ..kernels.signatures import jit_gradient, jit_hamiltonian, no_invariant_gradients, no_invariants
+from ..kernels.signatures import jit_gradient, jit_hamiltonian, jit_hessian, no_invariant_gradients, no_invariants
 from .base import Problem
 
 
@@ -27,6 +28,14 @@ def grad_H(y, params, out):
     out[1] = y[1]
 
 
+@jit_hessian
+def hess_H(y, params, out):
+    omega = params[0]
+    out[0, 0] = omega * omega * math.cos(y[0])
+    out[0, 1] = out[1, 0] = 0.0
+    out[1, 1] = 1.0
+
+
 def pendulum(omega: float = 1.0) -> Problem:
     """The pendulum H = p^2/2 - omega^2 cos q (small-oscillation frequency omega > 0)."""
     omega = float(omega)
@@ -34,7 +43,8 @@ def pendulum(omega: float = 1.0) -> Problem:
         raise ValueError(f"omega must be a positive finite frequency, got {omega}")
     return Problem(
         name="pendulum", q_names=("q",), p_names=("p",),
-        H=H, grad_H=grad_H, invariants=no_invariants, grad_invariants=no_invariant_gradients,
+        H=H, grad_H=grad_H, hess_H=hess_H, hessian_source="analytic",
+        invariants=no_invariants, grad_invariants=no_invariant_gradients,
         invariant_names=(), y0=np.array([1.0, 0.0]), params=np.array([omega]),
         parameters={"omega": omega},
         description="mathematical pendulum, H = p^2/2 - omega^2 cos q",

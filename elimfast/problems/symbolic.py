@@ -1,20 +1,35 @@
 """Problems from expressions: sympy gradients, generated Numba source, compiled once per machine.
 
 ``problem_from_expressions`` turns the expression strings of a config into a Problem
-whose four functions have exactly the compiled signatures of ``kernels.signatures``,
-so the kernels run them as fast as a hand-written built-in (``bench/user_problem.py``).
+whose five functions (H, grad_H, hess_H, invariants, grad_invariants) have exactly the
+compiled signatures of ``kernels.signatures``, so the kernels run them as fast as a
+hand-written built-in (``bench/user_problem.py``).
 
 Pipeline (expressions are data, never code: see ``expressions.py``):
 
-1. Parse and validate every expression (``ast`` whitelist).
-2. Input key = sha256 of (elimfast version, coordinate and parameter names, the
-   canonical form of each expression). If ``<cache>/keys/<key>`` names a generated
-   file whose content still hashes to its name, import it: a warm load needs neither
-   sympy nor any compilation (Numba's cache beside the file is valid).
-3. Otherwise build sympy expressions node by node, differentiate, eliminate common
-   subexpressions (``sympy.cse``), print Python source with ``@njit(<signature>,
-   cache=True)`` functions, write it atomically to ``<cache>/problems/p_<sha256 of the
-   source and version>.py``, record the key, and import it.
+1. Parse and validate every expression (``ast`` whitelist); bound their number
+   (``MAX_INVARIANTS``) and total size (``MAX_TOTAL_NODES``).
+2. Input key = sha256 of (elimfast version, ``GENERATOR_VERSION``, coordinate and
+   parameter names, the canonical form of each expression). If ``<cache>/keys/<key>``
+   names a generated file whose content still hashes to its name, import it: a warm load
+   needs neither sympy nor any compilation (Numba's cache beside the file is valid).
+   The generator version is in the key and in the generated text, so files written by
+   an older generator (before hess_H, say) are never loaded by this one.
+3. Otherwise build sympy expressions node by node, differentiate (gradients, and the
+   upper triangle of the Hessian of H, mirrored), eliminate common subexpressions
+   (``sympy.cse``), print Python source with ``@njit(<signature>, cache=True)``
+   functions, write it atomically to ``<cache>/problems/p_<sha256 of the source and
+   version>.py``, record the key, and import it.
+
+The symbolic work is bounded before it is done: differentiation of a product of n
+factors that depend on a coordinate gives n terms of n - 1 factors, so the size of a
+derivative is estimated from the expression tree (``_derivative_sizes``: sum, product,
+chain and power rules applied to node counts) and the problem is refused when the
+derivatives would exceed ``MAX_DERIVATIVE_NODES`` nodes in all: a product of 900 sines
+is refused in about a second instead of after 30 s of differentiation.
+
+The Hessian of abs(f) contains sympy's DiracDelta(f): it is replaced by 0, the derivative
+almost everywhere (hess_H only builds the Newton iteration matrix, spec section 8).
 
 The functions are compiled with ``error_model="numpy"``: a division by zero gives inf or
 NaN (which the kernel reports as a non-finite failure at that step) instead of raising a
@@ -43,9 +58,20 @@ import numpy as np
 from .. import cache
 from .base import Problem
 from .expressions import (ExpressionError, ProblemDefinitionError, canonical, check_name, did_you_mean,
-                          evaluate_number, parse, to_sympy)
+                          evaluate_number, node_count, non_ascii, parse, to_sympy)
 
-MAX_DERIVATIVE_NODES = 300_000   # bounds the time of cse and the size of the generated code
+GENERATOR_VERSION = 2   # 2: hess_H. Part of the cache key and of the generated text.
+FUNCTIONS = ("H", "grad_H", "hess_H", "invariants", "grad_invariants")   # what a generated module defines
+# Bounds of the symbolic work (issue 9, point 6). Measured here: sympy differentiates about
+# 45,000 nodes/s and cse handles about 100,000 nodes/s, so MAX_DERIVATIVE_NODES keeps an
+# accepted problem under about 10 s of sympy; the estimate of a derivative's size is at
+# or above sympy's result, within about 2x on large products. Building the sympy trees
+# from MAX_TOTAL_NODES nodes of expressions takes about 3 s. The shipped example is far
+# below: configs/kepler_expressions.yaml has 75 nodes and 439 estimated derivative nodes
+# (sympy's derivatives have 231).
+MAX_INVARIANTS = 64
+MAX_TOTAL_NODES = 20_000          # expression nodes of H and all invariants together
+MAX_DERIVATIVE_NODES = 300_000    # estimated nodes of grad H, hess H and the invariants' gradients
 _GENERATED_NAME = re.compile(r"p_[0-9a-f]{64}\.py\Z")
 _INVARIANT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
 _MODULES: dict[str, object] = {}   # generated file path -> imported module, for this process
@@ -94,8 +120,15 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
     invariants = invariants or {}
     if not isinstance(invariants, Mapping):
         raise ProblemDefinitionError("invariants must be a mapping name -> expression", key="invariants")
+    if len(invariants) > MAX_INVARIANTS:
+        raise ProblemDefinitionError(f"{len(invariants)} invariants are too many (at most {MAX_INVARIANTS}); declare "
+                                     "only those to impose or monitor, or write the problem as a python: file",
+                                     key="invariants")
     invariant_trees = []
     for iname, text in invariants.items():
+        if isinstance(iname, str) and non_ascii(iname):
+            raise ProblemDefinitionError(f"invariant name {iname!r} contains the non-ASCII character "
+                                         f"{non_ascii(iname)}; use ASCII letters, digits and '_'", key="invariants")
         if not isinstance(iname, str) or not _INVARIANT_NAME.match(iname) or iname == "H":
             raise ProblemDefinitionError(f"invariant name {iname!r} is not allowed: use letters, digits and '_', "
                                          "starting with a letter, and not 'H' (always conserved)", key="invariants")
@@ -105,11 +138,16 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
         invariant_trees.append((iname, text, _checked(parse, text, declared, what=f"invariant {iname}",
                                                       key=f"invariants.{iname}")))
 
+    total = node_count(H_tree) + sum(node_count(tree) for _, _, tree in invariant_trees)
+    if total > MAX_TOTAL_NODES:
+        raise ProblemDefinitionError(f"the Hamiltonian and invariants have {total} terms in all (at most "
+                                     f"{MAX_TOTAL_NODES}); simplify them, or write the problem as a python: file",
+                                     key="invariants" if invariant_trees else "hamiltonian")
     y0 = _initial_state(initial, coordinate_names, param_values)
 
     spec = {"q": q_names, "p": p_names, "parameters": param_names, "H": canonical(H_tree),
             "invariants": [[iname, canonical(tree)] for iname, _, tree in invariant_trees]}
-    key = cache.content_hash("expressions-v1", json.dumps(spec, sort_keys=True))
+    key = cache.content_hash(f"expressions-v{GENERATOR_VERSION}", json.dumps(spec, sort_keys=True))
     module = _load_by_key(key)
     if module is None:
         source = generate_source(q_names, p_names, param_names, (hamiltonian, H_tree),
@@ -123,7 +161,8 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
 
     return Problem(
         name=name, q_names=q_names, p_names=p_names,
-        H=module.H, grad_H=module.grad_H, invariants=module.invariants, grad_invariants=module.grad_invariants,
+        H=module.H, grad_H=module.grad_H, hess_H=module.hess_H, hessian_source="symbolic",
+        invariants=module.invariants, grad_invariants=module.grad_invariants,
         invariant_names=tuple(iname for iname, _, _ in invariant_trees),
         y0=y0, params=np.array([param_values[p] for p in param_names], dtype=np.float64),
         parameters=param_values, description=description or f"H = {' '.join(hamiltonian.split())}",
@@ -201,7 +240,10 @@ def _load_by_key(key: str):
         return _MODULES[str(path)]
     if not _is_intact(path):
         return None
-    return _import(path)
+    module = _import(path)
+    # The key includes GENERATOR_VERSION, so this holds; checked anyway, as a file lacking
+    # a function would fail only when the solver calls it.
+    return module if all(hasattr(module, name) for name in FUNCTIONS) else None
 
 
 def _import(path: Path):
@@ -229,11 +271,13 @@ def _import(path: Path):
 # --- code generation -----------------------------------------------------------------------
 
 def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name: str = "user") -> str:
-    """Python source of H, grad_H, invariants, grad_invariants for the validated trees.
+    """Python source of H, grad_H, hess_H, invariants, grad_invariants for the validated trees.
 
     hamiltonian: (text, tree); invariants: [(name, text, tree)]. Coordinates are read
     from y[i] (q then p), parameters from params[i]; user names become ``v_<name>``
     locals and common subexpressions ``t<n>``, so no user name can clash with the code.
+    Raises ExpressionError before differentiating when the derivatives would exceed
+    MAX_DERIVATIVE_NODES (module docstring).
     """
     import sympy
 
@@ -244,7 +288,6 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
     variables = [symbols[n] for n in coordinate_names]
     h_text, h_tree = hamiltonian
     H = to_sympy(h_tree, symbols, what="hamiltonian", text=h_text)
-    grad_H = [sympy.diff(H, v) for v in variables]
     L = []
     for iname, text, tree in invariants:
         try:
@@ -252,14 +295,23 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
         except ExpressionError as err:
             err.key = err.key or f"invariants.{iname}"
             raise
+    n = len(coordinate_names)
+
+    # Estimated sizes first (cheap), then the derivatives, each within the budget.
+    budget = _DerivativeBudget()
+    budget.add("the derivatives of the hamiltonian", "hamiltonian",
+               sum(sum(sizes.values()) for sizes in _derivative_sizes([H], variables)))
+    budget.add("the derivatives of the invariants", "invariants",
+               sum(sum(sizes.values()) for sizes in _derivative_sizes(L, variables)))
+    grad_H = [sympy.diff(H, v) for v in variables]
     grad_L = [[sympy.diff(f, v) for v in variables] for f in L]
-    for key, exprs in (("hamiltonian", grad_H), ("invariants", [d for row in grad_L for d in row])):
-        size = 0
-        for expr in exprs:
-            size += sum(1 for _ in sympy.preorder_traversal(expr))
-        if size > MAX_DERIVATIVE_NODES:
-            raise ExpressionError(f"the derivatives of the {key} have {size} terms (at most {MAX_DERIVATIVE_NODES}); "
-                                  "simplify the expressions, or write the problem as a python: file", key=key)
+    upper = [(i, j) for i in range(n) for j in range(i, n)]
+    gradient_sizes = _derivative_sizes(grad_H, variables)
+    budget.add("the second derivatives of the hamiltonian (for hess_H)", "hamiltonian",
+               sum(gradient_sizes[i].get(variables[j], 0) for i, j in upper))
+    # d^2/dx^2 abs(x) = 2 DiracDelta(x): 0 almost everywhere (module docstring)
+    hess_H = [sympy.diff(grad_H[i], variables[j]).replace(lambda e: isinstance(e, sympy.DiracDelta),
+                                                          lambda e: sympy.S.Zero) for i, j in upper]
 
     local = {symbols[n]: f"y[{i}]" for i, n in enumerate(coordinate_names)}
     local.update({symbols[n]: f"params[{i}]" for i, n in enumerate(param_names)})
@@ -277,16 +329,18 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
         lines += [f"    {target}{printer.doprint(e)}" for target, e in zip(targets, reduced)]
         return lines
 
-    n = len(coordinate_names)
     h_body = body([H], ["return "], "hamiltonian")
     g_body = body(grad_H, [f"out[{i}] = " for i in range(n)], "hamiltonian")
+    hess_body = body(hess_H, [f"out[{i}, {j}] = " for i, j in upper], "hamiltonian")
+    hess_body += [f"    out[{j}, {i}] = out[{i}, {j}]" for i, j in upper if i != j]   # symmetric
     i_body = body(L, [f"out[{a}] = " for a in range(len(L))], "invariants") if L else ["    return"]
     gi_body = (body([d for row in grad_L for d in row],
                     [f"out[{a}, {i}] = " for a in range(len(L)) for i in range(n)], "invariants")
                if L else ["    return"])
 
     doc = [f"elimfast {__version__}: problem {name!r}, generated from expressions; do not edit.",
-           "The file is named by the sha256 of its text and the elimfast version.",
+           f"Generator version {GENERATOR_VERSION}. The file is named by the sha256 of its text and the elimfast "
+           "version.",
            "",
            "y = (" + ", ".join(coordinate_names) + ")",
            "params = (" + ", ".join(param_names) + ")",
@@ -299,7 +353,7 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
            "from numba import njit",
            "",
            "from elimfast.kernels.signatures import (GRAD_H_SIGNATURE, GRAD_INVARIANTS_SIGNATURE, H_SIGNATURE,",
-           "                                         INVARIANTS_SIGNATURE)",
+           "                                         HESS_H_SIGNATURE, INVARIANTS_SIGNATURE)",
            "",
            "",
            "@njit(H_SIGNATURE, cache=True, error_model=\"numpy\")",
@@ -310,6 +364,10 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
            "def grad_H(y, params, out):", *g_body,
            "",
            "",
+           "@njit(HESS_H_SIGNATURE, cache=True, error_model=\"numpy\")",
+           "def hess_H(y, params, out):", *hess_body,
+           "",
+           "",
            "@njit(INVARIANTS_SIGNATURE, cache=True, error_model=\"numpy\")",
            "def invariants(y, params, out):", *i_body,
            "",
@@ -318,6 +376,73 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
            "def grad_invariants(y, params, out):", *gi_body,
            ""]
     return "\n".join(out)
+
+
+class _DerivativeBudget:
+    """The running total of estimated derivative nodes, refused above MAX_DERIVATIVE_NODES."""
+
+    def __init__(self):
+        self.total = 0
+
+    def add(self, what: str, key: str, estimate: int) -> None:
+        self.total += estimate
+        if self.total > MAX_DERIVATIVE_NODES:
+            others = f", {self.total:,} with the others" if self.total != estimate else ""
+            raise ExpressionError(f"{what} have about {estimate:,} terms{others} (at most {MAX_DERIVATIVE_NODES:,} "
+                                  "in all, estimated before differentiating); simplify "
+                                  "the expressions (fewer factors that depend on the same coordinate), or write the "
+                                  "problem as a python: file", key=key)
+
+
+def _derivative_sizes(exprs, variables) -> list[dict]:
+    """For each sympy expression, {v: estimated node count of d expr/dv} for the variables
+    v it depends on, without differentiating.
+
+    Node counts are those of ``sympy.preorder_traversal``; S is the size of a node, D_v
+    the estimate of its derivative's. Rules (what sympy's diff builds):
+    sum: 1 + sum of the D_v of its terms; product: one term per factor that depends on v,
+    each the other factors and that factor's derivative (S - S_k + D_k); power b^x:
+    x b^(x-1) b' (S_b + 2 S_x + D_b + 4) or, when x depends on v, b^x (x' log b + x b'/b);
+    function f(args): f'(args) (at most 2 S + 8 nodes for the allowed functions) times D
+    of each argument; atoms: 1 for v itself.
+    """
+    targets = frozenset(variables)
+    memo: dict = {}
+
+    def visit(expr):
+        known = memo.get(expr)
+        if known is not None:
+            return known
+        if not expr.args:
+            result = (1, {expr: 1} if expr in targets else {})
+        else:
+            children = [visit(arg) for arg in expr.args]
+            size = 1 + sum(child[0] for child in children)
+            sizes: dict = {}
+            if expr.is_Add:
+                for _, child in children:
+                    for v, d in child.items():
+                        sizes[v] = sizes.get(v, 1) + d
+            elif expr.is_Mul:
+                for child_size, child in children:
+                    for v, d in child.items():
+                        sizes[v] = sizes.get(v, 1) + size - child_size + d
+            elif expr.is_Pow:
+                (base_size, base), (exponent_size, exponent) = children
+                for v in base.keys() | exponent.keys():
+                    if v in exponent:
+                        sizes[v] = size + 2 * base_size + exponent_size + base.get(v, 0) + exponent[v] + 7
+                    else:
+                        sizes[v] = base_size + 2 * exponent_size + base[v] + 4
+            else:
+                for _, child in children:
+                    for v, d in child.items():
+                        sizes[v] = sizes.get(v, 1) + 2 * size + 8 + d
+            result = (size, sizes)
+        memo[expr] = result
+        return result
+
+    return [visit(expr)[1] for expr in exprs]
 
 
 def _check_printable(expr, key) -> None:

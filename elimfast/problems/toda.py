@@ -1,6 +1,8 @@
 """The periodic Toda lattice, with traces of powers of its Lax matrix as invariants.
 
 H = sum_i p_i^2/2 + sum_i exp(q_i - q_{i+1}),  q_{n+1} = q_1,  n >= 3 particles.
+Hessian: each term w = exp(q_i - q_{i+1}) adds w to the (i, i) and (i+1, i+1) entries and
+-w to (i, i+1) and (i+1, i); the p block is the identity.
 Flaschka variables a_i = exp((q_i - q_{i+1})/2)/2, b_i = -p_i/2 give the symmetric
 periodic tridiagonal Lax matrix L (L_ii = b_i, L_{i,i+1} = L_{i+1,i} = a_i, corners
 L_{n,1} = L_{1,n} = a_n), and L' = [B, L] makes every tr(L^k) an invariant.
@@ -38,7 +40,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ..kernels.signatures import jit_gradient, jit_hamiltonian, jit_invariant_gradients, jit_invariants
+from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
+                                  jit_invariants)
 from .base import Problem
 
 MAX_POWER = 5
@@ -64,6 +67,21 @@ def grad_H(y, params, out):
         force = math.exp(y[i] - y[right])
         out[i] += force
         out[right] -= force
+
+
+@jit_hessian
+def hess_H(y, params, out):
+    n = y.shape[0] // 2
+    out[:] = 0.0
+    for i in range(n):
+        out[n + i, n + i] = 1.0
+    for i in range(n):
+        right = (i + 1) % n
+        w = math.exp(y[i] - y[right])
+        out[i, i] += w
+        out[right, right] += w
+        out[i, right] -= w
+        out[right, i] -= w
 
 
 @njit(cache=True)
@@ -203,8 +221,8 @@ def toda(n: int = 4) -> Problem:
     p0 = np.cos(2.0 * math.pi * j / n + 0.4) + 0.5 * np.sin(4.0 * math.pi * j / n + 1.1) + 0.25
     return Problem(
         name="toda", q_names=tuple(f"q{i}" for i in j), p_names=tuple(f"p{i}" for i in j),
-        H=H, grad_H=grad_H, invariants=invariants, grad_invariants=grad_invariants,
-        invariant_names=invariant_names_for(n),
+        H=H, grad_H=grad_H, hess_H=hess_H, hessian_source="analytic",
+        invariants=invariants, grad_invariants=grad_invariants, invariant_names=invariant_names_for(n),
         y0=np.concatenate((q0, p0)), params=np.zeros(0), parameters={"n": n},
         description=f"periodic Toda lattice, {n} particles, H = |p|^2/2 + sum exp(q_i - q_(i+1))",
     )

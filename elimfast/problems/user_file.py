@@ -8,6 +8,9 @@ Required
     ``H(y, params) -> float``            the Hamiltonian
     ``grad_H(y, params, out)``           write dH/dy into out (2m,): dH/dq, then dH/dp
 Optional
+    ``hess_H(y, params, out)``           write d^2 H/dy^2 into out (2m, 2m), rows and columns
+                                         q then p (every entry); without it, central
+                                         differences of grad_H are used (below)
     ``invariants(y, params, out)``       write L_i(y) into out (n_inv,)
     ``grad_invariants(y, params, out)``  write grad L_i(y) into row i of out (n_inv, 2m)
     ``INVARIANT_NAMES``                  names of the L_i, in order (required with invariants)
@@ -25,13 +28,25 @@ way elimfast compiles them with exactly the signatures of ``kernels.signatures``
 a division by zero gives inf/NaN, which the kernel reports as a non-finite failure. Each function is
 first called once in plain Python at the initial state with arrays of the right shape,
 so an out-of-range index or an output left unwritten is reported instead of corrupting
-memory in compiled code. The check at load (``check.py``) then tests the invariants.
+memory in compiled code. The checks at load (``check.py``) then compare grad_H, the
+invariants' gradients and hess_H with central differences, and test the invariants.
 
-Caching: the file's text is copied to ``<cache>/problems/u_<sha256>.py`` (named by its
-content and the elimfast version) and imported from there with ``__file__`` still the
-original path, so Numba's cache lives in elimfast's cache directory, an edit of the
-file simply makes a new entry, and a second process loading the same file compiles
-nothing. Imports of sibling modules of the file are not supported (use installed packages).
+The Hessian (needed by the simplified Newton solver, spec section 8): the file's own
+``hess_H`` when it defines one (``Problem.hessian_source == "user"``); otherwise central
+differences of the compiled grad_H, symmetrised (``"finite differences"``): column j is
+(grad_H(y + h_j e_j) - grad_H(y - h_j e_j)) / 2h_j with h_j = eps^(1/3) max(|y_j|, 1)
+(the reasons are beside ``FD_HESSIAN_SOURCE``), accurate to about 1e-10 relative for
+smooth H, ample for the Newton iteration matrix, at the price of 2m calls of grad_H.
+That function is appended to the cached copy of the file (below), and compiled and
+cached like the file's own functions.
+
+Caching: the file's text, followed by elimfast's finite-difference Hessian, is copied to
+``<cache>/problems/u_<sha256>.py`` (named by that content and the elimfast version) and
+imported from there with ``__file__`` still the original path (``Problem.source_file``
+too, so that messages name the user's file). So Numba's cache lives in elimfast's cache
+directory, an edit of the file (or of the appended Hessian) simply makes a new entry,
+and a second process loading the same file compiles nothing. Imports of sibling modules
+of the file are not supported (use installed packages).
 
 Example: ``configs/kepler_problem.py``.
 """
@@ -49,6 +64,47 @@ from ..kernels import signatures
 from .base import Problem
 from .expressions import ProblemDefinitionError, check_name, did_you_mean, evaluate_number
 
+# Appended to the cached copy of every python: problem file (after its last line, so its
+# line numbers are unchanged); compiled only when the file defines no hess_H, with
+# FD_GRAD_H_GLOBAL bound to the compiled grad_H first. Central differences of grad_H:
+# error h^2 |g'''|/6 (truncation) + ~eps |g|/h (rounding), smallest for h ~ eps^(1/3) s
+# where s is the scale over which g varies. That scale is unknown; max(|y_j|, 1) is a
+# relative step for large components and an absolute 6e-6 near 0, where a component has
+# no scale of its own. The error is then ~eps^(2/3) ~ 4e-11 relative for smooth H, far
+# below what the Newton iteration matrix needs (it only sets the contraction rate). The
+# argument difference (y_j + h) - (y_j - h) as represented divides, not 2h. Two vectors
+# are allocated per call: hess_H runs once per step, beside 2m calls of grad_H.
+FD_GRAD_H_GLOBAL = "_elimfast_grad_H"
+FD_HESS_H_NAME = "_elimfast_fd_hess_H"
+FD_HESSIAN_SOURCE = """
+
+# --- appended by elimfast (problems/user_file.py), not part of the file it follows: the Hessian
+# by central differences of grad_H, used when the file defines no hess_H.
+import numpy as _elimfast_numpy
+
+
+def _elimfast_fd_hess_H(y, params, out):
+    n = y.shape[0]
+    shifted = y.copy()
+    minus = _elimfast_numpy.empty(n)
+    for j in range(n):
+        centre = y[j]
+        step = 6.055454452393343e-06 * max(abs(centre), 1.0)   # eps ** (1/3) * max(|y_j|, 1)
+        shifted[j] = centre + step
+        _elimfast_grad_H(shifted, params, out[j])
+        shifted[j] = centre - step
+        _elimfast_grad_H(shifted, params, minus)
+        width = (centre + step) - (centre - step)
+        shifted[j] = centre
+        for i in range(n):
+            out[j, i] = (out[j, i] - minus[i]) / width
+    for i in range(n):
+        for j in range(i + 1, n):
+            mean = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = mean
+            out[j, i] = mean
+"""
+
 
 class UserProblemError(ProblemDefinitionError):
     """A ``python:`` problem file that cannot be loaded, compiled or used."""
@@ -60,6 +116,7 @@ _COMPILED: dict[tuple[str, str], object] = {}
 _SIGNATURES = {
     "H": (signatures.H_SIGNATURE, "H(y, params) -> float"),
     "grad_H": (signatures.GRAD_H_SIGNATURE, "grad_H(y, params, out)"),
+    "hess_H": (signatures.HESS_H_SIGNATURE, "hess_H(y, params, out)"),
     "invariants": (signatures.INVARIANTS_SIGNATURE, "invariants(y, params, out)"),
     "grad_invariants": (signatures.GRAD_INVARIANTS_SIGNATURE, "grad_invariants(y, params, out)"),
 }
@@ -87,7 +144,7 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
         return module.__dict__.get(attribute, default)
 
     functions = {}
-    for fname in ("H", "grad_H", "invariants", "grad_invariants"):
+    for fname in ("H", "grad_H", "hess_H", "invariants", "grad_invariants"):
         value = get(fname)
         if value is not None and not callable(value):
             raise UserProblemError(f"{label}: {fname} must be a function {_SIGNATURES[fname][1]}", key="python")
@@ -99,6 +156,11 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
     if (functions["invariants"] is None) != (functions["grad_invariants"] is None):
         raise UserProblemError(f"{label}: define both invariants and grad_invariants, or neither", key="python")
     invariant_names = tuple(get("INVARIANT_NAMES", ()))
+    for iname in invariant_names:
+        try:
+            check_name(iname, "invariant name")
+        except ProblemDefinitionError as err:
+            raise UserProblemError(f"{label}: INVARIANT_NAMES: {err}", key="python") from None
     if functions["invariants"] is not None and not invariant_names:
         raise UserProblemError(f"{label}: invariants is defined but INVARIANT_NAMES is not; list their names",
                                key="python")
@@ -110,7 +172,11 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
         raise UserProblemError(f"{label}: PARAMETERS must be a dict name -> value", key="python")
     param_values = {}
     for pname, value in default_parameters.items():
-        param_values[str(pname)] = _number(value, f"{label}: PARAMETERS[{pname!r}]", "python")
+        try:
+            check_name(pname, "parameter name")
+        except ProblemDefinitionError as err:
+            raise UserProblemError(f"{label}: PARAMETERS: {err}", key="python") from None
+        param_values[pname] = _number(value, f"{label}: PARAMETERS[{pname!r}]", "python")
     for pname, value in (parameters or {}).items():
         if pname not in param_values:
             known = ", ".join(param_values) or "none"
@@ -125,10 +191,16 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
 
     compiled = {fname: _compile(label, path, fname, function) for fname, function in functions.items()
                 if function is not None}
+    hessian_source = "user"
+    if "hess_H" not in compiled:
+        hessian_source = "finite differences"
+        module.__dict__[FD_GRAD_H_GLOBAL] = compiled["grad_H"]   # resolved when the Hessian compiles
+        compiled["hess_H"] = _compile(label, path, "hess_H", module.__dict__[FD_HESS_H_NAME])
     doc = (get("__doc__") or "").strip().splitlines()
     return Problem(
         name=name or str(get("NAME", path.stem)), q_names=q_names, p_names=p_names,
-        H=compiled["H"], grad_H=compiled["grad_H"],
+        H=compiled["H"], grad_H=compiled["grad_H"], hess_H=compiled["hess_H"], hessian_source=hessian_source,
+        source_file=str(path.resolve()),
         invariants=compiled.get("invariants", signatures.no_invariants),
         grad_invariants=compiled.get("grad_invariants", signatures.no_invariant_gradients),
         invariant_names=invariant_names, y0=y0, params=params, parameters=param_values,
@@ -144,7 +216,8 @@ def _number(value, what, key) -> float:
 
 
 def _load_module(path: Path, text: str):
-    digest = cache.content_hash("python-file-v1", text)
+    text = text + ("" if text.endswith("\n") else "\n") + FD_HESSIAN_SOURCE
+    digest = cache.content_hash("python-file-v2", text)
     copy = cache.problems_dir() / f"u_{digest}.py"
     if str(copy) in _MODULES and copy.exists():
         return _MODULES[str(copy)]
@@ -237,7 +310,7 @@ def _coordinates(label, q_names, p_names, default_y0, initial, param_values):
 def _dry_run(label, functions, y0, params, n, n_inv) -> None:
     """Call the plain Python functions once with exact-size arrays: catches wrong indices and
     unwritten outputs before compiled code could write out of bounds."""
-    outputs = {"grad_H": np.full(n, np.nan), "invariants": np.full(n_inv, np.nan),
+    outputs = {"grad_H": np.full(n, np.nan), "hess_H": np.full((n, n), np.nan), "invariants": np.full(n_inv, np.nan),
                "grad_invariants": np.full((n_inv, n), np.nan)}
     for fname, function in functions.items():
         if function is None:
