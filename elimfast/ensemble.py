@@ -20,7 +20,7 @@ from typing import Iterable
 import numba
 import numpy as np
 
-from .integrate import _FAILURE_ADVICE, _FAILURE_TEXT, DEFAULT_MAX_HALVINGS, DEFAULT_MAX_ITER, DEFAULT_SOLVER, Integration
+from .integrate import _FAILURE_ADVICE, _FAILURE_TEXT, DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
 from .kernels import stepper
@@ -113,7 +113,7 @@ def _thread_count(n_threads) -> int:
 
 def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: float | None = None,
                        n_steps: int | None = None, conserve: Iterable[str] = (), tol: float | None = None,
-                       max_iter: int = DEFAULT_MAX_ITER, rhs: str = "stable", n_threads: int | None = None,
+                       max_iter: int | None = None, rhs: str = "stable", n_threads: int | None = None,
                        t0: float = 0.0, warm_start: bool = True, solver: str | SolverSettings = DEFAULT_SOLVER,
                        predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS) -> EnsembleResult:
     """Integrate ``problem`` with ``method`` and step ``h`` from every row of Y0 (n_traj, 2m).

@@ -24,10 +24,10 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 from numba.extending import intrinsic
 
 from .codes import STATUS_EXCEPTION, STATUS_OK
-from .signatures import (GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
+from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import N_DIAGNOSTICS, try_step
-from .workspace import Settings, Tables, borrow_tables, borrow_workspace, keep_alive, make_workspace
+from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
 warnings.filterwarnings("ignore", message="First-class function type feature is experimental")
@@ -49,7 +49,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     n = y0.shape[0]
     n_inv = errors.shape[0] - 1
     owners = make_workspace(n, tables.Is.shape[0], tables.Ihat.shape[0], tables.Is.shape[1],
-                            conserve_idx.shape[0], settings.family, n_inv, n_mult)
+                            conserve_idx.shape[0], settings.family, n_inv, n_mult, tables.newton_values.shape[0])
     work = borrow_workspace(owners)
     inv_values = np.zeros(n_inv)
     inv_initial = np.zeros(n_inv)
@@ -72,11 +72,16 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     H_initial = H(y, params)
     invariants(y, params, inv_initial)
 
+    # Borrowed views (workspace.py): shared arrays such as params would otherwise have
+    # their reference count updated by every thread at every call, one contended cache line.
+    params_view, conserve_view, y_view = borrowed(params), borrowed(conserve_idx), borrowed(y)
+    y_comp_view, clock_view, coef_view = borrowed(y_comp), borrowed(clock), borrowed(coef)
+    mult_view, last_h_view, diagnostics_view = borrowed(multipliers), borrowed(last_h), borrowed(diagnostics)
     status = STATUS_OK
     for step in range(n_steps):
         status, iterations, substeps = try_step(
-            grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-            y, y_comp, clock, coef, multipliers, h, last_h, step > 0, diagnostics)
+            grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
+            y_view, y_comp_view, clock_view, coef_view, mult_view, h, last_h_view, step > 0, diagnostics_view)
         counts[1] += iterations
         if status != STATUS_OK:
             break
@@ -96,7 +101,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
             error = abs(inv_values[a] - inv_initial[a])
             if error > errors[1 + a]:
                 errors[1 + a] = error
-    keep_alive(owners)
+    keep_alive((owners, y_comp, clock, coef, multipliers, last_h, diagnostics))
     return status
 
 
@@ -156,6 +161,7 @@ ENSEMBLE_SIGNATURE = types.void(
     types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
     #                                                                                    max_iter, max_halvings
     types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h and the method's tables
+    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,                            # (workspace.Tables)
     INT_VECTOR,                                                                        # conserve_idx
     MATRIX, types.float64, types.int64, types.int64, types.int64,                      # Y0, t0, n_steps, n_mult,
     #                                                                                    n_workers
@@ -167,6 +173,8 @@ ENSEMBLE_SIGNATURE = types.void(
 def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                   family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
                   h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
+                  newton_values, newton_vectors, newton_inverse, newton_weights,
+              newton_values, newton_vectors, newton_inverse, newton_weights,
                   conserve_idx,
                   Y0, t0, n_steps, n_mult, n_workers,
                   y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps):
@@ -195,7 +203,8 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
     """
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings)
     tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
-                                  predictor_basis))
+                                  predictor_basis, newton_values, newton_vectors, newton_inverse,
+                                  newton_weights))
     n_traj = Y0.shape[0]
     next_trajectory = np.zeros(1, dtype=np.int64)
     for worker in prange(min(n_workers, n_traj)):

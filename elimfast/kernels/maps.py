@@ -271,29 +271,39 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _one_norm(row):
-    acc = 0.0
-    for p in range(row.shape[0]):
-        acc += abs(row[p])
-    return acc
+def gradient_sizes(work, n_rows, n_nodes):
+    """Component-wise sizes for the rounding estimate of spec 8, into work.sizes:
+    row 0: F_p = max_l |f_{l,p}| over the k nodes (f = J grad H: |f_p| is |grad H| at p's
+    partner), rows 1 + a: A_{a,p} = max_i |grad L_a(uhat_i)_p| at the r nodes."""
+    grads, grads_hat, sizes = work.grads, work.grads_hat, work.sizes
+    n = grads.shape[1]
+    m = n // 2
+    for p in range(n):
+        partner = p + m if p < m else p - m
+        F = 0.0
+        for l in range(grads.shape[0]):
+            F = max(F, abs(grads[l, partner]))
+        sizes[0, p] = F
+    for a in range(n_rows):
+        for p in range(n):
+            A = 0.0
+            for i in range(n_nodes):
+                A = max(A, abs(grads_hat[a, i, p]))
+            sizes[1 + a, p] = A
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _gradient_sizes(work, n_rows, n_nodes):
-    """F = max |f_l| over the k nodes (|J g| has the entries of |g|), A_a = max |grad L_a| at the r nodes
-    (written into work.small_rounding[1]); returns F."""
-    grads, grads_hat, sizes = work.grads, work.grads_hat, work.small_rounding
-    F = 0.0
-    for l in range(grads.shape[0]):
-        for p in range(grads.shape[1]):
-            F = max(F, abs(grads[l, p]))
-    for a in range(n_rows):
-        A = 0.0
-        for i in range(n_nodes):
-            for p in range(grads_hat.shape[2]):
-                A = max(A, abs(grads_hat[a, i, p]))
-        sizes[1, a] = A
-    return F
+def _dot_rounding(S, phi_a, gamma, j, sizes, a):
+    """Rounding of phi_j^a . gamma_j (spec 8's db term, taken component by component):
+    eps sum_p [S_j (A_{a,p} |gamma_{j,p}| + F_p |phi^a_{j,p}|) + |phi^a_{j,p}| |gamma_{j,p}|].
+    The spec's form uses max_p A_{a,p} and max_p F_p; summing per component is a tighter
+    bound of the same rounding, and it matters where components differ in size by orders
+    (the solar system's momenta are 1e-11 to 1e-5 of its positions)."""
+    acc = 0.0
+    for p in range(gamma.shape[1]):
+        acc += (S[j] * (sizes[1 + a, p] * abs(gamma[j, p]) + sizes[0, p] * abs(phi_a[j, p]))
+                + abs(phi_a[j, p]) * abs(gamma[j, p]))
+    return EPS * acc
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -326,62 +336,54 @@ def condition_number(work, n_t, symmetric_positive):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def elim_rounding(h, alpha, stable_rhs, tables, nu, s, work):
-    """Spec 8, the multipliers' share of the rounding level, for ELIM with nu >= 1.
-
-    dalpha = |Gamma^-1| (db + dGamma |alpha|) with
-        db_a       = eps sum_{j in bvec} S_j (A_a |gamma_j|_1 + F |phi_j^a|_1)
-        dGamma_ac  = eps w_c S_{j_c} (A_a |gamma_{j_c}|_1 + F |phi_{j_c}^a|_1),  j_c = s - nu + c
-    S_j = sum_i |bhat_i P_j(chat_i)|, A_a = max |grad L_a(u_l)|, F = max |f_l|.
+    """Spec 8, the rounding of alpha, for ELIM with nu >= 1:
+    dalpha = |Gamma^-1| (db + dGamma |alpha|), db_a the rounding of bvec_a and dGamma_ac =
+    w_c (the rounding of phi_{j_c}^a . gamma_{j_c}), j_c = s - nu + c (see _dot_rounding).
     Writes dalpha into work.small_rounding[0] and returns cond(Gamma) (infinity norm).
-    Needs Gamma factored (the last map solved it) and work.small_copy unfactored.
+    Needs work.sizes (gradient_sizes), Gamma factored (the last map solved it) and
+    work.small_copy unfactored.
     """
+    gamma, phi, h_powers, rounding, inverse, sizes = (work.gamma, work.phi, work.h_powers, work.small_rounding,
+                                                      work.small_inverse, work.sizes)
     k = tables.Is.shape[0]
     r = tables.Ihat.shape[0]
     first_rhs, last_rhs, rhs_from_hat = elim_rhs_terms(stable_rhs, k, r, s)
-    gamma, phi, h_powers, sizes, inverse = work.gamma, work.phi, work.h_powers, work.small_rounding, work.small_inverse
     tail = work.gamma_hat if rhs_from_hat else gamma
     S = tables.abs_projection_hat
-    F = _gradient_sizes(work, nu, r)
     cond = condition_number(work, nu, False)
     d_rhs = work.small_vector
     for a in range(nu):
-        A = sizes[1, a]
         acc = 0.0
         for j in range(first_rhs, last_rhs):
-            acc += S[j] * (A * _one_norm(tail[j]) + F * _one_norm(phi[a, j]))
+            acc += _dot_rounding(S, phi[a], tail, j, sizes, a)
         for c in range(nu):
-            j = s - nu + c
-            acc += h_powers[c] * S[j] * (A * _one_norm(gamma[j]) + F * _one_norm(phi[a, j])) * abs(alpha[c])
-        d_rhs[a] = EPS * acc
+            acc += h_powers[c] * _dot_rounding(S, phi[a], gamma, s - nu + c, sizes, a) * abs(alpha[c])
+        d_rhs[a] = acc
     for c in range(nu):
         acc = 0.0
         for a in range(nu):
             acc += abs(inverse[c, a]) * d_rhs[a]
-        sizes[0, c] = acc
+        rounding[0, c] = acc
     return cond
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def lim_rounding(tables, n_tilde, s, work):
-    """Spec 8's rounding level carried over to LIM: dlambda = |Gram^-1| db with
-    db_a = eps sum_{j<s} S_j (A_a |gamma_j|_1 + F |phi_j^a|_1) (a = 0 is H). The Gram
-    matrix is O(1), so this stays near eps (spec 3b). Writes dlambda into
-    work.small_rounding[0]; returns cond(Gram)."""
-    gamma, phi, sizes, inverse = work.gamma, work.phi, work.small_rounding, work.small_inverse
-    r = tables.Ihat.shape[0]
+    """Spec 8's rounding of the multipliers carried over to LIM: dlambda = |Gram^-1| db,
+    db_a the rounding of sum_{j<s} phi_j^a . gamma_j (a = 0 is H; see _dot_rounding).
+    Writes dlambda into work.small_rounding[0]; returns cond(Gram). Needs work.sizes."""
+    gamma, phi, rounding, inverse, sizes = work.gamma, work.phi, work.small_rounding, work.small_inverse, work.sizes
     S = tables.abs_projection_hat
-    F = _gradient_sizes(work, n_tilde, r)
     cond = condition_number(work, n_tilde, True)
     d_rhs = work.small_vector
     for a in range(n_tilde):
-        A = sizes[1, a]
         acc = 0.0
         for j in range(s):
-            acc += S[j] * (A * _one_norm(gamma[j]) + F * _one_norm(phi[a, j]))
-        d_rhs[a] = EPS * acc
+            acc += _dot_rounding(S, phi[a], gamma, j, sizes, a)
+        d_rhs[a] = acc
     for a in range(n_tilde):
         acc = 0.0
         for b in range(n_tilde):
             acc += abs(inverse[a, b]) * d_rhs[b]
-        sizes[0, a] = acc
+        rounding[0, a] = acc
     return cond

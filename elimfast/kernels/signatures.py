@@ -25,6 +25,8 @@ from numba import njit, types
 VECTOR = types.float64[::1]
 MATRIX = types.float64[:, ::1]
 INT_VECTOR = types.int64[::1]
+COMPLEX_VECTOR = types.complex128[::1]
+COMPLEX_MATRIX = types.complex128[:, ::1]
 
 H_SIGNATURE = types.float64(VECTOR, VECTOR)
 GRAD_H_SIGNATURE = types.void(VECTOR, VECTOR, VECTOR)

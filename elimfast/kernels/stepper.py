@@ -23,10 +23,10 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 from .codes import (FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
 from .quadrature import legendre_table
-from .signatures import (GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
+from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
 from .solver import newton_factor, solve
-from .workspace import Settings, Tables, borrow_tables, borrow_workspace, keep_alive, make_workspace
+from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 # First-class function types are the documented way to pass functions to cached
 # kernels; Numba still labels them experimental on every compile.
@@ -90,7 +90,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     Returns (status, iterations of both tries).
     """
     if settings.solver == SOLVER_NEWTON:
-        status = newton_factor(hess_H, params, y, h, tables.X, work)
+        status = newton_factor(hess_H, params, y, h, tables, work)
         if status != STATUS_OK:
             work.info[0], work.info[1], work.info[2], work.info[3] = np.inf, 0.0, 0.0, 0.0
             return status, 0
@@ -211,6 +211,7 @@ TIME_LOOP_SIGNATURE = types.int64(
     types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
     #                                                                                    max_iter, max_halvings
     types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h and the method's tables
+    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,                            # (workspace.Tables)
     INT_VECTOR,                                                                        # conserve_idx
     VECTOR, VECTOR, VECTOR, MATRIX, VECTOR, VECTOR,                                    # y, y_comp, clock, coef,
     #                                                                                    multipliers, last_h
@@ -224,6 +225,7 @@ TIME_LOOP_SIGNATURE = types.int64(
 def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
               family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
               h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
+              newton_values, newton_vectors, newton_inverse, newton_weights,
               conserve_idx,
               y, y_comp, clock, coef, multipliers, last_h,
               step_start, n_steps, n_total, store_every,
@@ -262,20 +264,27 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
     n_inv = inv_out.shape[1] - 1
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings)
     tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
-                                  predictor_basis))
-    owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0])
+                                  predictor_basis, newton_values, newton_vectors, newton_inverse,
+                                  newton_weights))
+    owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
+                            newton_values.shape[0])
     work = borrow_workspace(owners)   # owners stays alive in this frame until the loop is done
     inv_values = np.zeros(n_inv)
 
     n_samples = 0
     progress[0] = 0
     progress[1] = 0
+    # The caller's arrays, borrowed for the call (no reference counting in the loop).
+    params_view, conserve_view, y_view = borrowed(params), borrowed(conserve_idx), borrowed(y)
+    y_comp_view, clock_view, coef_view = borrowed(y_comp), borrowed(clock), borrowed(coef)
+    mult_view, last_h_view, diagnostics_view = borrowed(multipliers), borrowed(last_h), borrowed(diagnostics)
     status = STATUS_OK
     for step in range(n_steps):
         global_step = step_start + step
         status, iterations, substeps = try_step(
-            grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-            y, y_comp, clock, coef, multipliers, h, last_h, global_step > 0, diagnostics)
+            grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
+            y_view, y_comp_view, clock_view, coef_view, mult_view, h, last_h_view, global_step > 0,
+            diagnostics_view)
         iter_out[step] = iterations
         if status != STATUS_OK:
             break

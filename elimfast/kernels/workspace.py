@@ -29,8 +29,13 @@ from .codes import FAMILY_LIM
 #   abs_projection_hat (r,): S_j = sum_i |bhat_i P_j(chat_i)| (the rounding estimate);
 #   predictor_nodes (s+1,), predictor_basis (s+1, s): Gauss nodes x_q on [0, 1] and
 #     w_q P_i(x_q), the quadrature of the predictor's projection E(theta).
+#   newton_values (n_b,) complex, newton_vectors (s, n_b) complex, newton_inverse (n_b, s)
+#     complex, newton_weights (n_b,): X = V Lambda V^-1 restricted to one eigenvalue per
+#     conjugate pair (weight 2; a real eigenvalue has weight 1); empty when the method
+#     factorises the full Newton matrix instead (large s, ill-conditioned V).
 Tables = namedtuple("Tables", ["projection", "Is", "projection_hat", "Ihat", "X", "abs_projection_hat",
-                               "predictor_nodes", "predictor_basis"])
+                               "predictor_nodes", "predictor_basis", "newton_values", "newton_vectors",
+                               "newton_inverse", "newton_weights"])
 
 # The solver's settings (spec 8): family and solver codes (codes.py), whether the
 # ELIM right-hand side is the stable tail (spec 3b), whether each step starts from the
@@ -54,13 +59,20 @@ Workspace = namedtuple("Workspace", [
     "small_inverse",     # (n_t, n_t) its inverse (rounding level and condition number)
     "small_vector",      # (n_t,) right-hand side, then the multipliers
     "small_pivots",      # (n_t,) int64
-    "small_rounding",    # (2, n_t) rounding of the right-hand side and of the multipliers
+    "small_rounding",    # (1, n_t) rounding of the multipliers
+    "sizes",             # (1 + n_t, n) F_p = max_l |f_{l,p}|, then A_{a,p} = max_i |grad L_a(uhat_i)_p|
+    "rounding_level",    # (n,) omega_p, the relative rounding level of each component
+    "component_increment",   # (n,) max_j |h Delta_{j,p}| / sc_p of the last iteration
     "h_powers",          # (max(nu, 1),) w_c = h^(2(nu-1-c)) of the step being solved
     "new_coef",          # (s, n) the map G(coef)
     "delta",             # (s n,) the increment (Newton: M^-1 (G - coef))
     "scale",             # (n,) sc_i of the stopping rule
-    "newton_matrix",     # (s n, s n) M = I - h X (x) J0, factored
+    "newton_matrix",     # (s n, s n) M~ = I - h X (x) J0~, factored (full form; else 0 x 0)
     "newton_pivots",     # (s n,) int64
+    "newton_blocks",     # (n_b, n, n) complex: I - h lambda_b J0~, factored (block form; else 0 x n x n)
+    "newton_block_pivots",   # (n_b, n) int64
+    "newton_block_rhs",  # (n_b, n) complex
+    "newton_scale",      # (n,) d_p, the equilibration of the Newton matrix
     "hessian",           # (n, n) Hess(H)(y0)
     "jacobian",          # (n, n) J0 = J Hess(H)(y0)
     "y_start",           # (n,) the state at the start of the step (restored on failure)
@@ -103,7 +115,8 @@ def borrow_tables(t):
     """The same Tables, as borrowed views (see the module docstring)."""
     return Tables(borrowed(t.projection), borrowed(t.Is), borrowed(t.projection_hat), borrowed(t.Ihat),
                   borrowed(t.X), borrowed(t.abs_projection_hat), borrowed(t.predictor_nodes),
-                  borrowed(t.predictor_basis))
+                  borrowed(t.predictor_basis), borrowed(t.newton_values), borrowed(t.newton_vectors),
+                  borrowed(t.newton_inverse), borrowed(t.newton_weights))
 
 
 @njit(cache=True, inline="always")
@@ -113,25 +126,33 @@ def borrow_workspace(w):
         borrowed(w.u), borrowed(w.grads), borrowed(w.proj), borrowed(w.gamma), borrowed(w.uhat),
         borrowed(w.grads_hat), borrowed(w.inv_grads), borrowed(w.phi), borrowed(w.gamma_hat),
         borrowed(w.small_matrix), borrowed(w.small_copy), borrowed(w.small_inverse), borrowed(w.small_vector),
-        borrowed(w.small_pivots), borrowed(w.small_rounding), borrowed(w.h_powers), borrowed(w.new_coef),
+        borrowed(w.small_pivots), borrowed(w.small_rounding), borrowed(w.sizes), borrowed(w.rounding_level),
+        borrowed(w.component_increment), borrowed(w.h_powers), borrowed(w.new_coef),
         borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
+        borrowed(w.newton_blocks), borrowed(w.newton_block_pivots), borrowed(w.newton_block_rhs),
+        borrowed(w.newton_scale),
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
         borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info))
 
 
 @njit(cache=True)
-def make_workspace(n, k, r, s, nu, family, n_inv, n_mult):
-    """Allocate every array a step needs (sizes as in the Workspace comments)."""
+def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_blocks):
+    """Allocate every array a step needs (sizes as in the Workspace comments); n_blocks: the
+    number of Newton blocks (tables.newton_values.shape[0]; 0: the full Newton matrix)."""
     n_tilde = nu + 1 if family == FAMILY_LIM else nu
+    n_full = 0 if n_blocks > 0 else s * n
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
     return Workspace(
         np.zeros((k, n)), np.zeros((k, n)), np.zeros((n_big, n)), np.zeros((n_big, n)), np.zeros((r, n)),
         np.zeros((n_tilde + 1, r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)), np.zeros((n_big, n)),
         np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros(n_t),
-        np.zeros(n_t, dtype=np.int64), np.zeros((2, n_t)), np.zeros(max(nu, 1)),
+        np.zeros(n_t, dtype=np.int64), np.zeros((1, n_t)), np.zeros((1 + n_t, n)), np.zeros(n), np.zeros(n),
+        np.zeros(max(nu, 1)),
         np.zeros((s, n)), np.zeros(s * n), np.zeros(n),
-        np.zeros((s * n, s * n)), np.zeros(s * n, dtype=np.int64), np.zeros((n, n)), np.zeros((n, n)),
+        np.zeros((n_full, n_full)), np.zeros(n_full, dtype=np.int64),
+        np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
+        np.zeros((n_blocks, n), dtype=np.complex128), np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(4))
