@@ -14,6 +14,7 @@ which integrate would raise and the ensemble reports as status 'exception'.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Iterable
 
@@ -150,14 +151,17 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
     steps_done = np.empty(n_traj, dtype=np.int64)
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(threads)
+    from .streaming import current_watchdog
+    watchdog = current_watchdog()
     try:
-        ensemble_loop(
-            problem.H, problem.grad_H, problem.invariants, problem.grad_invariants, problem.params,
-            method.kernel_family, n_inv, int(run.rhs == "stable"), int(run.warm_start),
-            run.h, method.projection, method.Is, method.projection_hat, method.Is_hat,
-            run.conserve_idx, run.tol, STAGNATION_THRESHOLD, run.max_iter,
-            states, float(t0), run.n_steps, run.multipliers.size, threads,
-            y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done)
+        with watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext():
+            ensemble_loop(
+                problem.H, problem.grad_H, problem.invariants, problem.grad_invariants, problem.params,
+                method.kernel_family, n_inv, int(run.rhs == "stable"), int(run.warm_start),
+                run.h, method.projection, method.Is, method.projection_hat, method.Is_hat,
+                run.conserve_idx, run.tol, STAGNATION_THRESHOLD, run.max_iter,
+                states, float(t0), run.n_steps, run.multipliers.size, threads,
+                y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done)
     finally:
         numba.set_num_threads(previous_threads)
     errors = {"H": inv_error[:, 0].copy()}

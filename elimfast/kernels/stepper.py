@@ -385,7 +385,7 @@ TIME_LOOP_SIGNATURE = types.int64(
 )
 
 
-@njit(TIME_LOOP_SIGNATURE, cache=True, error_model="numpy")
+@njit(TIME_LOOP_SIGNATURE, cache=True, nogil=True, error_model="numpy")
 def time_loop(H, grad_H, invariants, grad_invariants, params,
               family, n_inv, stable_rhs, warm_start,
               h, projection, Is, projection_hat, Ihat,
