@@ -550,19 +550,23 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
         kept = f"; the finished runs are in {output}" if output is not None else ""
         return f"error: interrupted by {signal_name}{kept}"
 
-    # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
-    with StopOnSignals(raising=True, hard_stop=hard_stop):
+    def open_writer():
+        nonlocal writer
         if output is not None:
             from elimfast.io.hdf5 import SweepWriter
             writer = SweepWriter(output, sweep_text=Path(sweep_file).read_text(errors="replace"),
                                  attributes={"source": str(sweep_file), "axes": list(spec.axes) or [""]},
                                  overwrite=overwrite)
+
+    # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
+    with StopOnSignals(raising=True, hard_stop=hard_stop):
         if spec.ensemble is not None:   # one config, many initial states: the parallel kernel
+            def on_start(n_trajectories):   # the ensemble is validated and fits: now the file
+                open_writer()
+                if not quiet:
+                    click.echo(f"ensemble: running {n_trajectories:,} trajectories on {workers or 'all'} "
+                               "thread(s)", err=True)
             try:
-                def on_start(n_trajectories):
-                    if not quiet:
-                        click.echo(f"ensemble: running {n_trajectories:,} trajectories on {workers or 'all'} "
-                                   "thread(s)", err=True)
                 run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=on_start)
                 if writer is not None:
                     writer.add_ensemble(result, states, run_spec.resolved)
@@ -578,6 +582,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
                            f"{result.failure_message(int(result.ok.argmin()))}", err=True)
                 return EXIT_FAILED
             return EXIT_OK
+
+        open_writer()
 
         def on_done(outcome, done, total):
             if writer is not None and outcome.label != REFERENCE_LABEL:

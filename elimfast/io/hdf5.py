@@ -1239,8 +1239,9 @@ def _damaged(path, where: str, err: BaseException) -> DamagedFileError:
 def _require_ours(path, f) -> None:
     """The format attribute, a version this reader knows, and every member of the layout."""
     try:
-        fmt = _plain(f.attrs.get("format"))
-        version = int(f.attrs.get("format_version", 0))
+        names = set(f.attrs)    # listing them reads the whole attribute index: damage shows here
+        fmt = _plain(f.attrs["format"]) if "format" in names else None
+        version = int(f.attrs["format_version"]) if "format_version" in names else 0
     except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
         raise _damaged(path, "its root attributes", err) from None
     if fmt != FORMAT:
