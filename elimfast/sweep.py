@@ -55,6 +55,7 @@ REFERENCE_LABEL = "\0reference"  # the reference run's label: no grid label can 
 MAX_RUNS = 10_000                 # points of a grid: beyond that, split the sweep
 MAX_LABEL_CHARACTERS = 200        # a label names an HDF5 group and a table row
 MEMORY_FRACTION = 0.5             # of the memory available, what one sweep may plan to use
+MAX_WORKERS_PER_CORE = 4          # worker processes: more than a few per core only costs memory
 PYTHON_BYTES_PER_NODE = 120       # a config value as Python objects (dict slot, float or str), measured ~80-150
 
 
@@ -554,6 +555,9 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise SweepError("--workers must be at least 1")
+    if workers > MAX_WORKERS_PER_CORE * default_workers():
+        raise SweepError(f"--workers {workers}: at most {MAX_WORKERS_PER_CORE * default_workers()} ("
+                         f"{MAX_WORKERS_PER_CORE} per core; each worker is a process running one kernel at a time)")
     jobs = [(run.label, run.coordinates, run.config) for run in spec.runs]
     if spec.reference is not None:
         jobs.append((REFERENCE_LABEL, {}, spec.reference))

@@ -607,3 +607,39 @@ def test_a_sweep_run_whose_problem_raises_fails_alone(tmp_path):
         assert failed.startswith(f"failed: {tmp_path / 'drift.py'}: a problem function raised ValueError")
         assert "at step 50001" in failed
         assert f["runs/100.0"].attrs["status"] == "complete"
+
+
+@pytest.mark.slow
+def test_a_sweep_that_fills_the_disk_keeps_the_runs_stored_before(small_disk, tmp_path):
+    sweep = write_yaml(tmp_path / "sweep.yaml", {
+        "base": KEPLER, "set": {"integration": {"t_end": 400}, "output": {"every": 1}},
+        "grid": [{"name": "h", "key": "integration.h", "values": [0.1, 0.05, 0.025, 0.0125]}]})
+    out = small_disk / "sweep.h5"
+    done = elimfast("sweep", sweep, "-o", out, "--workers", "1", "-q")
+    assert_one_line(done, 1, f"{out}: the disk is full; the runs stored before this one are in the file")
+    with h5py.File(out, "r") as f:           # closed normally: every stored run readable
+        stored = list(f["runs"])
+        assert stored and all(f["runs"][name].attrs["status"] == "complete" for name in stored)
+        assert f["runs/0.1/y"].shape == (4001, 4)
+
+
+def test_sweep_workers_are_bounded(tmp_path):
+    sweep = write_yaml(tmp_path / "sweep.yaml", {"base": KEPLER, "grid": [
+        {"name": "h", "key": "integration.h", "values": [0.1, 0.05]}]})
+    result = CliRunner().invoke(cli, ["sweep", str(sweep), "--workers", "100000"])
+    assert result.exit_code == 2 and "--workers 100000: at most" in result.stderr
+
+
+def test_a_format_1_file_without_the_state_record_still_resumes_exactly(tmp_path, killed_run, long_reference):
+    path = copy_of(killed_run, tmp_path)
+    hdf5.clear_consistency_flags(path)
+    with h5py.File(path, "r+") as f:         # what elimfast 0.1 wrote: no /state/record, format 1
+        del f["state/record"]
+        f.attrs["format_version"] = 1
+    with hdf5.RunFile(path) as f:
+        assert "sequence" not in f.saved_state() and f.steps_done >= STEPS_BEFORE_SIGNAL
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), *LONG, "--resume"])
+    assert result.exit_code == 0 and "resumed at step" in result.stderr, result.output
+    assert_equal_to_reference(path, long_reference)
+    with h5py.File(path, "r") as f:
+        assert f.attrs["format_version"] == 1 and "record" not in f["state"]

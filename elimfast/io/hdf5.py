@@ -559,7 +559,25 @@ def _open(path) -> h5py.File:
             return _open_swmr(path)
         except OSError as err:
             first = err
+    if _held_exclusively(path):
+        raise FileBusyError(f"{path}: is open for writing in another process (a run finishing, or another HDF5 "
+                            "program); try again when it is done") from None
     raise _damaged(path, "its start (HDF5 cannot open it)", first) from None
+
+
+def _held_exclusively(path: Path) -> bool:
+    """Whether another process holds HDF5's exclusive lock (a writer outside SWMR mode)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return False
+    except OSError as err:
+        return err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+    finally:
+        os.close(fd)
 
 
 # --- the writer --------------------------------------------------------------------------
@@ -851,11 +869,8 @@ class RunWriter:
         with RunFile(path) as existing:
             saved = existing.saved_state()
             existing.verify(stop=stop)
-            version = int(existing.attrs.get("format_version", 1))
             n_datasets = 3 + len(existing.invariant_names) + (existing.multiplier_name is not None)
-        if version < FORMAT_VERSION:
-            raise OutputError(f"{path}: written in elimfast run format {version}, without checksums; this "
-                              f"elimfast continues only format {FORMAT_VERSION} runs: start again with --overwrite")
+        # A format 1 file (no checksums, no record) is continued in its own format.
         if restore is not None:
             try:
                 restore(saved)
@@ -979,16 +994,18 @@ class RunWriter:
             return
         if self._guard is not None:
             self._guard.reserve(SPACE_BASE)
+        saved_samples, saved_steps = self.saved["n_samples"], self.saved["steps_done"]
+        cut_short = self._t.rows > saved_samples or self._iterations.rows > saved_steps
         self._file.close()
         try:
             with h5py.File(self.path, "r+", libver=LIBVER) as f:
-                saved_samples, saved_steps = self.saved["n_samples"], self.saved["steps_done"]
-                for d in _sample_datasets(f):
-                    if d.shape[0] > saved_samples:
-                        d.resize(saved_samples, axis=0)
-                for d in f["steps"].values():
-                    if d.shape[0] > saved_steps:
-                        d.resize(saved_steps, axis=0)
+                if cut_short:
+                    for d in _sample_datasets(f):
+                        if d.shape[0] > saved_samples:
+                            d.resize(saved_samples, axis=0)
+                    for d in f["steps"].values():
+                        if d.shape[0] > saved_steps:
+                            d.resize(saved_steps, axis=0)
                 f.attrs["status"] = status
                 f.attrs["steps_done"] = min(steps_done, saved_steps)
                 f.attrs["wall_time_s"] = wall_time_s
@@ -1070,7 +1087,10 @@ class SweepWriter:
             with contextlib.suppress(OSError):
                 temporary.unlink()
             raise OutputError(f"{self.path}: cannot create: {_one_line(err)}") from None
+        self._guard = None
         try:
+            self._guard = _FileGuard(temporary)
+            self._guard.reserve(SPACE_BASE + len(sweep_text))
             _set_attributes(self._file, {
                 **version_attributes(), "format": SWEEP_FORMAT, "format_version": FORMAT_VERSION,
                 "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -1078,12 +1098,35 @@ class SweepWriter:
             self._runs = self._file.create_group("runs")
             self._file.flush()
             _publish(temporary, self.path, overwrite)
+        except DiskFullError:
+            _close_quietly(self._file, self._guard, temporary)
+            raise DiskFullError(f"{self.path}: the disk is full; free some space, or write the sweep elsewhere") \
+                from None
         except BaseException:
-            _close_quietly(self._file, None, temporary)
+            _close_quietly(self._file, self._guard, temporary)
             raise
+
+    def _writing(self):
+        """HDF5 failing a write (a full disk): abandon the file (see _ABANDONED) and say so."""
+        return _SweepWriting(self)
+
+    def _reserve(self, arrays) -> None:
+        """Room for a run's arrays before HDF5 writes any of them: DiskFullError leaves the
+        file as the last flush left it (closed normally, every stored run in it)."""
+        n_bytes = sum(getattr(value, "nbytes", 0) for value in arrays)
+        try:
+            self._guard.reserve(SPACE_BASE + SPACE_FACTOR * n_bytes)
+        except DiskFullError:
+            raise DiskFullError(f"{self.path}: the disk is full; the runs stored before this one are in the "
+                                "file") from None
 
     def add_run(self, outcome, method, *, group_name: str | None = None) -> None:
         """Store one finished (or failed) sweep run; outcome is an elimfast.sweep.RunOutcome."""
+        self._reserve((outcome.arrays or {}).values())
+        with self._writing():
+            self._add_run(outcome, method, group_name)
+
+    def _add_run(self, outcome, method, group_name) -> None:
         import yaml
 
         group = self._runs.create_group(group_name or sweep_group_name(outcome.label))
@@ -1124,6 +1167,13 @@ class SweepWriter:
         """Store an ensemble sweep under /ensemble: per trajectory y0, y_final, t_final,
         iterations (totals), max_multiplier, status (0 ok), steps_done, and
         invariant_errors/<name> (max |I(t) - I(0)|); the failure reasons as an attribute."""
+        self._reserve([states, result.y_final, *result.invariant_errors.values()]
+                      + [getattr(result, name) for name in ("t_final", "iterations", "max_multiplier", "status",
+                                                            "steps_done")])
+        with self._writing():
+            self._add_ensemble(result, states, resolved)
+
+    def _add_ensemble(self, result, states, resolved: dict) -> None:
         import yaml
 
         group = self._file.create_group("ensemble")
@@ -1143,8 +1193,33 @@ class SweepWriter:
         self._file.flush()
 
     def close(self) -> None:
-        if self._file.id.valid:
-            self._file.close()
+        try:
+            if not getattr(self, "abandoned", False) and self._file.id.valid:
+                self._file.close()
+        finally:
+            if self._guard is not None:
+                self._guard.close()
+
+
+class _SweepWriting:
+    def __init__(self, writer: SweepWriter):
+        self.writer = writer
+
+    def __enter__(self):
+        if getattr(self.writer, "abandoned", False):
+            raise OutputError(f"{self.writer.path}: an earlier write failed; the file holds the runs before it")
+        return self
+
+    def __exit__(self, kind, err, traceback):
+        if kind is not None and issubclass(kind, (OSError, RuntimeError)) and not issubclass(kind, ElimfastError):
+            self.writer.abandoned = True
+            _abandon(self.writer._file, None, keep=self.writer)
+            if _is_disk_full(err):
+                raise DiskFullError(f"{self.writer.path}: the disk is full; the runs stored before this one are "
+                                    "in the file") from None
+            raise OutputError(f"{self.writer.path}: cannot write ({_one_line(err)[:200]}); the runs stored before "
+                              "this one are in the file") from None
+        return False
 
 
 def _mark_writer(state_group) -> None:
