@@ -281,6 +281,17 @@ class _FileGuard:
             self.fd = -1
 
 
+def _writer_lock_held(path: Path) -> bool:
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return False
+    try:
+        return _lock_held_elsewhere(fd)
+    finally:
+        os.close(fd)
+
+
 def _writer_pid(path: Path) -> tuple[int, str, int]:
     """(writer pid, host, format version) stored in a file, (0, '', 0) when unreadable."""
     try:
@@ -1368,10 +1379,13 @@ class RunFile:
         self.kernel_time_s = self._saved["kernel_time_s"]
         self.status = str(self.attrs.get("status", "?"))
         if self.status == STATUS_RUNNING:
-            state = f["state"]
-            pid = int(state.attrs.get("writer_pid", 0))
-            host = str(_plain(state.attrs.get("writer_host", "")))
-            alive = host == socket.gethostname() and pid and _process_alive(pid) and pid != os.getpid()
+            if int(self.attrs.get("format_version", 1)) >= 2:   # its writer holds the lock while it lives
+                alive = _writer_lock_held(self.path)
+            else:
+                state = f["state"]
+                pid = int(state.attrs.get("writer_pid", 0))
+                host = str(_plain(state.attrs.get("writer_host", "")))
+                alive = host == socket.gethostname() and pid and _process_alive(pid) and pid != os.getpid()
             self.status = STATUS_RUNNING if alive else "killed"
         with self._reading("/y"):
             self.coordinate_names = [str(n) for n in _plain(f["y"].attrs.get("coordinates", []))]
