@@ -52,7 +52,7 @@ MAX_FILE_BYTES = 1 << 20     # a config (or sweep, or python: problem file) larg
 MAX_YAML_NODES = 100_000     # scalars + containers in one config
 MAX_YAML_DEPTH = 20          # nesting of sections and lists
 # Ranges of the numbers in a config, each with its reason (said in the error).
-MAX_STEPS = 10 ** 10         # n_steps: about a day at the fastest ~10 us per step, and 40 GB of per-step records
+MAX_STEPS = 10 ** 10         # n_steps: hours to days even at 1 us per step, and 40 GB of per-step records
 MAX_ITER_LIMIT = 10_000      # solver.max_iter: linear convergence that has not happened by then will not
 MAX_TOL = 1e-8               # solver.tol: a round-off stopping tolerance, not an accuracy knob
 MAX_SIZE_PARAMETER = 100_000  # an integer size parameter of a built-in (fpu_beta's n): a state of 2n numbers
@@ -713,8 +713,8 @@ class _Builder:
                          "parameters": dict(problem.parameters), "initial": _initial_dict(problem)}
 
 
-_STEPS_REASON = ("a run takes at least ~10 us per step, so that is a day of computing and 40 GB of per-step "
-                  "records; raise h or shorten the run")
+_STEPS_REASON = ("that many steps take hours to days even at a microsecond each, and their per-step records "
+                  "alone 40 GB; raise h or shorten the run")
 
 
 def _count(value) -> str:

@@ -64,15 +64,28 @@ class Finished:
         return f"exit {self.code} after {self.seconds:.1f} s, {self.max_rss_mb:.0f} MB: {self.stderr.strip()}"
 
 
-class Process:
-    """An ``elimfast`` subprocess whose exit is collected with wait4 (its peak memory)."""
+# The peak memory of a child counts what it inherited before exec: a child forked from this
+# (large) test process would show the test process's size. So the elimfast process is
+# started by a small Python process that reports its child's ru_maxrss (as a last line).
+_MEASURED = ("import os, sys\n"
+             "pid = os.posix_spawn(sys.argv[1], sys.argv[1:], os.environ)\n"
+             "_, status, usage = os.wait4(pid, 0)\n"
+             "sys.stderr.write(f'\\nmaxrss-kb {usage.ru_maxrss}\\n')\n"
+             "sys.exit(os.waitstatus_to_exitcode(status) % 256)\n")
 
-    def __init__(self, *args, cwd=None):
+
+class Process:
+    """An ``elimfast`` subprocess; with ``measured``, started through a small process that
+    reports its peak memory (then signals reach that process, not elimfast)."""
+
+    def __init__(self, *args, cwd=None, measured: bool = False):
         self._out = tempfile.TemporaryFile()
         self._err = tempfile.TemporaryFile()
         self.started = time.monotonic()
-        self.popen = subprocess.Popen([ELIMFAST, *map(str, args)], stdout=self._out, stderr=self._err, cwd=cwd,
-                                      stdin=subprocess.DEVNULL)
+        command = [ELIMFAST, *map(str, args)]
+        if measured:
+            command = [sys.executable, "-S", "-c", _MEASURED, *command]
+        self.popen = subprocess.Popen(command, stdout=self._out, stderr=self._err, cwd=cwd, stdin=subprocess.DEVNULL)
         self.pid = self.popen.pid
 
     def running(self) -> bool:
@@ -98,11 +111,20 @@ class Process:
         self.popen.returncode = code
         self._out.seek(0)
         self._err.seek(0)
-        return Finished(code, self._out.read().decode(), self._err.read().decode(), seconds, usage.ru_maxrss / 1024)
+        stderr, max_rss_kb = self._err.read().decode(), usage.ru_maxrss
+        reported = re.search(r"\nmaxrss-kb (\d+)\n$", stderr)
+        if reported:
+            stderr, max_rss_kb = stderr[:reported.start()], int(reported.group(1))
+        return Finished(code, self._out.read().decode(), stderr, seconds, max_rss_kb / 1024)
 
 
 def elimfast(*args, timeout: float = 300, cwd=None) -> Finished:
     return Process(*args, cwd=cwd).finish(timeout)
+
+
+def measured(*args, timeout: float = 60) -> Finished:
+    """elimfast with its own peak memory (see _MEASURED)."""
+    return Process(*args, measured=True).finish(timeout)
 
 
 def assert_one_line(finished: Finished, code: int, fragment: str):
@@ -420,7 +442,7 @@ def test_devices_fifos_and_oversized_files_are_refused_at_once(tmp_path):
         (["inspect", fifo], "fifo.yaml: not a regular file"),
     ]
     for args, fragment in cases:
-        done = elimfast(*args, timeout=60)
+        done = measured(*args)
         assert_one_line(done, 2, fragment)
         assert done.seconds < QUICK_SECONDS and done.max_rss_mb < SMALL_MEMORY_MB, (args, done)
     assert not (tmp_path / "o.h5").exists()
@@ -445,7 +467,7 @@ def test_huge_grids_and_ensembles_are_refused_before_anything_is_allocated(tmp_p
         (wide, "ensemble.n = 1,000,000,000,000 trajectories of 4 coordinates would need 184 TB of memory"),
     ]
     for path, fragment in cases:
-        done = elimfast("sweep", path, "-o", tmp_path / "out.h5", timeout=60)
+        done = measured("sweep", path, "-o", tmp_path / "out.h5")
         if "1e8" in path.read_text() and "would need" not in done.stderr:
             pytest.skip("this machine has more than 37 GB available: 10^8 trajectories would fit")
         assert_one_line(done, 2, fragment)
