@@ -543,7 +543,7 @@ DRIFT_CONFIG = ("problem: {python: drift.py}\nmethod: {name: gauss, s: 1}\n"
                 "integration: {h: 0.001, n_steps: 100000}\noutput: {every: 1000}\n")
 
 
-def steps_when_stuck(process: Process, path: Path, quiet_seconds: float = 1.0) -> int:
+def steps_when_stuck(process: Process, path: Path, quiet_seconds: float = 2.0) -> int:
     """The saved steps once the run is stuck (nothing new saved for quiet_seconds, still running)."""
     wait_for_steps(process, path, 1)
     deadline = time.monotonic() + 120
@@ -665,3 +665,24 @@ def test_a_format_1_file_without_the_state_record_still_resumes_exactly(tmp_path
     assert_equal_to_reference(path, long_reference)
     with h5py.File(path, "r") as f:
         assert f.attrs["format_version"] == 1 and "record" not in f["state"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_signal_stops_a_sweep_whose_run_never_returns(tmp_path, workers):
+    """In process (one worker) the watchdog ends the kernel call; with worker processes the
+    parent stops at once and kills its workers (which cannot run a signal handler)."""
+    drift_problem(tmp_path, LOOP)
+    sweep = write_yaml(tmp_path / "sweep.yaml", {
+        "base": "drift.yaml", "grid": [{"name": "wall", "key": "problem.parameters.wall", "values": [0.5, 0.6]}]})
+    process = Process("sweep", sweep, "-o", tmp_path / "sweep.h5", "--workers", workers, "-q")
+    time.sleep(6.0)                          # start-up, compiling the problem, then both runs loop
+    assert process.running()
+    sent = process.send(signal.SIGINT)
+    finished = process.finish(timeout=60)
+    assert finished.code == 130 and time.monotonic() - sent < 4.0, finished
+    assert "Traceback" not in finished.stderr and finished.last_line.startswith("error: interrupted"), finished
+    if workers == 2:
+        time.sleep(0.5)
+        left = subprocess.run(["pgrep", "-f", str(sweep)], capture_output=True, text=True).stdout.split()
+        assert not left, f"workers left running: {left}"
