@@ -30,7 +30,7 @@ def error_line(exc: BaseException) -> tuple[str, int]:
     if isinstance(exc, ConvergenceError):
         return f"run failed: {one_line(exc)}", EXIT_FAILED
     if isinstance(exc, ElimfastError):
-        return one_line(exc), EXIT_USAGE
+        return one_line(exc), getattr(exc, "exit_code", EXIT_USAGE)
     if isinstance(exc, OSError):
         name = getattr(exc, "filename", None)
         reason = exc.strerror or one_line(exc)
@@ -208,14 +208,20 @@ def run(config, output, overrides, overwrite, resume, quiet):
     label = f"{spec.method.name} {spec.problem.name}"
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
-        resume=resume, progress=streaming.progress_for(quiet), label=label)
+        resume=resume, progress=streaming.progress_for(quiet), label=label,
+        resume_command=_resume_command(config, path, overrides))
     return _report_run(outcome, config, path, overrides, quiet)
 
 
-def _report_run(outcome, config, path, overrides, quiet) -> int:
+def _resume_command(config, path, overrides) -> str:
     import shlex
+    return shlex.join(["elimfast", "run", str(config), "-o", str(path),
+                       *(arg for item in overrides for arg in ("--set", item)), "--resume"])
 
-    from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED
+
+def _report_run(outcome, config, path, overrides, quiet) -> int:
+    from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX
+    from elimfast.streaming import interrupted_line
 
     note = f" ({outcome.note})" if outcome.note else ""
     if outcome.status == STATUS_COMPLETE:
@@ -226,13 +232,12 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
                        f"{rate_text}{note}", err=True)
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:
-        why = f" by {outcome.signal_name}" if outcome.signal_name else ""
-        click.echo(f"interrupted{why} at step {outcome.steps_done}/{outcome.n_steps} (t = {outcome.t:.17g}); "
-                   f"{path} is complete up to there; continue with: "
-                   + shlex.join(["elimfast", "run", str(config), "-o", str(path),
-                                 *(arg for item in overrides for arg in ("--set", item)), "--resume"]),
-                   err=True)
+        click.echo(interrupted_line(outcome.signal_name, outcome.steps_done, outcome.n_steps, outcome.t, path,
+                                    _resume_command(config, path, overrides)), err=True)
         return EXIT_INTERRUPTED
+    if outcome.status.startswith(STOPPED_PREFIX) and outcome.message:
+        click.echo(f"error: {one_line(outcome.message)}", err=True)
+        return EXIT_FAILED
     click.echo(f"error: run {outcome.status} (the {outcome.steps_done} steps before it are in {path})", err=True)
     return EXIT_FAILED
 
@@ -300,7 +305,9 @@ def inspect(file):
     """Summarise a run file: problem, method, progress, timing, invariant errors, iterations.
 
     Reads files of finished, interrupted, failed, killed and still running runs (the last
-    two through HDF5's SWMR mode); memory stays bounded for any length.
+    two through HDF5's SWMR mode); memory stays bounded for any length. Every stored row
+    is read back, so HDF5 checks every checksum: a damaged file is reported (exit 2)
+    with the place of the damage.
 
     \b
     Example:
@@ -311,7 +318,8 @@ def inspect(file):
     from .report import summary
 
     with RunFile(file) as run_file:
-        click.echo(summary(run_file))
+        integrity = run_file.verify()
+        click.echo(summary(run_file, integrity))
     return EXIT_OK
 
 
@@ -537,6 +545,7 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
       elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
     """
+    from elimfast.streaming import StopOnSignals
     from elimfast.sweep import (REFERENCE_LABEL, ensemble_table, format_table, load_sweep, run_ensemble_sweep,
                                 run_sweep, table_rows)
 
@@ -546,42 +555,59 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
         output = Path(output).expanduser()
         check_output_path(output, overwrite=overwrite)
     spec = load_sweep(sweep_file)
-    if output is not None:
-        from elimfast.io.hdf5 import SweepWriter
-        writer = SweepWriter(output, sweep_text=Path(sweep_file).read_text(),
-                             attributes={"source": str(sweep_file), "axes": list(spec.axes) or [""]})
-    if spec.ensemble is not None:   # one config, many initial states: the parallel kernel
-        try:
+
+    def hard_stop(signal_name):
+        kept = f"; the finished runs are in {output}" if output is not None else ""
+        return f"error: interrupted by {signal_name}{kept}"
+
+    def open_writer():
+        nonlocal writer
+        if output is not None:
+            from elimfast.io.hdf5 import SweepWriter
+            writer = SweepWriter(output, sweep_text=Path(sweep_file).read_text(errors="replace"),
+                                 attributes={"source": str(sweep_file), "axes": list(spec.axes) or [""]},
+                                 overwrite=overwrite)
+
+    # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
+    with StopOnSignals(raising=True, hard_stop=hard_stop):
+        if spec.ensemble is not None:   # one config, many initial states: the parallel kernel
+            def on_start(n_trajectories):   # the ensemble is validated and fits: now the file
+                open_writer()
+                if not quiet:
+                    click.echo(f"ensemble: running {n_trajectories:,} trajectories on {workers or 'all'} "
+                               "thread(s)", err=True)
+            try:
+                run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=on_start)
+                if writer is not None:
+                    writer.add_ensemble(result, states, run_spec.resolved)
+            finally:
+                if writer is not None:
+                    writer.close()
+            header, rows = ensemble_table(result)
+            click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "
+                       f"of {result.n_steps} steps, h = {result.h:g}")
+            click.echo(format_table(header, rows, table_format), nl=False)
+            if result.n_failed:
+                click.echo(f"error: {result.n_failed} of {result.n_trajectories} trajectories failed: "
+                           f"{result.failure_message(int(result.ok.argmin()))}", err=True)
+                return EXIT_FAILED
+            return EXIT_OK
+
+        open_writer()
+
+        def on_done(outcome, done, total):
+            if writer is not None and outcome.label != REFERENCE_LABEL:
+                writer.add_run(outcome, _method_of(outcome.resolved))
+            outcome.arrays = {}   # stored: the parent keeps only the summary of each run
             if not quiet:
-                click.echo(f"ensemble: running the trajectories on {workers or 'all'} thread(s)", err=True)
-            run_spec, states, result = run_ensemble_sweep(spec, threads=workers)
-            if writer is not None:
-                writer.add_ensemble(result, states, run_spec.resolved)
+                name = "reference run" if outcome.label == REFERENCE_LABEL else outcome.label
+                click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
+
+        try:
+            outcomes, reference = run_sweep(spec, workers=workers, on_done=on_done, store_arrays=writer is not None)
         finally:
             if writer is not None:
                 writer.close()
-        header, rows = ensemble_table(result)
-        click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "
-                   f"of {result.n_steps} steps, h = {result.h:g}")
-        click.echo(format_table(header, rows, table_format), nl=False)
-        if result.n_failed:
-            click.echo(f"error: {result.n_failed} of {result.n_trajectories} trajectories failed: "
-                       f"{result.failure_message(int(result.ok.argmin()))}", err=True)
-            return EXIT_FAILED
-        return EXIT_OK
-
-    def on_done(outcome, done, total):
-        if writer is not None and outcome.label != REFERENCE_LABEL:
-            writer.add_run(outcome, _method_of(outcome.resolved))
-        if not quiet:
-            name = "reference run" if outcome.label == REFERENCE_LABEL else outcome.label
-            click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
-
-    try:
-        outcomes, reference = run_sweep(spec, workers=workers, on_done=on_done)
-    finally:
-        if writer is not None:
-            writer.close()
     header, rows = table_rows(spec, outcomes, reference)
     click.echo(format_table(header, rows, table_format), nl=False)
     if reference is not None and not reference.ok:

@@ -32,8 +32,8 @@ def _problem_text(run_file) -> str:
     return str(attrs.get("problem"))
 
 
-def summary(run_file) -> str:
-    """The inspect summary of an open RunFile."""
+def summary(run_file, integrity: dict | None = None) -> str:
+    """The inspect summary of an open RunFile (``integrity``: what RunFile.verify returned)."""
     a = run_file.attrs
     rows = []
 
@@ -86,4 +86,9 @@ def summary(run_file) -> str:
         symbol = "alpha" if run_file.multiplier_name == "alpha" else "lambda"
         text = ", ".join(f"{v:.3e} ({label.split('[', 1)[1].rstrip(']')})" for v, label in zip(maxima, labels))
         row(f"max |{symbol}|", text if done else "no steps yet")
+    if integrity is not None:
+        checked = (f"{integrity['chunks']} data chunks read back, fletcher32 checksums verified"
+                   if integrity["checksummed"] else
+                   f"{integrity['chunks']} data chunks read back (a format 1 file: its data carry no checksums)")
+        row("integrity", checked)
     return "\n".join(rows)

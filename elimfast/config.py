@@ -16,7 +16,8 @@ Format (every section but ``problem``, ``method`` and ``integration`` is optiona
     conserve: [angular_momentum, lrl_y]  # invariants to impose (ELIM/EHBVM: < s; LIM/GHBVM: any)
     method: {name: ehbvm, k: 12, s: 3}   # gauss(s) hbvm(k,s) elim(r,k,s) ehbvm(k,s) lim(r,k,s) ghbvm(k,s)
     integration: {h: pi/30, t_end: 20*pi, t0: 0}   # or n_steps instead of t_end (both: must agree)
-    solver: {tol: 1e-15, max_iter: 100, rhs: stable, warm_start: true}
+    solver: {method: newton, max_halvings: 4}   # optional; see docs/solver.md (method: fixed_point,
+                                                #   tol, max_iter, predictor, warm_start, rhs)
     output: {path: out/kepler.h5, every: 10}        # path as given (the CLI resolves it)
 
 Numbers may be arithmetic on numbers, ``pi`` and ``e`` (``pi/30``, ``2*pi*10``, ``1e-15``),
@@ -43,14 +44,19 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, StrictBool, Validat
 
 from .cache import CacheError
 from .errors import ElimfastError
-from .integrate import DEFAULT_MAX_ITER, T_END_RELATIVE_TOLERANCE, Integration, resolve_conserve
+from .errors import ParameterError
+from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, T_END_RELATIVE_TOLERANCE, Integration,
+                        SolverSettings, resolve_conserve)
 from .methods import MAX_NODES, Method
 from .problems.base import Problem
 from .problems.expressions import ExpressionError, ProblemDefinitionError, evaluate_number
 
-MAX_FILE_BYTES = 1 << 20     # a config larger than 1 MiB is a mistake
+MAX_FILE_BYTES = 1 << 20     # a config (or sweep, or python: problem file) larger than 1 MiB is a mistake
 MAX_YAML_NODES = 100_000     # scalars + containers in one config
 MAX_YAML_DEPTH = 20          # nesting of sections and lists
+# Ranges of the numbers in a config, each with its reason (said in the error).
+MAX_STEPS = 10 ** 10         # n_steps: hours to days even at 1 us per step, and 40 GB of per-step records
+MAX_SIZE_PARAMETER = 100_000  # an integer size parameter of a built-in (fpu_beta's n): a state of 2n numbers
 
 
 class ConfigError(ElimfastError):
@@ -137,8 +143,11 @@ class IntegrationSection(_Section):
 
 
 class SolverSection(_Section):
+    method: str = DEFAULT_SOLVER
     tol: Number | None = None
-    max_iter: Integer = DEFAULT_MAX_ITER
+    max_iter: Integer | None = None
+    max_halvings: Integer = DEFAULT_MAX_HALVINGS
+    predictor: StrictBool = True
     rhs: Literal["stable", "literal"] = "stable"
     warm_start: StrictBool = True
 
@@ -183,10 +192,7 @@ class RunSpec:
     n_steps: int
     t0: float
     t_end: float
-    tol: float | None
-    max_iter: int
-    rhs: str
-    warm_start: bool
+    solver: SolverSettings
     output_path: str | None
     output_every: int
     resolved: dict
@@ -194,8 +200,7 @@ class RunSpec:
     def integration(self):
         """A fresh ``elimfast.Integration`` for this run (``store_every`` = output.every)."""
         return Integration(self.problem, self.method, self.h, self.n_steps, conserve=self.conserve,
-                           tol=self.tol, max_iter=self.max_iter, store_every=self.output_every, rhs=self.rhs,
-                           warm_start=self.warm_start, t0=self.t0)
+                           solver=self.solver, store_every=self.output_every, t0=self.t0)
 
 
 # --- entry points -------------------------------------------------------------------------
@@ -203,24 +208,8 @@ class RunSpec:
 def load_run(path, overrides=()) -> RunSpec:
     """Read, override and validate a YAML run config; raise ConfigError (one line) on any fault."""
     source = str(path)
-    try:
-        file_path = Path(path)
-        size = file_path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise ConfigError(f"{source}: the file is {size} bytes, more than a config can be "
-                              f"({MAX_FILE_BYTES} bytes); check that it is the right file")
-        raw = file_path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{source}: no such file; check the path") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{source}: is a directory, not a config file; give a .yaml file") from None
-    except (OSError, TypeError, ValueError) as err:
-        raise ConfigError(f"{source}: cannot be read ({type(err).__name__}: {err}); check the path and "
-                          "permissions") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"{source}: not UTF-8 text (byte {err.start}); save the config as UTF-8") from None
+    file_path = Path(path)
+    text = read_text_file(file_path, source, what="config file", example="a .yaml file")
     data = parse_yaml(text, source)
     if data is None:
         raise ConfigError(f"{source}: the file is empty; a config needs problem, method and integration sections")
@@ -232,6 +221,57 @@ def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=N
     ``python:`` paths start (default: the current directory)."""
     data, overridden = _apply_overrides(copy.deepcopy(data), overrides, source)
     return _Builder(source, overridden, Path(base_dir) if base_dir is not None else Path.cwd()).build(data)
+
+
+def read_text_file(path, source: str, *, what: str = "file", example: str = "a .yaml file",
+                   limit: int = MAX_FILE_BYTES) -> str:
+    """The UTF-8 text of a regular file of at most ``limit`` bytes; ConfigError otherwise.
+
+    A device (/dev/zero), a FIFO or a socket is refused before reading from it (opened
+    non-blocking, checked with fstat), and at most limit + 1 bytes are ever read, so no
+    input makes this take long or use much memory.
+    """
+    import os
+    import stat
+
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise ConfigError(f"{source}: no such file; check the path") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{source}: is a directory, not a {what}; give {example}") from None
+    except (OSError, TypeError, ValueError) as err:
+        reason = getattr(err, "strerror", None) or f"{type(err).__name__}: {err}"
+        raise ConfigError(f"{source}: cannot be read ({reason}); check the path and permissions") from None
+    try:
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise ConfigError(f"{source}: is a directory, not a {what}; give {example}")
+        if not stat.S_ISREG(info.st_mode):
+            raise ConfigError(f"{source}: not a regular file (a device, FIFO or socket); give {example}")
+        if info.st_size > limit:
+            raise ConfigError(f"{source}: the file is {info.st_size} bytes, more than a {what} can be ({limit} "
+                              "bytes); check that it is the right file")
+        os.set_blocking(fd, True)
+        chunks, size = [], 0
+        while size <= limit:
+            chunk = os.read(fd, limit + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+    except OSError as err:
+        raise ConfigError(f"{source}: cannot be read ({err.strerror}); check the path and permissions") from None
+    finally:
+        os.close(fd)
+    if size > limit:
+        raise ConfigError(f"{source}: the file is more than {limit} bytes, more than a {what} can be; check that it "
+                          "is the right file")
+    raw = b"".join(chunks)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{source}: not UTF-8 text (byte {err.start}); save the {what} as UTF-8") from None
 
 
 # --- YAML ---------------------------------------------------------------------------------
@@ -341,14 +381,13 @@ class _Builder:
 
         method = self.method(config.method)
         h, n_steps, t0, t_end = self.steps(config.integration)
-        solver = config.solver
-        if solver.tol is not None and solver.tol < 0.0:
-            raise self.error(("solver", "tol"), f"must be >= 0, got {solver.tol!r}; use e.g. 1e-15, or leave it out "
-                                                "for round-off level")
-        if solver.max_iter < 1:
-            raise self.error(("solver", "max_iter"), f"must be >= 1, got {solver.max_iter}")
+        solver = self.solver(config.solver)
         if config.output.every < 1:
             raise self.error(("output", "every"), f"must be >= 1 (store every n-th step), got {config.output.every}")
+        if config.output.every > MAX_STEPS:
+            raise self.error(("output", "every"), f"must be <= {_count(MAX_STEPS)} (the most steps a run may take), got "
+                                                  f"{_count(config.output.every)}; to keep only the first and last "
+                                                  "states, set it to the number of steps")
         if config.output.path is not None and not config.output.path.strip():
             raise self.error(("output", "path"), "is empty; give a file name such as out/run.h5, or leave it out")
         self.conserve_fits_method(config.conserve, method)
@@ -360,14 +399,19 @@ class _Builder:
             "conserve": list(conserve),
             "method": {"name": method.family, **{p: getattr(method, p) for p in _method_parameters(method.family)}},
             "integration": {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps},
-            "solver": {"tol": solver.tol, "max_iter": solver.max_iter, "rhs": solver.rhs,
-                       "warm_start": solver.warm_start},
+            "solver": solver.as_dict(),
             "output": {"path": config.output.path, "every": config.output.every},
         }
         return RunSpec(source=self.source, problem=problem, method=method, conserve=conserve, h=h, n_steps=n_steps,
-                       t0=t0, t_end=t_end, tol=solver.tol, max_iter=solver.max_iter, rhs=solver.rhs,
-                       warm_start=solver.warm_start, output_path=config.output.path,
+                       t0=t0, t_end=t_end, solver=solver, output_path=config.output.path,
                        output_every=config.output.every, resolved=resolved)
+
+    def solver(self, section: SolverSection) -> SolverSettings:
+        """The solver section, validated by SolverSettings (the one owner of its rules)."""
+        try:
+            return SolverSettings(**section.model_dump())
+        except ParameterError as err:
+            raise self.error(("solver", err.parameter), err.detail) from None
 
     def check_keys(self, data) -> None:
         """Mapping keys must be strings (YAML reads yes/no/on/off/1 as other types); bounded size and depth."""
@@ -463,10 +507,16 @@ class _Builder:
         n_steps = section.n_steps
         if n_steps is not None and n_steps < 1:
             raise self.error(("integration", "n_steps"), f"must be >= 1, got {n_steps}")
+        if n_steps is not None and n_steps > MAX_STEPS:
+            raise self.error(("integration", "n_steps"), f"must be <= {_count(MAX_STEPS)}, got {_count(n_steps)}: "
+                                                         f"{_STEPS_REASON}")
         if section.t_end is not None:
             span = section.t_end - t0
             if not (math.isfinite(span) and span > 0.0):
                 raise self.error(("integration", "t_end"), f"must be after t0 = {t0!r}, got {section.t_end!r}")
+            if not span / h <= MAX_STEPS:
+                raise self.error(("integration", "t_end"), f"(t_end - t0)/h = {span / h:.3g} steps, more than "
+                                                           f"{_count(MAX_STEPS)}: {_STEPS_REASON}")
             steps = round(span / h)
             if steps < 1 or abs(steps * h - span) > T_END_RELATIVE_TOLERANCE * span:
                 raise self.error(("integration", "t_end"),
@@ -476,7 +526,11 @@ class _Builder:
                 raise self.error(("integration", "n_steps"), f"n_steps = {n_steps} disagrees with t_end: "
                                                              f"(t_end - t0)/h = {steps}; give only one of them")
             return h, int(steps), t0, section.t_end
-        return h, int(n_steps), t0, t0 + n_steps * h
+        t_end = t0 + n_steps * h
+        if not math.isfinite(t_end):
+            raise self.error(("integration", "h"), f"t0 + n_steps h = {t0!r} + {n_steps} * {h!r} is not a finite "
+                                                   "number; lower h or n_steps")
+        return h, int(n_steps), t0, t_end
 
     # conserve
     def conserve_fits_method(self, names, method: Method) -> None:
@@ -562,6 +616,12 @@ class _Builder:
                 raise self.error(("problem", "parameters", pname),
                                  f"{name} has no parameter {pname!r}; {_suggest(pname, accepted, 'its parameters')}")
             kwargs[pname] = self.parameter_value(value, accepted[pname].default, ("problem", "parameters", pname))
+            default = accepted[pname].default
+            if (isinstance(default, int) and not isinstance(default, bool) and isinstance(kwargs[pname], (int, float))
+                    and not isinstance(kwargs[pname], bool) and abs(kwargs[pname]) > MAX_SIZE_PARAMETER):
+                raise self.error(("problem", "parameters", pname),
+                                 f"must be at most {MAX_SIZE_PARAMETER}, got {_count(kwargs[pname])}: it sizes the "
+                                 "problem (the state has 2n numbers, and every step's work and memory grow with it)")
         try:
             problem = constructor(**kwargs)
         except Exception as err:  # a built-in rejecting user values; report it, never a traceback
@@ -615,6 +675,11 @@ class _Builder:
         path = Path(section.python).expanduser()
         if not path.is_absolute():
             path = self.base_dir / path
+        if path.exists():
+            try:
+                read_text_file(path, str(path), what="python problem file", example="a .py file")
+            except ConfigError as err:
+                raise self.error(("problem", "python"), str(err)) from None
         problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name)
         return problem, {"python": str(path.resolve()), "name": problem.name,
                          "parameters": {k: _plain(v) for k, v in problem.parameters.items()},
@@ -637,6 +702,18 @@ class _Builder:
         return problem, {"name": name, "coordinates": {k: list(v) for k, v in coordinates.items()},
                          "hamiltonian": section.hamiltonian, "invariants": dict(section.invariants or {}),
                          "parameters": dict(problem.parameters), "initial": _initial_dict(problem)}
+
+
+_STEPS_REASON = ("that many steps take hours to days even at a microsecond each, and their per-step records "
+                  "alone 40 GB; raise h or shorten the run")
+
+
+def _count(value) -> str:
+    """A count as written, or in e-notation when it is huge: 1e10 and 1e30, not 11 and 31 digits."""
+    if abs(value) < 1e9:
+        return str(value)
+    mantissa, exponent = f"{float(value):.3g}".split("e")
+    return f"{mantissa}e{int(exponent)}"
 
 
 def _method_parameters(family: str) -> list[str]:

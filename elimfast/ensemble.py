@@ -14,6 +14,7 @@ which integrate would raise and the ensemble reports as status 'exception'.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Iterable
 
@@ -156,11 +157,14 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
     split_steps = np.empty(n_traj, dtype=np.int64)
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(threads)
+    from .streaming import current_watchdog
+    watchdog = current_watchdog()
     try:
-        ensemble_loop(
-            *run.kernel_settings(),
-            states, float(t0), run.n_steps, run.multipliers.size, threads,
-            y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps)
+        with watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext():
+            ensemble_loop(
+                *run.kernel_settings(),
+                states, float(t0), run.n_steps, run.multipliers.size, threads,
+                y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps)
     finally:
         numba.set_num_threads(previous_threads)
     errors = {"H": inv_error[:, 0].copy()}

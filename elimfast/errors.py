@@ -1,8 +1,28 @@
-"""The exceptions elimfast raises on its own account."""
+"""The exceptions elimfast raises on its own account.
+
+Each class carries the command line's exit code for it (``exit_code``): 2 for what the
+user gave (a config, a file, a size that cannot fit), 1 for a run that failed.
+"""
 
 
 class ElimfastError(Exception):
-    """Base class of elimfast's own errors."""
+    """Base class of elimfast's own errors (exit code 2: a usage, config or file error)."""
+
+    exit_code = 2
+
+
+class ParameterError(ElimfastError, ValueError):
+    """A parameter of the library's API out of its range or of the wrong kind.
+
+    ``parameter`` names it (``"tol"``, ``"max_halvings"``, ...); the message says what is
+    wrong and what to do, worded so that the config layer can put the YAML key in front
+    of it (``solver.tol: must be ...``): the message starts with "must" or "is".
+    """
+
+    def __init__(self, parameter: str, message: str):
+        super().__init__(f"{parameter} {message}")
+        self.parameter = parameter
+        self.detail = message
 
 
 class ConvergenceError(ElimfastError, RuntimeError):
@@ -14,9 +34,29 @@ class ConvergenceError(ElimfastError, RuntimeError):
     (every completed step, with its samples and per-step data).
     """
 
+    exit_code = 1
+
     def __init__(self, message, *, step, time, result, reason):
         super().__init__(message)
         self.step = step
         self.time = time
         self.result = result
         self.reason = reason
+
+
+class ResourceError(ElimfastError):
+    """An input that asks for more memory, disk or steps than the run may take; the
+    message says how much it would need and what to change (exit code 2)."""
+
+
+class DiskFullError(ElimfastError, OSError):
+    """The output's file system has no room for the next chunk (exit code 1: the run
+    stopped; its file holds every step before it and can be resumed once there is space)."""
+
+    exit_code = 1
+
+
+class ProblemFunctionError(ElimfastError, RuntimeError):
+    """A problem function (H, grad_H, invariants, ...) raised during a run (exit code 1)."""
+
+    exit_code = 1

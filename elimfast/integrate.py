@@ -11,7 +11,7 @@ from typing import Iterable
 
 import numpy as np
 
-from .errors import ConvergenceError
+from .errors import ConvergenceError, ParameterError
 from .kernels import codes, stepper
 from .methods import Method
 from .problems import Problem
@@ -54,13 +54,13 @@ STATUS_NAMES = {
 
 
 def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
-    """value as an int in [low, high], or a ValueError naming the parameter and the range."""
+    """value as an int in [low, high], or a ParameterError naming the parameter and the range."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not math.isfinite(float(value)) or not float(value).is_integer():
-        raise ValueError(f"{name} must be a whole number from {low} to {high}, got {value!r}")
+        raise ParameterError(name, f"must be a whole number from {low} to {high}, got {value!r}")
     as_int = int(value)
     if not low <= as_int <= high:
-        raise ValueError(f"{name} must be from {low} to {high}{why}, got {as_int}")
+        raise ParameterError(name, f"must be from {low} to {high}{why}, got {as_int}")
     return as_int
 
 
@@ -88,23 +88,36 @@ class SolverSettings:
 
     def __post_init__(self):
         if self.method not in SOLVERS:
-            raise ValueError(f"solver must be one of {', '.join(map(repr, SOLVERS))}, got {self.method!r}")
+            raise ParameterError("method", f"must be one of {', '.join(SOLVERS)} (simplified Newton, the default, or "
+                                           f"the paper's fixed-point iteration), got {self.method!r}")
         try:
             tol = DEFAULT_TOL if self.tol is None else float(self.tol)
         except (TypeError, ValueError):
-            raise ValueError(f"tol must be a number, got {self.tol!r}") from None
+            raise ParameterError("tol", f"must be a number, got {self.tol!r}") from None
         if not (0.0 <= tol <= MAX_TOL):
-            raise ValueError(f"tol must be from 0 to {MAX_TOL:g} (it is a round-off stopping tolerance on the "
-                             f"relative increment; looser values accept unconverged steps), got {self.tol!r}")
+            raise ParameterError("tol", f"must be from 0 to {MAX_TOL:g}, got {self.tol!r}: it is the round-off stopping "
+                                        "tolerance on the relative increment, and a larger one accepts unconverged "
+                                        "steps, so H and the invariants are no longer kept; leave it out for machine "
+                                        "epsilon")
         object.__setattr__(self, "tol", tol)
         max_iter = DEFAULT_MAX_ITER[self.method] if self.max_iter is None else self.max_iter
-        object.__setattr__(self, "max_iter", _whole_number("max_iter", max_iter, 1, MAX_MAX_ITER))
+        object.__setattr__(self, "max_iter", _whole_number(
+            "max_iter", max_iter, 1, MAX_MAX_ITER, ": a solve that has not converged by then will not; a step over "
+            "the cap is split in two instead (solver.max_halvings)"))
         object.__setattr__(self, "max_halvings", _whole_number(
             "max_halvings", self.max_halvings, 0, MAX_MAX_HALVINGS, f" (2^{MAX_MAX_HALVINGS} substeps per step)"))
         if self.rhs not in ("stable", "literal"):
-            raise ValueError(f"rhs must be 'stable' (spec 3b, the default) or 'literal' (the paper's), got {self.rhs!r}")
-        object.__setattr__(self, "predictor", bool(self.predictor))
-        object.__setattr__(self, "warm_start", bool(self.warm_start))
+            raise ParameterError("rhs", f"must be 'stable' (spec 3b, the default) or 'literal' (the paper's), "
+                                        f"got {self.rhs!r}")
+        for name in ("predictor", "warm_start"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ParameterError(name, f"must be true or false, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, bool(getattr(self, name)))
+
+    def as_dict(self) -> dict:
+        """The settings as plain data (the resolved config's solver section)."""
+        return {"method": self.method, "tol": self.tol, "max_iter": self.max_iter, "max_halvings": self.max_halvings,
+                "predictor": self.predictor, "warm_start": self.warm_start, "rhs": self.rhs}
 
     @property
     def code(self) -> int:

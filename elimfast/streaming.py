@@ -11,11 +11,21 @@ calls, so a run resumed from /state ends bit for bit where an uninterrupted one 
 
 SIGINT and SIGTERM set a flag and the run stops at the next chunk boundary with status
 'interrupted'. Python runs signal handlers between bytecodes, so a signal that arrives
-during a kernel call is seen when the call returns: a chunk is never cut.
+during a kernel call is seen when the call returns: a chunk is never cut. A kernel call
+that does not return within ``HARD_STOP_GRACE_SECONDS`` of the signal ends the process
+as ``kill -9`` would, after the last flushed chunk (``StopOnSignals``).
+
+A run can also stop short with status 'stopped: <reason>' (exit code 1; the file is
+closed at the last saved chunk and can be resumed): when the disk has no room for the
+next chunk (its space is reserved before the kernel call), and when a problem function
+raises inside the kernel. If HDF5 itself fails a write, the file is left as a killed
+writer leaves it (consistent up to the last saved chunk, resumable), never closed.
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import signal
 import sys
 import threading
@@ -23,8 +33,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from .errors import DiskFullError
 from .io import hdf5
-from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, OutputError
+from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
 
 # Tunables of the driver (all in one place).
 TARGET_CHUNK_SECONDS = 0.5     # kernel time per chunk: progress and Ctrl-C latency vs flush overhead
@@ -33,6 +44,7 @@ FIRST_CHUNK_STEPS = 64         # the first chunk measures the speed
 MAX_GROWTH = 256               # chunk size grows at most this factor per chunk
 ABSORB_FRACTION = 0.5          # a remainder up to this fraction of a chunk joins it (no tiny last chunk)
 PLAIN_PROGRESS_SECONDS = 5.0   # interval of the progress lines when stderr is not a terminal
+HARD_STOP_GRACE_SECONDS = 1.5  # after Ctrl-C, how long a kernel call may take to return before the exit
 
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 
@@ -56,6 +68,7 @@ class Outcome:
     t: float = math.nan
     signal_name: str | None = None
     note: str = ""
+    message: str = ""             # the one-line report of a run that stopped short ("stopped: ...")
 
     @property
     def exit_code(self) -> int:
@@ -68,28 +81,120 @@ class Outcome:
 
 # --- signals ------------------------------------------------------------------------------
 class StopOnSignals:
-    """Context manager: SIGINT/SIGTERM set ``.signal`` instead of raising (main thread only)."""
+    """Context manager: SIGINT/SIGTERM set ``.signal`` instead of raising (main thread only).
+
+    The driver checks ``requested`` between chunks. A kernel call runs in compiled code
+    that Python cannot interrupt, and Python runs signal handlers only between bytecodes,
+    so a call that does not return (a step that never converges, a problem function
+    that loops) would make the signal wait for ever. Hence a watchdog: the C-level
+    signal handler writes the signal number to a pipe (``signal.set_wakeup_fd``), a
+    thread reading the pipe sees it while the main thread is inside a kernel call
+    (``kernel_call``; the time-loop kernel releases the GIL), waits ``grace`` seconds for
+    the call to return, and otherwise prints ``hard_stop(signal_name)`` and ends the
+    process with exit code 130 (``os._exit``). Between kernel calls every chunk is
+    already flushed, so the file on disk is then exactly as after ``kill -9``: consistent
+    and resumable.
+    """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self, enabled: bool = True):
+    def __init__(self, enabled: bool = True, grace: float | None = None, hard_stop=None, raising: bool = False):
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.raising = raising         # raise KeyboardInterrupt (sweeps) instead of only recording the signal
         self.signal: int | None = None
+        self.grace = HARD_STOP_GRACE_SECONDS if grace is None else float(grace)
+        self.hard_stop = hard_stop     # callable(signal_name) -> the one line printed before exiting
         self._previous = {}
+        self._previous_wakeup = None
+        self._pipe = None
+        self._watchdog = None
+        self._calls = 0
+        self._in_call = 0              # the number of the kernel call running, 0 between calls
 
     def _handler(self, signum, frame):
         self.signal = signum
+        if self.raising:
+            raise KeyboardInterrupt
 
     def __enter__(self):
+        global _CURRENT
         if self.enabled:
             for sig in self.SIGNALS:
                 self._previous[sig] = signal.signal(sig, self._handler)
+            try:
+                read_end, write_end = os.pipe()
+                os.set_blocking(write_end, False)
+                self._previous_wakeup = signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
+            except (OSError, ValueError):
+                return self
+            self._pipe = (read_end, write_end)
+            self._watchdog = threading.Thread(target=self._watch, args=(read_end,), name="elimfast-watchdog",
+                                              daemon=True)
+            self._watchdog.start()
+            self._outer, _CURRENT = _CURRENT, self
         return self
 
     def __exit__(self, *exc):
+        global _CURRENT
+        if _CURRENT is self:
+            _CURRENT = getattr(self, "_outer", None)
+        if self._pipe is not None:
+            signal.set_wakeup_fd(self._previous_wakeup if self._previous_wakeup is not None else -1)
+            read_end, write_end = self._pipe
+            os.close(write_end)        # the watchdog reads end-of-file and returns
+            self._watchdog.join(timeout=1.0)
+            if not self._watchdog.is_alive():
+                os.close(read_end)
+            self._pipe = None
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+
+    @contextlib.contextmanager
+    def kernel_call(self):
+        """Mark a kernel call: a signal that arrives during it is watched (see the class doc)."""
+        self._calls += 1
+        self._in_call = self._calls
+        try:
+            yield
+        finally:
+            self._in_call = 0
+
+    def _watch(self, read_end: int) -> None:
+        while True:
+            try:
+                data = os.read(read_end, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            for signum in data:
+                if signum not in self.SIGNALS:
+                    continue
+                self.signal = self.signal or signum
+                call = self._in_call
+                if not call:
+                    continue              # between calls: the driver sees the flag at the next boundary
+                deadline = time.monotonic() + self.grace
+                while self._in_call == call and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                if self._in_call == call:
+                    self._exit_now(signum)
+
+    def _exit_now(self, signum: int) -> None:
+        name = signal.Signals(signum).name
+        try:
+            message = self.hard_stop(name) if self.hard_stop is not None else f"interrupted by {name}"
+        except Exception:   # noqa: BLE001 -- the exit must happen whatever the message does
+            message = f"interrupted by {name}"
+        try:
+            sys.stdout.flush()
+        except Exception:   # noqa: BLE001
+            pass
+        try:
+            os.write(2, (message + "\n").encode("utf-8", "replace"))
+        finally:
+            os._exit(EXIT_INTERRUPTED)
 
     @property
     def requested(self) -> bool:
@@ -98,6 +203,29 @@ class StopOnSignals:
     @property
     def name(self) -> str | None:
         return signal.Signals(self.signal).name if self.signal is not None else None
+
+
+_CURRENT: StopOnSignals | None = None   # the innermost watching StopOnSignals of this process
+
+
+def current_watchdog() -> StopOnSignals | None:
+    """The StopOnSignals watching kernel calls in this process (None: none installed)."""
+    return _CURRENT
+
+
+def kernel_call(stop):
+    """``stop.kernel_call()`` when the stop object watches kernel calls, else nothing."""
+    watch = getattr(stop, "kernel_call", None)
+    return watch() if watch is not None else contextlib.nullcontext()
+
+
+def interrupted_line(signal_name: str | None, steps_done: int, n_steps: int, t: float, path,
+                     resume_command: str | None = None) -> str:
+    """The one line that reports an interrupted run and how to continue it."""
+    why = f" by {signal_name}" if signal_name else ""
+    how = resume_command or "elimfast run CONFIG -o FILE --resume"
+    return (f"interrupted{why} at step {steps_done}/{n_steps} (t = {t:.17g}); {path} is complete up to there; "
+            f"continue with: {how}")
 
 
 # --- progress -----------------------------------------------------------------------------
@@ -203,11 +331,15 @@ def next_chunk_steps(previous_steps: int, previous_seconds: float, step_bytes: f
 def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = None,
           stop: StopOnSignals | None = None, wall_offset: float = 0.0, kernel_offset: float = 0.0,
           target_seconds: float = TARGET_CHUNK_SECONDS, max_chunk_bytes: int = MAX_CHUNK_BYTES,
-          first_chunk_steps: int = FIRST_CHUNK_STEPS, label: str = "") -> Outcome:
+          first_chunk_steps: int = FIRST_CHUNK_STEPS, label: str = "", resume_command: str | None = None,
+          problem_source: str | None = None) -> Outcome:
     """Advance ``integration`` chunk by chunk into ``writer`` until done, failed or stopped.
 
     The writer is finished (status written, file closed) on every way out but an
-    exception, where it is closed with status 'running' (resumable).
+    exception, where it is closed with status 'running' (resumable), and a failed HDF5
+    write, where it is abandoned (see the module doc). ``problem_source``: the file that
+    defines the problem, named when a problem function raises (default: the problem's
+    ``source_file``, else its name).
     """
     progress = progress or NoProgress()
     started = time.perf_counter()
@@ -217,32 +349,52 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     step_bytes = bytes_per_step(integration)
     steps = max(1, min(first_chunk_steps, int(max_chunk_bytes // step_bytes) or 1))
     probing = True   # the first kernel call only measures the speed: its data join the first chunk's flush
+    stopped = None   # (status reason, message) when the run stops short
     progress.start(integration.steps_done, integration.n_steps, label)
     try:
         while not integration.finished and not (stop is not None and stop.requested):
+            fitting = writer.fit_steps(min(steps, integration.n_steps - integration.steps_done), step_bytes)
+            if fitting < 1:
+                stopped = _disk_full(writer, resume_command)
+                break
+            before = integration.steps_done
             tick = time.perf_counter()
-            chunk = integration.advance(steps)
+            try:
+                with kernel_call(stop):
+                    chunk = integration.advance(fitting)
+            except Exception as err:   # noqa: BLE001 -- a problem function raised inside the kernel
+                stopped = _problem_raised(integration, before, err, writer, resume_command, problem_source)
+                break
             tock = time.perf_counter()
             kernel_s += tock - tick
-            writer.append(chunk)
-            steps = next_chunk_steps(len(chunk.iterations) or steps, tock - tick, step_bytes,
-                                     target_seconds, max_chunk_bytes,
-                                     remaining=integration.n_steps - integration.steps_done)
-            if probing and not integration.finished:
+            try:
+                writer.append(chunk)
+                steps = next_chunk_steps(len(chunk.iterations) or fitting, tock - tick, step_bytes,
+                                         target_seconds, max_chunk_bytes,
+                                         remaining=integration.n_steps - integration.steps_done)
+                if probing and not integration.finished:
+                    probing = False
+                    write_s += time.perf_counter() - tock
+                    continue
                 probing = False
-                write_s += time.perf_counter() - tock
-                continue
-            probing = False
-            writer.save_state(integration.state(), wall_time_s=wall_offset + time.perf_counter() - started,
-                              kernel_time_s=kernel_offset + kernel_s)
+                writer.save_state(integration.state(), wall_time_s=wall_offset + time.perf_counter() - started,
+                                  kernel_time_s=kernel_offset + kernel_s)
+            except (OSError, RuntimeError) as err:
+                writer.abandon()
+                stopped = _write_failed(writer, err, resume_command)
+                break
             write_s += time.perf_counter() - tock
             chunks += 1
             progress.update(integration.steps_done, integration.t)
-        if not probing and chunks == 0 and integration.steps_done > start_steps:
+        if stopped is None and not probing and chunks == 0 and integration.steps_done > start_steps:
             # stopped right after the probe: its data need their flush and state too
             tock = time.perf_counter()
-            writer.save_state(integration.state(), wall_time_s=wall_offset + tock - started,
-                              kernel_time_s=kernel_offset + kernel_s)
+            try:
+                writer.save_state(integration.state(), wall_time_s=wall_offset + tock - started,
+                                  kernel_time_s=kernel_offset + kernel_s)
+            except (OSError, RuntimeError) as err:
+                writer.abandon()
+                stopped = _write_failed(writer, err, resume_command)
             write_s += time.perf_counter() - tock
             chunks = 1
     except BaseException:
@@ -250,7 +402,9 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
         writer.close()
         raise
     progress.close()
-    if integration.status != 0:
+    if stopped is not None:
+        status = STOPPED_PREFIX + stopped[0]
+    elif integration.status != 0:
         status = FAILED_PREFIX + integration.failure_message()
     elif integration.steps_done >= integration.n_steps:
         status = STATUS_COMPLETE
@@ -258,13 +412,70 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
         status = STATUS_INTERRUPTED
     tock = time.perf_counter()
     wall = wall_offset + tock - started
-    writer.finish(status, steps_done=integration.steps_done, wall_time_s=wall, kernel_time_s=kernel_offset + kernel_s)
+    steps_done = writer.saved["steps_done"] if stopped is not None else integration.steps_done
+    if not writer.abandoned:
+        try:
+            writer.finish(status, steps_done=steps_done, wall_time_s=wall, kernel_time_s=kernel_offset + kernel_s)
+        except (OSError, RuntimeError) as err:   # DiskFullError included: leave it as a killed writer would
+            writer.abandon()
+            if stopped is None:
+                stopped = _write_failed(writer, err, resume_command)
+                status = STOPPED_PREFIX + stopped[0]
+                steps_done = writer.saved["steps_done"]
     write_s += time.perf_counter() - tock
-    return Outcome(status=status, path=writer.path, steps_done=integration.steps_done, n_steps=integration.n_steps,
+    return Outcome(status=status, path=writer.path, steps_done=steps_done, n_steps=integration.n_steps,
                    wall_time_s=wall, kernel_time_s=kernel_offset + kernel_s,
                    session_wall_s=time.perf_counter() - started, session_kernel_s=kernel_s,
-                   session_write_s=write_s, session_steps=integration.steps_done - start_steps, chunks=chunks,
-                   t=integration.t, signal_name=stop.name if stop is not None else None)
+                   session_write_s=write_s, session_steps=steps_done - start_steps, chunks=chunks,
+                   t=writer.saved["t"] if stopped is not None else integration.t,
+                   signal_name=stop.name if stop is not None else None,
+                   message=stopped[1] if stopped is not None else "")
+
+
+def _continue_with(resume_command: str | None) -> str:
+    return resume_command or "elimfast run CONFIG -o FILE --resume"
+
+
+def _disk_full(writer, resume_command) -> tuple[str, str]:
+    done = writer.saved["steps_done"]
+    return (f"disk full at step {done + 1}",
+            f"disk full at step {done + 1}; the {done} steps before it are in {writer.path}; free some space, "
+            f"then continue with: {_continue_with(resume_command)}")
+
+
+def _write_failed(writer, err, resume_command) -> tuple[str, str]:
+    if isinstance(err, DiskFullError) or hdf5._is_disk_full(err):
+        return _disk_full(writer, resume_command)
+    done = writer.saved["steps_done"]
+    detail = " ".join(str(err).split())
+    if len(detail) > 200:
+        detail = detail[:197] + "..."
+    return (f"write failed at step {done + 1}",
+            f"cannot write {writer.path} at step {done + 1} ({type(err).__name__}: {detail}); the {done} steps "
+            f"before it are in the file; check the disk, then continue with: {_continue_with(resume_command)}")
+
+
+def _problem_raised(integration, before: int, err: BaseException, writer, resume_command,
+                    problem_source=None) -> tuple[str, str]:
+    """A problem function raised inside the kernel: name the user's file, the step and the time."""
+    problem = integration.problem
+    source = getattr(problem, "source_file", None) or problem_source
+    where = f"{source}" if source else f"problem {problem.name!r}"
+    progress = getattr(integration, "_progress", None)
+    try:
+        step = before + int(progress[0]) + 1 if progress is not None else before + 1
+    except (TypeError, ValueError, IndexError):
+        step = before + 1
+    t = integration.t
+    text = " ".join(str(err).split()) or "(no message)"
+    if len(text) > 200:
+        text = text[:197] + "..."
+    what = f"{type(err).__name__}: {text}"
+    done = writer.saved["steps_done"]
+    return (f"the problem raised {what} at step {step} (t = {t:.17g})",
+            f"{where}: a problem function raised {what} at step {step} (t = {t:.17g}); {writer.path} holds "
+            f"the {done} steps saved before it; fix the problem, then continue with: "
+            f"{_continue_with(resume_command)}")
 
 
 def config_difference(stored: str, current: str) -> str | None:
@@ -290,15 +501,27 @@ def config_difference(stored: str, current: str) -> str | None:
     return first_difference(old, new)
 
 
+def _python_file(config_text: str) -> str | None:
+    """problem.python of a resolved config (the user's problem file), if it has one."""
+    import yaml
+    try:
+        problem = (yaml.safe_load(config_text) or {}).get("problem")
+    except (yaml.YAMLError, AttributeError):
+        return None
+    return str(problem["python"]) if isinstance(problem, dict) and problem.get("python") else None
+
+
 def run_to_file(integration, path, *, config_text: str, t_end: float | None = None, overwrite: bool = False,
                 resume: bool = False, progress: NoProgress | None = None, handle_signals: bool = True,
-                label: str = "", **drive_options) -> Outcome:
+                label: str = "", resume_command: str | None = None, **drive_options) -> Outcome:
     """Run ``integration`` into the HDF5 file ``path`` (new, overwritten, or resumed).
 
     resume: continue the run stored in ``path`` (which must come from the same resolved
-    config, output path aside); a missing file starts a new run. A complete run is left
-    as it is; a failed one is refused (it would fail again). Raises OutputError for
-    file problems, before any step is computed.
+    config, output path aside, and read back without damage); a missing file starts a
+    new run. A complete run is left as it is; a failed one is refused (it would fail
+    again). Raises OutputError for file problems and DiskFullError when the disk has no
+    room, before any step is computed. ``resume_command``: the command line that
+    continues this run, quoted in the messages of an interrupted or stopped run.
     """
     path = Path(path)
     if overwrite and resume:
@@ -306,7 +529,14 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
     hdf5.check_output_path(path, overwrite=overwrite, resume=resume)
     wall_offset = kernel_offset = 0.0
     note = ""
-    with StopOnSignals(handle_signals) as stop:
+    writer = None
+
+    def hard_stop(signal_name):
+        saved = writer.saved if writer is not None else {"steps_done": integration.steps_done, "t": integration.t}
+        return interrupted_line(signal_name, saved["steps_done"], integration.n_steps, saved["t"], path,
+                                resume_command)
+
+    with StopOnSignals(handle_signals, hard_stop=hard_stop) as stop:
         if resume and path.exists():
             with hdf5.RunFile(path) as existing:
                 status, attrs = existing.status, existing.attrs
@@ -325,30 +555,27 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 raise OutputError(f"{path}: the run {status}; resuming would fail the same way: change the "
                                   f"config and start again with --overwrite")
             opening = time.perf_counter()
-            writer, saved = hdf5.RunWriter.resume(path)
-            try:
-                integration.restore(saved)
-            except (KeyError, ValueError) as err:
-                writer.close()
-                raise OutputError(f"{path}: the stored state does not fit this run ({err})") from None
+            writer, saved = hdf5.RunWriter.resume(path, restore=integration.restore, stop=stop)
             wall_offset, kernel_offset = float(saved["wall_time_s"]), float(saved["kernel_time_s"])
             note = f"resumed at step {integration.steps_done}"
-            started_with = attrs.get("elimfast_version")
+            started_with = saved["attrs"].get("elimfast_version")
             if started_with != hdf5.version_attributes()["elimfast_version"]:
                 note += (f"; the run was started by elimfast {started_with}: a continuation by another version "
                          "is not guaranteed to be bit for bit")
         else:
             opening = time.perf_counter()
-            writer = hdf5.RunWriter.create(path, integration, config_text=config_text, t_end=t_end)
+            writer = hdf5.RunWriter.create(path, integration, config_text=config_text, t_end=t_end,
+                                           overwrite=overwrite or resume)
             if resume:
                 note = "no file to resume: started a new run"
         open_s = time.perf_counter() - opening
+        drive_options.setdefault("problem_source", _python_file(config_text))
         outcome = drive(integration, writer, progress=progress, stop=stop, wall_offset=wall_offset,
-                        kernel_offset=kernel_offset, label=label, **drive_options)
+                        kernel_offset=kernel_offset, label=label, resume_command=resume_command, **drive_options)
     outcome.note = note
     outcome.session_open_s = open_s
     return outcome
 
 
 __all__ = ["Outcome", "StopOnSignals", "drive", "run_to_file", "progress_for", "next_chunk_steps",
-           "config_difference", "OutputError"]
+           "config_difference", "interrupted_line", "kernel_call", "current_watchdog", "OutputError"]

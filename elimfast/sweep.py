@@ -34,6 +34,7 @@ compares every run's final state with it.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import math
@@ -50,7 +51,12 @@ import numpy as np
 from .errors import ConvergenceError, ElimfastError
 
 
-REFERENCE_LABEL = "\0reference"  # the reference run's label: no grid label can collide with it
+REFERENCE_LABEL = "\0reference"  # the reference run's label: no grid label can hold a NUL, so none collides
+MAX_RUNS = 10_000                 # points of a grid: beyond that, split the sweep
+MAX_LABEL_CHARACTERS = 200        # a label names an HDF5 group and a table row
+MEMORY_FRACTION = 0.5             # of the memory available, what one sweep may plan to use
+MAX_WORKERS_PER_CORE = 4          # worker processes: more than a few per core only costs memory
+PYTHON_BYTES_PER_NODE = 120       # a config value as Python objects (dict slot, float or str), measured ~80-150
 
 
 class SweepError(ElimfastError):
@@ -130,17 +136,83 @@ def _set_path(config: dict, dotted: str, value, source: str) -> None:
 
 
 def _read_yaml(path: Path, what: str) -> Any:
-    """The config files' reader (safe loader, no aliases or tags); its errors name the file and line."""
-    from .config import ConfigError, parse_yaml
+    """The config files' reader (a regular file of at most 1 MiB, safe loader, no aliases or
+    tags); its errors name the file and line."""
+    from .config import ConfigError, parse_yaml, read_text_file
 
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as error:
-        raise SweepError(f"{path}: cannot read the {what}: {getattr(error, 'strerror', None) or error}") from None
-    try:
+        text = read_text_file(path, str(path), what=what, example="a .yaml file")
         return parse_yaml(text, source=str(path))
     except ConfigError as error:
         raise SweepError(str(error)) from None
+
+
+def memory_available() -> int | None:
+    """Bytes this process could still allocate: MemAvailable, or the cgroup's limit minus its
+    use where that is lower; None where neither is known."""
+    values = []
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    values.append(int(line.split()[1]) * 1024)
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            limit = open(limit_file).read().strip()
+            usage = int(open(usage_file).read().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 1 << 60:
+            values.append(max(int(limit) - usage, 0))
+        break
+    return min(values) if values else None
+
+
+def _size(n_bytes: float) -> str:
+    for unit in ("bytes", "KB", "MB", "GB", "TB"):
+        if n_bytes < 1000 or unit == "TB":
+            return f"{n_bytes:.0f} {unit}" if unit == "bytes" else f"{n_bytes:.3g} {unit}"
+        n_bytes /= 1000
+    return f"{n_bytes:.3g} TB"
+
+
+def require_memory(needed: float, what: str, fix: str, source: str, key: str) -> None:
+    """SweepError when ``needed`` bytes exceed the share of the available memory a sweep may use."""
+    available = memory_available()
+    if available is not None and needed > MEMORY_FRACTION * available:
+        _fail(source, key, f"{what} would need {_size(needed)} of memory; this machine has {_size(available)} "
+                           f"available (a sweep plans with at most {MEMORY_FRACTION:.0%} of it): {fix}")
+
+
+def _nodes(value) -> int:
+    """Scalars and containers in a YAML value (iteratively: a sweep file is data, maybe deep)."""
+    count, stack = 0, [value]
+    while stack:
+        node = stack.pop()
+        count += 1
+        if isinstance(node, dict):
+            stack.extend(node.values())
+            count += len(node)
+        elif isinstance(node, list):
+            stack.extend(node)
+    return count
+
+
+def _check_label(source, key: str, label: str) -> str:
+    bad = next((c for c in label if ord(c) < 32 or ord(c) == 127), None)
+    if bad is not None:
+        _fail(source, key, f"the label {label[:40]!r} contains the control character {bad!r} (a NUL ends an HDF5 "
+                           "name); use printable text")
+    if not label.strip():
+        _fail(source, key, "an empty label; give each value a label of printable text")
+    if len(label) > MAX_LABEL_CHARACTERS:
+        _fail(source, key, f"the label is {len(label)} characters long; at most {MAX_LABEL_CHARACTERS}")
+    return label
 
 
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
@@ -190,19 +262,34 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             _fail(source, f"{key}.values", "must be a non-empty list")
         points = []
         if "key" in axis:
+            if not isinstance(axis["key"], str) or not all(axis["key"].split(".")):
+                _fail(source, f"{key}.key", "must be a dotted key such as integration.h")
             labels = axis.get("labels") or [str(v) for v in values]
-            if len(labels) != len(values):
-                _fail(source, f"{key}.labels", f"has {len(labels)} entries for {len(values)} values")
-            for label, value in zip(labels, values):
-                points.append((str(label), {"path": axis["key"], "value": value}))
+            if not isinstance(labels, list) or len(labels) != len(values):
+                _fail(source, f"{key}.labels", f"has {len(labels) if isinstance(labels, list) else 'no list of'} "
+                                               f"entries for {len(values)} values")
+            for j, (label, value) in enumerate(zip(labels, values)):
+                label = _check_label(source, f"{key}.labels[{j}]" if axis.get("labels") else f"{key}.values[{j}]",
+                                     str(label))
+                points.append((label, {"path": axis["key"], "value": value}))
         else:
             for j, variant in enumerate(values):
                 if not isinstance(variant, dict) or "set" not in variant or not isinstance(variant["set"], dict):
                     _fail(source, f"{key}.values[{j}]", "a variant is {label: ..., set: {key: value, ...}}")
-                points.append((str(variant.get("label", j)), {"replace": variant["set"]}))
+                label = _check_label(source, f"{key}.values[{j}].label", str(variant.get("label", j)))
+                points.append((label, {"replace": variant["set"]}))
         axis_points.append(points)
         axis_names.append(name)
 
+    # Count (and size) the grid before expanding it: the product of the axes' lengths grows
+    # fast, and each point holds a copy of the base config.
+    count = math.prod(len(points) for points in axis_points)
+    if count > MAX_RUNS:
+        lengths = " x ".join(str(len(points)) for points in axis_points)
+        _fail(source, "grid", f"{count:,} runs ({lengths}), more than a sweep may hold ({MAX_RUNS:,}); split it into "
+                              "smaller sweeps or use fewer values per axis")
+    require_memory(count * (_nodes(base) + 2 * len(axis_points)) * PYTHON_BYTES_PER_NODE,
+                   f"the grid's {count:,} run configs", "split the sweep or shrink the base config", source, "grid")
     runs = []
     for combination in itertools.product(*axis_points) if axis_points else [()]:
         config = copy.deepcopy(base)
@@ -244,6 +331,28 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base)
 
 
+def _whole_number(value) -> int | None:
+    """An integer given as 1000, 1e8, 1.0e8 or '10**8' (arithmetic, as in configs); None if it is none."""
+    from .problems.expressions import ExpressionError, evaluate_number
+
+    if isinstance(value, bool) or value is None:
+        return None
+    if isinstance(value, int):
+        return value
+    try:
+        number = evaluate_number(value, what="value")
+    except (ExpressionError, ValueError, TypeError):
+        return None
+    return int(number) if math.isfinite(number) and number.is_integer() else None
+
+
+def ensemble_bytes(n_trajectories: int, dimension: int, n_invariants: int) -> int:
+    """Memory an ensemble sweep holds at once: the states (as drawn, and the kernel's copy), the
+    final states and their copy in the writer, invariant errors (kernel output and the result's
+    per-name copies), and five per-trajectory numbers."""
+    return 8 * n_trajectories * (4 * dimension + 2 * (1 + n_invariants) + 5)
+
+
 def _check_ensemble(source, ensemble) -> dict:
     if not isinstance(ensemble, dict):
         _fail(source, "ensemble", "must be {n: N, seed: S, spread: D} or {states: [[...], ...]}")
@@ -257,9 +366,9 @@ def _check_ensemble(source, ensemble) -> dict:
         if not isinstance(states, list) or not states or not all(isinstance(r, list) for r in states):
             _fail(source, "ensemble.states", "must be a non-empty list of initial states (lists of numbers)")
         return {"states": states}
-    n = ensemble.get("n")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        _fail(source, "ensemble.n", f"must be a positive integer, got {n!r}")
+    n = _whole_number(ensemble.get("n"))
+    if n is None or n < 1:
+        _fail(source, "ensemble.n", f"must be a positive integer, got {ensemble.get('n')!r}")
     seed = ensemble.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         _fail(source, "ensemble.seed", f"must be a non-negative integer, got {seed!r}")
@@ -269,8 +378,9 @@ def _check_ensemble(source, ensemble) -> dict:
     return {"n": n, "seed": seed, "spread": float(spread)}
 
 
-def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None):
-    """Run an ensemble sweep in the parallel kernel: returns (RunSpec, Y0, EnsembleResult)."""
+def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Callable[[int], None] | None = None):
+    """Run an ensemble sweep in the parallel kernel: returns (RunSpec, Y0, EnsembleResult).
+    ``on_start(n_trajectories)`` is called once the states are drawn, before the kernel."""
     from .config import load_run_from_dict
     from .ensemble import integrate_ensemble
 
@@ -285,12 +395,17 @@ def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None):
             raise SweepError(f"{spec.source}: ensemble.states: each state needs {y0.size} numbers "
                              f"({', '.join(run.problem.coordinate_names)})")
     else:
+        n = spec.ensemble["n"]
+        require_memory(ensemble_bytes(n, y0.size, len(run.problem.invariant_names)),
+                       f"ensemble.n = {n:,} trajectories of {y0.size} coordinates", "lower n, or split the ensemble "
+                       "into several sweeps with different seeds", spec.source, "ensemble.n")
         rng = np.random.default_rng(spec.ensemble["seed"])
-        states = y0 + spec.ensemble["spread"] * rng.standard_normal((spec.ensemble["n"], y0.size))
+        states = y0 + spec.ensemble["spread"] * rng.standard_normal((n, y0.size))
+    if on_start is not None:
+        on_start(states.shape[0])
     try:
         result = integrate_ensemble(run.problem, run.method, run.h, states, n_steps=run.n_steps,
-                                    conserve=run.conserve, tol=run.tol, max_iter=run.max_iter, rhs=run.rhs,
-                                    n_threads=threads, t0=run.t0, warm_start=run.warm_start)
+                                    conserve=run.conserve, solver=run.solver, n_threads=threads, t0=run.t0)
     except (ValueError, TypeError) as error:
         raise SweepError(f"{spec.source}: ensemble: {error}") from None
     return run, states, result
@@ -347,11 +462,33 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.h = spec.h
     outcome.n_steps = spec.n_steps
     run = spec.integration()
+    needed = 2 * run_bytes(run)    # the chunks, then their concatenation
+    available = memory_available()
+    if available is not None and needed > MEMORY_FRACTION * available:
+        outcome.status = (f"failed: {source} [{label}]: the run's {spec.n_steps:,} steps would need {_size(needed)} of "
+                          f"memory in a sweep, which keeps every step; {_size(available)} are available: raise "
+                          "output.every, shorten the run, or run it alone with elimfast run (which streams to disk)")
+        return outcome
     outcome.y_initial = run.y.copy()
     chunks = [run.initial_chunk()]
     start = time.perf_counter()
-    while not run.finished:
-        chunks.append(run.advance(1 << 16))
+    try:
+        while not run.finished:
+            before = run.steps_done
+            with kernel_call():
+                chunks.append(run.advance(1 << 16))
+    except Exception as error:   # noqa: BLE001 -- a problem function raised inside the kernel
+        problem = spec.problem
+        where = (getattr(problem, "source_file", None) or spec.resolved["problem"].get("python")
+                 or f"problem {problem.name!r}")
+        progress = getattr(run, "_progress", None)
+        step = before + (int(progress[0]) if progress is not None else 0) + 1
+        text = " ".join(str(error).split()) or "(no message)"
+        outcome.wall_time = time.perf_counter() - start
+        outcome.steps_done = before
+        outcome.status = (f"failed: {where}: a problem function raised {type(error).__name__}: {text[:200]} at step "
+                          f"{step} (t = {run.t:.17g})")
+        return outcome
     outcome.wall_time = time.perf_counter() - start
     outcome.steps_done = run.steps_done
     outcome.y_final = run.y.copy()
@@ -377,6 +514,30 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     return outcome
 
 
+def _worker_init() -> None:
+    """A forked worker starts with Python's default signal handling, not the parent's watchdog."""
+    import signal
+    with contextlib.suppress(ValueError, OSError):
+        signal.set_wakeup_fd(-1)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def run_bytes(run) -> int:
+    """Memory of one sweep run's results: per-step iterations and multipliers, per-sample t, y
+    and invariants."""
+    samples = run.n_samples_between(0, run.n_steps) + 1
+    per_sample = 8 * (1 + run.y.size + 1 + len(run.problem.invariant_names))
+    return run.n_steps * 8 * (1 + run.multipliers.size) + samples * per_sample
+
+
+def kernel_call():
+    """The kernel-call marker of the command line's interrupt watchdog, if one is installed."""
+    from . import streaming
+    watchdog = streaming.current_watchdog()
+    return watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext()
+
+
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
@@ -393,6 +554,9 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise SweepError("--workers must be at least 1")
+    if workers > MAX_WORKERS_PER_CORE * default_workers():
+        raise SweepError(f"--workers {workers}: at most {MAX_WORKERS_PER_CORE * default_workers()} ("
+                         f"{MAX_WORKERS_PER_CORE} per core; each worker is a process running one kernel at a time)")
     jobs = [(run.label, run.coordinates, run.config) for run in spec.runs]
     if spec.reference is not None:
         jobs.append((REFERENCE_LABEL, {}, spec.reference))
@@ -411,7 +575,8 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         from .kernels import stepper  # noqa: F401
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         context = multiprocessing.get_context(method)
-        with ProcessPoolExecutor(max_workers=min(workers, total), mp_context=context) as pool:
+        pool = ProcessPoolExecutor(max_workers=min(workers, total), mp_context=context, initializer=_worker_init)
+        try:
             futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
                        for label, coordinates, config in jobs}
             for done, future in enumerate(as_completed(futures), start=1):
@@ -419,6 +584,15 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
                 results[outcome.label] = outcome
                 if on_done:
                     on_done(outcome, done, total)
+        except BaseException:
+            # Ctrl-C, SIGTERM or an error: the workers stop now (a worker inside a kernel call
+            # cannot run a signal handler, so it is killed), unfinished runs are dropped.
+            for process in list(getattr(pool, "_processes", {}).values()):
+                with contextlib.suppress(Exception):
+                    process.kill()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown(wait=True)
     reference = results.pop(REFERENCE_LABEL, None) if spec.reference is not None else None
     return [results[run.label] for run in spec.runs], reference
 

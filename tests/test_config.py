@@ -10,6 +10,8 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bounds import bounded_example
+
 import elimfast
 from elimfast import problems
 from elimfast.config import ConfigError, RunSpec, load_run, load_run_from_dict
@@ -342,6 +344,7 @@ JUNK = st.recursive(SCALARS, lambda inner: st.one_of(st.lists(inner, max_size=4)
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.dictionaries(st.sampled_from(KEYS), JUNK, max_size=7))
+@bounded_example
 def test_junk_configs_raise_only_config_errors(data):
     try:
         load_run_from_dict(data, source="junk.yaml")
@@ -367,6 +370,7 @@ SECTIONS = {
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.fixed_dictionaries(SECTIONS))
+@bounded_example
 def test_nearly_valid_configs_raise_only_config_errors(data):
     try:
         spec = load_run_from_dict(data, source="near.yaml")
@@ -378,6 +382,7 @@ def test_nearly_valid_configs_raise_only_config_errors(data):
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.text(max_size=200))
+@bounded_example
 def test_junk_yaml_text_raises_only_config_errors(text):
     from elimfast.config import parse_yaml
     try:

@@ -7,6 +7,8 @@ import sympy
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bounds import bounded_example
+
 from elimfast.errors import ElimfastError
 from elimfast.problems.expressions import (MAX_DEPTH, MAX_EXPONENT, MAX_LENGTH, ExpressionError, canonical,
                                            check_name, evaluate, evaluate_number, node_count, parse, to_sympy)
@@ -261,12 +263,14 @@ def _check_junk(text):
 
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.sampled_from(TOKENS), max_size=30).map("".join))
+@bounded_example
 def test_token_junk_raises_only_expression_errors(text):
     _check_junk(text)
 
 
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=60))
+@bounded_example
 def test_random_text_raises_only_expression_errors(text):
     _check_junk(text)
 
@@ -285,6 +289,7 @@ EXPRESSIONS = st.recursive(
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(EXPRESSIONS)
+@bounded_example
 def test_well_formed_expressions_build_or_fail_cleanly(text):
     _check_junk(text)
 

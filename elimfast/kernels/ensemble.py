@@ -169,7 +169,7 @@ ENSEMBLE_SIGNATURE = types.void(
 )
 
 
-@njit(ENSEMBLE_SIGNATURE, parallel=True, cache=True)
+@njit(ENSEMBLE_SIGNATURE, parallel=True, cache=True, nogil=True)
 def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                   family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
                   h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
