@@ -180,14 +180,17 @@ def run(config, output, overrides, overwrite, resume, quiet):
     The run proceeds in chunks, each appended to OUT.h5 and flushed, with a progress bar
     on a terminal (a line every few seconds otherwise). Ctrl-C or SIGTERM stops at the
     next chunk boundary (exit 130); --resume continues exactly where it stopped, even
-    after kill -9, and ends bit for bit where an uninterrupted run ends. A relative
-    output path is taken from the current directory.
+    after kill -9, and ends bit for bit where an uninterrupted run ends. --resume uses the
+    config stored in OUT.h5 (the --set values of the first run need not be repeated); a
+    --set on resume may change solver.* only, e.g. to continue a failed run with more
+    step halvings. A relative output path is taken from the current directory.
 
     \b
     Examples:
       elimfast run configs/kepler.yaml -o out/kepler.h5
       elimfast run configs/kepler.yaml -o out/k.h5 --set method.s=4 --set integration.t_end=100
       elimfast run configs/kepler.yaml -o out/kepler.h5 --resume
+      elimfast run configs/kepler.yaml -o out/kepler.h5 --resume --set solver.max_halvings=8
     """
     from elimfast.io.hdf5 import check_output_path
 
@@ -196,12 +199,17 @@ def run(config, output, overrides, overwrite, resume, quiet):
     if output is not None:   # before loading the config: compiling a problem can take a while
         output = str(Path(output).expanduser())
         check_output_path(output, overwrite=overwrite, resume=resume)
-    spec = _load(config, overrides)
+    if resume and output is not None and Path(output).is_file():
+        spec = _stored_spec(output, overrides)   # the run continues from the config it was started with
+    else:
+        spec = _load(config, overrides)
     path = output if output is not None else spec.output_path
     if path is None:
         raise click.UsageError(f"no output file: give -o OUT.h5 or set output.path in {config}")
     path = Path(path).expanduser()
     check_output_path(path, overwrite=overwrite, resume=resume)
+    if resume and output is None and path.is_file():
+        spec = _stored_spec(path, overrides)
     integration = spec.integration()
 
     from elimfast import streaming
@@ -209,14 +217,26 @@ def run(config, output, overrides, overwrite, resume, quiet):
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
-        resume_command=_resume_command(config, path, overrides))
+        resume_command=_resume_command(config, path))
     return _report_run(outcome, config, path, overrides, quiet)
 
 
-def _resume_command(config, path, overrides) -> str:
+def _stored_spec(path, overrides):
+    """The run spec of the config stored in a run file, with --set overrides on top (--resume
+    continues the run it holds: the CONFIG argument and its earlier --set values are not
+    needed again; changes other than solver.* are refused by the resume itself)."""
+    from elimfast.config import load_run_from_dict, parse_yaml
+    from elimfast.io.hdf5 import RunFile
+
+    with RunFile(path) as run_file:
+        text = str(run_file.attrs.get("config", ""))
+    source = f"{path} (its stored config)"
+    return load_run_from_dict(parse_yaml(text, source), source=source, overrides=list(overrides))
+
+
+def _resume_command(config, path) -> str:
     import shlex
-    return shlex.join(["elimfast", "run", str(config), "-o", str(path),
-                       *(arg for item in overrides for arg in ("--set", item)), "--resume"])
+    return shlex.join(["elimfast", "run", str(config), "-o", str(path), "--resume"])
 
 
 def _report_run(outcome, config, path, overrides, quiet) -> int:
@@ -230,10 +250,16 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
             rate_text = f", {rate:,.0f} steps/s" if outcome.session_steps else ""
             click.echo(f"{path}: complete, {outcome.steps_done} steps, wall time {outcome.wall_time_s:.3g} s"
                        f"{rate_text}{note}", err=True)
+            from elimfast.io.hdf5 import RunFile
+
+            from .report import run_notes
+            with RunFile(path) as run_file:
+                for line in run_notes(run_file):
+                    click.echo(f"note: {line}", err=True)
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:
         click.echo(interrupted_line(outcome.signal_name, outcome.steps_done, outcome.n_steps, outcome.t, path,
-                                    _resume_command(config, path, overrides)), err=True)
+                                    _resume_command(config, path)), err=True)
         return EXIT_INTERRUPTED
     if outcome.status.startswith(STOPPED_PREFIX) and outcome.message:
         click.echo(f"error: {one_line(outcome.message)}", err=True)
@@ -668,27 +694,6 @@ def cache():
     """
 
 
-def _numba_cache_files():
-    """Numba's index and data files for elimfast's own kernels (built-in problems included):
-    in the package's __pycache__ folders, or with NUMBA_CACHE_DIR in the folders Numba
-    names after each package directory (``<dir>_<sha1 of its path>``)."""
-    import elimfast
-
-    package = Path(elimfast.__file__).resolve().parent
-    source_dirs = sorted({path.parent for path in package.rglob("*.py") if "__pycache__" not in path.parts})
-    override = os.environ.get("NUMBA_CACHE_DIR")
-    if override:
-        from numba.core.caching import UserProvidedCacheLocator
-        roots = [Path(override) / UserProvidedCacheLocator.get_suitable_cache_subpath(str(d / "x.py"))
-                 for d in source_dirs]
-        where = str(Path(override))
-    else:
-        roots = [d / "__pycache__" for d in source_dirs]
-        where = str(package / "**" / "__pycache__")
-    files = [path for root in roots if root.is_dir() for path in root.iterdir() if path.suffix in (".nbi", ".nbc")]
-    return where, files
-
-
 def _size(n_bytes: int) -> str:
     for unit in ("B", "KiB", "MiB", "GiB"):
         if n_bytes < 1024 or unit == "GiB":
@@ -705,10 +710,10 @@ def cache_info():
     Example:
       elimfast cache info
     """
-    from elimfast.cache import ENV_VAR, cache_info as info
+    from elimfast.cache import ENV_VAR, cache_info as info, kernel_cache_files
 
     data = info()
-    where, files = _numba_cache_files()
+    where, files = kernel_cache_files()
     size = sum(f.stat().st_size for f in files if f.exists())
     click.echo(f"problem cache:  {data['path']}  ({data['entries']} generated problems, {_size(data['bytes'])}; "
                f"set {ENV_VAR} to move it)")
@@ -718,7 +723,7 @@ def cache_info():
 
 
 @cache.command("clear", context_settings=CONTEXT)
-@click.option("--kernels", is_flag=True, help="Also delete Numba's compiled kernels (the next run recompiles, ~10 s+).")
+@click.option("--kernels", is_flag=True, help="Also delete Numba's compiled kernels (the next run recompiles, ~1-2 min).")
 def cache_clear(kernels):
     """Delete the generated problem code (and with --kernels the compiled kernels).
 
@@ -727,20 +732,13 @@ def cache_clear(kernels):
       elimfast cache clear
       elimfast cache clear --kernels
     """
-    from elimfast.cache import cache_dir, clear_cache
+    from elimfast.cache import cache_dir, clear_cache, clear_kernels, kernel_cache_files
 
     removed = clear_cache()
     click.echo(f"removed {removed} files from {cache_dir()}")
     if kernels:
-        where, files = _numba_cache_files()
-        count = 0
-        for path in files:
-            try:
-                path.unlink()
-                count += 1
-            except FileNotFoundError:
-                pass
-        click.echo(f"removed {count} Numba files from {where}")
+        where = kernel_cache_files()[0]
+        click.echo(f"removed {clear_kernels()} Numba files from {where}")
     return EXIT_OK
 
 

@@ -32,6 +32,43 @@ def _problem_text(run_file) -> str:
     return str(attrs.get("problem"))
 
 
+def config_of(run_file) -> dict:
+    """The run's resolved config as stored in the file ({} when unreadable)."""
+    try:
+        config = yaml.safe_load(run_file.attrs.get("config", "")) or {}
+    except yaml.YAMLError:
+        return {}
+    return config if isinstance(config, dict) else {}
+
+
+def energy_note(attrs, drift: dict, initial: dict) -> str | None:
+    """Spec 8, "Quadrature of H": a method that should keep H but lost more than round-off
+    (relative 1e-12) keeps it only up to the quadrature error of its k nodes at this h."""
+    from elimfast.integrate import H_WARNING_RELATIVE
+
+    error, reference = drift.get("H", math.nan), abs(initial.get("H", math.nan))
+    if not math.isfinite(error):
+        return None
+    relative = error / reference if reference > 0 else error
+    if not relative > H_WARNING_RELATIVE:
+        return None
+    return (f"H error {relative:.1e} (relative) is above round-off: {attrs.get('method')} keeps H only up to the "
+            f"quadrature error of its k = {attrs.get('k')} nodes at h = {attrs.get('h')}; raise k or reduce h")
+
+
+def run_notes(run_file) -> list[str]:
+    """What the end-of-run line adds: split steps, and an H error above round-off."""
+    notes = []
+    substeps = run_file.substep_stats()
+    if substeps["split"]:
+        notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
+                     "solver could not converge them whole; every invariant is kept there too")
+    warning = energy_note(run_file.attrs, run_file.invariant_drift(), run_file.initial_invariants())
+    if warning:
+        notes.append(warning)
+    return notes
+
+
 def summary(run_file, integrity: dict | None = None) -> str:
     """The inspect summary of an open RunFile (``integrity``: what RunFile.verify returned)."""
     a = run_file.attrs
@@ -78,6 +115,17 @@ def summary(run_file, integrity: dict | None = None) -> str:
         row("iterations", "no steps yet")
     if "failed_step_iterations" in a:
         row("", f"the failed step used {a['failed_step_iterations']} iterations")
+    solver = (config_of(run_file).get("solver") or {})
+    if solver:
+        row("solver", f"{solver.get('method', 'fixed_point')}, max_iter {solver.get('max_iter')}, "
+                      f"max_halvings {solver.get('max_halvings', 0)}, predictor {solver.get('predictor', False)}")
+    substeps = run_file.substep_stats()
+    row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
+                                                   "solver could not converge is split in halves)"
+                                                   if substeps["split"] else ""))
+    warning = energy_note(a, drift, run_file.initial_invariants())
+    if warning:
+        row("note", warning)
     labels = run_file.multiplier_labels()
     maxima = run_file.max_abs_multipliers()
     if run_file.multiplier_name is None:

@@ -5,8 +5,12 @@ Layout (everything elimfast writes lives in these two folders; nothing else is t
 
     <cache>/problems/p_<sha256>.py        code generated from expressions (symbolic.py)
     <cache>/problems/u_<sha256>.py        copies of ``python:`` problem files (user_file.py)
-    <cache>/problems/__pycache__/...      Numba's cache of their compiled functions
     <cache>/keys/<sha256>                 input key -> generated file name (skips sympy when warm)
+    <cache>/kernels/<key>/...             Numba's cache of the modules above, one folder per key
+                                          of the kernels' sources (kernels/_cache.py; the
+                                          kernels and built-in problems are cached in the
+                                          package's __pycache__/kernels/<key>/; everything
+                                          under $NUMBA_CACHE_DIR/elimfast-kernels if that is set)
 
 Files are named by content hashes that include the elimfast version and are written
 atomically (temporary file + ``os.replace``), so concurrent processes can share the
@@ -124,13 +128,60 @@ def cache_info() -> dict:
     return {"path": str(root), "entries": entries, "bytes": size}
 
 
+def kernel_cache_files(only_problems: bool = False) -> tuple[Path, list[Path]]:
+    """(the kernel cache root, the Numba index and data files under it). only_problems:
+    just those of the generated and copied problem modules (every key's folder for them)."""
+    from numba.core.caching import _CacheLocator
+
+    from .kernels._cache import kernels_root
+    root = kernels_root()
+    roots = [root] if only_problems else [kernels_root(in_package=True), root]
+    folders = [r for r in dict.fromkeys(roots) if r.is_dir()]
+    if only_problems:
+        name = _CacheLocator.get_suitable_cache_subpath(str(cache_dir() / PROBLEMS_SUBDIR / "x.py"))
+        folders = [key / name for folder in folders for key in folder.iterdir() if (key / name).is_dir()]
+    files = [Path(dirpath) / name for folder in folders for dirpath, _dirs, names in os.walk(folder)
+             for name in names if name.endswith((".nbi", ".nbc"))]
+    return root, files
+
+
+def _remove(paths) -> int:
+    removed = 0
+    for path in paths:
+        try:
+            path.unlink()
+            removed += 1
+        except FileNotFoundError:
+            pass
+    return removed
+
+
+def _remove_empty_folders(folder: Path) -> None:
+    for dirpath, _dirnames, _filenames in sorted(os.walk(folder), reverse=True) if folder.is_dir() else ():
+        try:
+            os.rmdir(dirpath)
+        except OSError:
+            pass
+
+
+def clear_kernels() -> int:
+    """Remove every compiled kernel (all keys); the next run compiles again. Returns the count."""
+    from .kernels._cache import kernels_root
+    root, files = kernel_cache_files()
+    removed = _remove(files)
+    for folder in (root, kernels_root(in_package=True)):
+        _remove_empty_folders(folder)
+    return removed
+
+
 def clear_cache() -> int:
-    """Remove every file elimfast put in the cache; return how many were removed.
+    """Remove every file elimfast put in the cache for problems (generated and copied modules,
+    keys, and their compiled code); return how many were removed.
 
     Processes that already imported a generated module keep working; a later load
     regenerates and recompiles it.
     """
-    removed = 0
+    removed = _remove(kernel_cache_files(only_problems=True)[1])
     for path in list(_our_files()):
         try:
             path.unlink()

@@ -47,6 +47,7 @@ from .errors import ElimfastError
 from .errors import ParameterError
 from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, T_END_RELATIVE_TOLERANCE, Integration,
                         SolverSettings, resolve_conserve)
+from .integrate import compact_number as _count
 from .methods import MAX_NODES, Method
 from .problems.base import Problem
 from .problems.expressions import ExpressionError, ProblemDefinitionError, evaluate_number
@@ -394,6 +395,7 @@ class _Builder:
 
         problem, resolved_problem = self.problem(config.problem)
         conserve = self.conserve(config.conserve, problem, method)
+        solver = solver.resolved_for(method, len(conserve))
         resolved = {
             "problem": resolved_problem,
             "conserve": list(conserve),
@@ -706,14 +708,6 @@ class _Builder:
 
 _STEPS_REASON = ("that many steps take hours to days even at a microsecond each, and their per-step records "
                   "alone 40 GB; raise h or shorten the run")
-
-
-def _count(value) -> str:
-    """A count as written, or in e-notation when it is huge: 1e10 and 1e30, not 11 and 31 digits."""
-    if abs(value) < 1e9:
-        return str(value)
-    mantissa, exponent = f"{float(value):.3g}".split("e")
-    return f"{mantissa}e{int(exponent)}"
 
 
 def _method_parameters(family: str) -> list[str]:

@@ -21,7 +21,7 @@ from typing import Iterable
 import numba
 import numpy as np
 
-from .integrate import _FAILURE_ADVICE, _FAILURE_TEXT, DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration
+from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
 from .kernels import stepper
@@ -65,6 +65,7 @@ class EnsembleResult:
     steps_done: np.ndarray
     split_steps: np.ndarray
     solver: SolverSettings
+    diagnostics: np.ndarray
 
     @property
     def n_trajectories(self) -> int:
@@ -95,11 +96,9 @@ class EnsembleResult:
             return (f"{self.method.name}: trajectory {index}: a problem function raised an exception (e.g. a "
                     f"division by zero at a singularity) after step {step - 1} (t = {t_start:.17g}); run "
                     f"elimfast.integrate from this trajectory's y0 to see it")
-        what = _FAILURE_TEXT[code]
-        if code == stepper.STATUS_NOT_CONVERGED:
-            what = f"the {self.solver.description} did not converge at any of {self.solver.max_halvings} halvings"
-        return (f"{self.method.name}: trajectory {index}: {what} at step {step} "
-                f"(t = {t_start:.17g} -> {t_start + self.h:.17g}); {_FAILURE_ADVICE[code]}")
+        message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index])
+        name = f"{self.method.name}: "
+        return name + f"trajectory {index}: " + message[len(name):]
 
 
 def _thread_count(n_threads) -> int:
@@ -155,6 +154,7 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
     status = np.empty(n_traj, dtype=np.int64)
     steps_done = np.empty(n_traj, dtype=np.int64)
     split_steps = np.empty(n_traj, dtype=np.int64)
+    diagnostics = np.zeros((n_traj, stepper.N_DIAGNOSTICS))
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(threads)
     from .streaming import current_watchdog
@@ -164,7 +164,8 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
             ensemble_loop(
                 *run.kernel_settings(),
                 states, float(t0), run.n_steps, run.multipliers.size, threads,
-                y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps)
+                y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps,
+                diagnostics)
     finally:
         numba.set_num_threads(previous_threads)
     errors = {"H": inv_error[:, 0].copy()}
@@ -174,7 +175,7 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
         problem=problem, method=method, h=run.h, conserve=run.conserve, n_steps=run.n_steps,
         max_iter=run.max_iter, n_threads=threads, y0=states, y_final=y_final, t_final=t_final,
         invariant_errors=errors, iterations=iterations, max_multiplier=max_multiplier,
-        status=status, steps_done=steps_done, split_steps=split_steps, solver=run.solver)
+        status=status, steps_done=steps_done, split_steps=split_steps, solver=run.solver, diagnostics=diagnostics)
 
 
 __all__ = ["EnsembleResult", "STATUS_NAMES", "integrate_ensemble"]

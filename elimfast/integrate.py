@@ -6,7 +6,7 @@ Data flow: (problem, method, h, ...) -> Integration -> kernels.stepper.time_loop
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Iterable
 
 import numpy as np
@@ -21,12 +21,17 @@ SOLVERS = {"newton": codes.SOLVER_NEWTON, "fixed_point": codes.SOLVER_FIXED_POIN
 DEFAULT_SOLVER = "newton"
 DEFAULT_TOL = 2.0 ** -52          # relative increment at round-off (machine epsilon): accept at once
 MAX_TOL = 1e-8                    # a looser tol would accept iterates far from the solution
-# Iterations per solve. Newton's cap is low on purpose: a step that needs more than 30
-# is one whose system is ill-conditioned (nearly symmetric about a pericentre), and its
-# solution carries rounding noise of ~1e-12 (Kepler e = 0.9, h = 0.05, EHBVM(24,3)
-# imposing L, 2e4 time units: H error 7.3e-12 with cap 100, 8.6e-13 with cap 30, the
-# steps over the cap split in two, 0.2% of them). The fixed point contracts slower.
-DEFAULT_MAX_ITER = {"newton": 30, "fixed_point": 100}
+# Iterations per solve (docs/solver.md). 100, except simplified Newton on ELIM imposing
+# invariants: there a step that needs more than 30 is one whose alpha system is
+# ill-conditioned (nearly symmetric about a pericentre), and its solution carries
+# rounding noise of ~1e-12 (Kepler e = 0.9, h = 0.05, EHBVM(24,3) imposing L, 2e4 time
+# units: H error 7.3e-12 with a cap of 100, 8.6e-13 with 30, the steps over the cap split
+# in two, 0.2% of them). Elsewhere slow convergence only means the Jacobian changes
+# fast within the step, and splitting would cost what it does not need to: HBVM(24,3)
+# on the same orbit keeps its (not imposed) L error bounded at 2.2e-4 without splits,
+# and lets it drift to 1e-3 in 6000 time units when 30 splits 7 steps.
+DEFAULT_MAX_ITER = 100
+DEFAULT_MAX_ITER_ELIM_NEWTON = 30
 MAX_MAX_ITER = 10_000             # bounds the work of one kernel call (simplified Newton needs 5-15)
 DEFAULT_MAX_HALVINGS = 4          # step splitting depth (spec 8: one level always sufficed)
 MAX_MAX_HALVINGS = 20             # 2^20 substeps per step at most
@@ -53,14 +58,25 @@ STATUS_NAMES = {
 }
 
 
+def compact_number(value) -> str:
+    """A number as a user wrote it: 1e30 and 1e10, not thirty-one and eleven digits."""
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+            and math.isfinite(float(value)) and abs(value) >= 1e9:
+        mantissa, exponent = f"{float(value):.3g}".split("e")
+        return f"{mantissa}e{int(exponent)}"
+    return repr(value) if isinstance(value, str) else str(value)
+
+
 def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
     """value as an int in [low, high], or a ParameterError naming the parameter and the range."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not math.isfinite(float(value)) or not float(value).is_integer():
-        raise ParameterError(name, f"must be a whole number from {low} to {high}, got {value!r}")
+        raise ParameterError(name, f"must be a whole number from {low} to {high}, got {compact_number(value)}")
     as_int = int(value)
-    if not low <= as_int <= high:
-        raise ParameterError(name, f"must be from {low} to {high}{why}, got {as_int}")
+    if as_int < low:
+        raise ParameterError(name, f"must be >= {low}, got {compact_number(as_int)}")
+    if as_int > high:
+        raise ParameterError(name, f"must be <= {high}, got {compact_number(value)}{why}")
     return as_int
 
 
@@ -80,7 +96,7 @@ class SolverSettings:
 
     method: str = DEFAULT_SOLVER
     tol: float = DEFAULT_TOL
-    max_iter: int | None = None        # None: DEFAULT_MAX_ITER of the method
+    max_iter: int | None = None        # None: chosen with the method (resolved_for)
     max_halvings: int = DEFAULT_MAX_HALVINGS
     predictor: bool = True
     warm_start: bool = True
@@ -94,16 +110,18 @@ class SolverSettings:
             tol = DEFAULT_TOL if self.tol is None else float(self.tol)
         except (TypeError, ValueError):
             raise ParameterError("tol", f"must be a number, got {self.tol!r}") from None
-        if not (0.0 <= tol <= MAX_TOL):
-            raise ParameterError("tol", f"must be from 0 to {MAX_TOL:g}, got {self.tol!r}: it is the round-off stopping "
-                                        "tolerance on the relative increment, and a larger one accepts unconverged "
-                                        "steps, so H and the invariants are no longer kept; leave it out for machine "
-                                        "epsilon")
+        if not tol >= 0.0:
+            raise ParameterError("tol", f"must be >= 0, got {compact_number(self.tol)}; leave it out for machine epsilon")
+        if not tol <= MAX_TOL:
+            raise ParameterError("tol", f"must be <= {MAX_TOL:g}, got {compact_number(self.tol)}: it is the round-off "
+                                        "stopping tolerance on the relative increment, and a larger one accepts "
+                                        "unconverged steps, so H and the invariants are no longer kept; leave it out "
+                                        "for machine epsilon")
         object.__setattr__(self, "tol", tol)
-        max_iter = DEFAULT_MAX_ITER[self.method] if self.max_iter is None else self.max_iter
-        object.__setattr__(self, "max_iter", _whole_number(
-            "max_iter", max_iter, 1, MAX_MAX_ITER, ": a solve that has not converged by then will not; a step over "
-            "the cap is split in two instead (solver.max_halvings)"))
+        if self.max_iter is not None:
+            object.__setattr__(self, "max_iter", _whole_number(
+                "max_iter", self.max_iter, 1, MAX_MAX_ITER, ": a solve that has not converged by then will not; a step "
+                "over the cap is split in two instead (max_halvings)"))
         object.__setattr__(self, "max_halvings", _whole_number(
             "max_halvings", self.max_halvings, 0, MAX_MAX_HALVINGS, f" (2^{MAX_MAX_HALVINGS} substeps per step)"))
         if self.rhs not in ("stable", "literal"):
@@ -113,6 +131,13 @@ class SolverSettings:
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ParameterError(name, f"must be true or false, got {getattr(self, name)!r}")
             object.__setattr__(self, name, bool(getattr(self, name)))
+
+    def resolved_for(self, method: Method, n_imposed: int) -> "SolverSettings":
+        """These settings with max_iter chosen for the method when it was left out (see DEFAULT_MAX_ITER)."""
+        if self.max_iter is not None:
+            return self
+        elim_newton = (self.method == "newton" and method.kernel_family == codes.FAMILY_ELIM and n_imposed > 0)
+        return replace(self, max_iter=DEFAULT_MAX_ITER_ELIM_NEWTON if elim_newton else DEFAULT_MAX_ITER)
 
     def as_dict(self) -> dict:
         """The settings as plain data (the resolved config's solver section)."""
@@ -295,12 +320,10 @@ class Integration:
         self.conserve, self.conserve_idx = resolve_conserve(problem, method, conserve)
         self.h, self.n_steps = resolve_steps(h, n_steps=n_steps)
         self.backward = bool(backward)
-        if isinstance(solver, SolverSettings):
-            self.solver = solver
-        else:
-            self.solver = SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
-                                         max_halvings=max_halvings, predictor=predictor, warm_start=warm_start,
-                                         rhs=rhs)
+        if not isinstance(solver, SolverSettings):
+            solver = SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
+                                    max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)
+        self.solver = solver.resolved_for(method, len(self.conserve))
         self.store_every = _whole_number("store_every", store_every, 1, np.iinfo(np.int64).max)
 
         n = 2 * problem.degrees_of_freedom
@@ -347,6 +370,10 @@ class Integration:
                 "steps_done": self.steps_done}
 
     def restore(self, state: dict) -> None:
+        """Continue from a saved state. A state saved before the step engine has no last_h:
+        the previous step is then taken to have been a whole step (theta = 1)."""
+        state = dict(state)
+        state.setdefault("last_h", np.array([self.signed_h]))
         for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h"):
             target = getattr(self, key)
             value = np.asarray(state[key], dtype=np.float64)
@@ -424,7 +451,7 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     """The one-line report of a step that failed at every level of splitting (spec 8)."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
-        what = f"the {solver.description} did not converge"
+        what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
     d = diagnostics
     depth = int(d[stepper.DIAG_DEPTH])
     where = f"at step {step} (t = {t:.17g} -> {t + h:.17g})"
@@ -457,8 +484,8 @@ def integrate(problem: Problem, method: Method, h: float, t_end: float | None = 
     How each step is solved (docs/solver.md): solver 'newton' (simplified Newton, the
     default) or 'fixed_point' (the paper's iteration), or a SolverSettings; tol: the
     round-off acceptance on the relative increment (default machine epsilon, at most
-    1e-8); max_iter: iterations per solve (default 30 for Newton, 100 for the fixed
-    point; a step that needs more is split); predictor: start from the previous step's
+    1e-8); max_iter: iterations per solve (default 100, 30 for Newton on ELIM imposing
+    invariants; a step that needs more is split); predictor: start from the previous step's
     polynomial carried over; warm_start: start from the previous step at all (else from
     y_n); max_halvings: a step that fails is retried from the unextrapolated guess, then
     split into two half-steps, recursively to this depth (0: no splitting); rhs: 'stable'

@@ -478,8 +478,14 @@ def _problem_raised(integration, before: int, err: BaseException, writer, resume
             f"{_continue_with(resume_command)}")
 
 
-def config_difference(stored: str, current: str) -> str | None:
-    """The first key where two resolved YAML configs differ (output.path ignored), or None."""
+# Config sections that only decide how a step is solved, not which steps are taken: a
+# run may be resumed with other values there (a failed run with more halvings, say).
+SOLVER_SECTIONS = ("solver",)
+
+
+def config_difference(stored: str, current: str, ignore: tuple[str, ...] = ()) -> str | None:
+    """The first key where two resolved YAML configs differ (output.path and the sections
+    in ``ignore`` left out), or None."""
     import yaml
     try:
         old, new = yaml.safe_load(stored) or {}, yaml.safe_load(current) or {}
@@ -488,6 +494,9 @@ def config_difference(stored: str, current: str) -> str | None:
     for tree in (old, new):
         if isinstance(tree, dict) and isinstance(tree.get("output"), dict):
             tree["output"].pop("path", None)
+        if isinstance(tree, dict):
+            for section in ignore:
+                tree.pop(section, None)
 
     def first_difference(a, b, prefix=""):
         if isinstance(a, dict) and isinstance(b, dict):
@@ -517,9 +526,10 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
     """Run ``integration`` into the HDF5 file ``path`` (new, overwritten, or resumed).
 
     resume: continue the run stored in ``path`` (which must come from the same resolved
-    config, output path aside, and read back without damage); a missing file starts a
-    new run. A complete run is left as it is; a failed one is refused (it would fail
-    again). Raises OutputError for file problems and DiskFullError when the disk has no
+    config, output path and solver settings aside, and read back without damage); a
+    missing file starts a new run. A complete run is left as it is; a failed one
+    continues from its last good step only with changed solver settings (with the same
+    ones it would fail again). Raises OutputError for file problems and DiskFullError when the disk has no
     room, before any step is computed. ``resume_command``: the command line that
     continues this run, quoted in the messages of an interrupted or stopped run.
     """
@@ -541,23 +551,27 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             with hdf5.RunFile(path) as existing:
                 status, attrs = existing.status, existing.attrs
                 steps_done = existing.steps_done
-            difference = config_difference(str(attrs.get("config", "")), config_text)
+            stored = str(attrs.get("config", ""))
+            difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS)
             if difference is not None:
                 raise OutputError(f"{path}: was written from a different config (first difference at "
-                                  f"'{difference}'); resume with the same config and --set values, or use "
-                                  f"--overwrite to start again")
+                                  f"'{difference}', which changes the trajectory); only solver.* may change on "
+                                  f"--resume: use --overwrite to start again")
+            solver_changed = config_difference(stored, config_text) is not None
             if status == STATUS_COMPLETE:
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,
                                n_steps=int(attrs["n_steps"]), wall_time_s=float(attrs.get("wall_time_s", 0.0)),
                                kernel_time_s=float(attrs.get("kernel_time_s", 0.0)),
                                note="already complete; nothing to resume")
-            if status.startswith(FAILED_PREFIX):
-                raise OutputError(f"{path}: the run {status}; resuming would fail the same way: change the "
-                                  f"config and start again with --overwrite")
+            if status.startswith(FAILED_PREFIX) and not solver_changed:
+                raise OutputError(f"{path}: the run {status}; resuming with the same solver settings would fail the "
+                                  "same way: resume with other ones (e.g. --set solver.max_halvings=8), or start "
+                                  "again with --overwrite")
             opening = time.perf_counter()
-            writer, saved = hdf5.RunWriter.resume(path, restore=integration.restore, stop=stop)
+            writer, saved = hdf5.RunWriter.resume(path, restore=integration.restore, stop=stop,
+                                                  config_text=config_text if solver_changed else None)
             wall_offset, kernel_offset = float(saved["wall_time_s"]), float(saved["kernel_time_s"])
-            note = f"resumed at step {integration.steps_done}"
+            note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
             started_with = saved["attrs"].get("elimfast_version")
             if started_with != hdf5.version_attributes()["elimfast_version"]:
                 note += (f"; the run was started by elimfast {started_with}: a continuation by another version "

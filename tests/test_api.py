@@ -95,9 +95,10 @@ def test_non_convergence_raises_with_step_time_and_partial_result(kepler):
 
 
 def test_failure_mid_run_keeps_what_was_computed(kepler):
-    # A step too large for the fixed-point iteration near perihelion: the first steps converge.
+    # A step too large for the fixed-point iteration near perihelion, with step splitting
+    # turned off: the first steps converge.
     with pytest.raises(elimfast.ConvergenceError) as caught:
-        elimfast.integrate(kepler, gauss(3), 0.7, n_steps=40)
+        elimfast.integrate(kepler, gauss(3), 0.7, n_steps=40, solver="fixed_point", max_halvings=0)
     error = caught.value
     assert error.step > 1
     partial = error.result
@@ -105,6 +106,15 @@ def test_failure_mid_run_keeps_what_was_computed(kepler):
     assert partial.t[-1] == pytest.approx(0.7 * partial.steps_done)
     assert partial.iterations.shape == (error.step,)  # the failed step's count is kept
     assert "t = " in str(error)
+
+
+def test_the_step_engine_completes_the_run_the_fixed_point_could_not(kepler):
+    """Spec 8: the same run with the defaults (simplified Newton, step splitting) completes,
+    and keeps H to round-off at every sample (GAUSS(3) keeps only quadratic H exactly:
+    here the check is that no step was accepted unconverged, so H stays bounded)."""
+    result = elimfast.integrate(kepler, gauss(3), 0.7, n_steps=40)
+    assert result.status == "complete" and result.split_steps >= 1
+    assert result.invariant_errors()["angular_momentum"] < 1e-13   # quadratic: Gauss keeps it exactly
 
 
 def test_singular_gamma_is_reported_not_nan(central_quartic):

@@ -222,8 +222,11 @@ def test_cache_clear_kernels_removes_only_elimfasts_numba_files(tmp_path):
     from numba.core.caching import UserProvidedCacheLocator
 
     import elimfast.kernels.stepper as stepper
+    from elimfast.kernels._cache import cache_key
     numba_dir = tmp_path / "numba"
-    ours = numba_dir / UserProvidedCacheLocator.get_suitable_cache_subpath(stepper.__file__)
+    # elimfast's own folder in NUMBA_CACHE_DIR, keyed by its kernels' sources (kernels/_cache.py)
+    ours = (numba_dir / "elimfast-kernels" / cache_key()
+            / UserProvidedCacheLocator.get_suitable_cache_subpath(stepper.__file__))
     ours.mkdir(parents=True)
     (ours / "stepper.time_loop-1.py311.nbi").write_bytes(b"")
     (ours / "stepper.time_loop-1.py311.1.nbc").write_bytes(b"")
@@ -235,4 +238,4 @@ def test_cache_clear_kernels_removes_only_elimfasts_numba_files(tmp_path):
     assert info.exit_code == 0 and "(2 Numba files" in info.stdout
     cleared = invoke("cache", "clear", "--kernels", env=env)
     assert cleared.exit_code == 0 and "removed 2 Numba files" in cleared.stdout
-    assert not any(ours.iterdir()) and (other / "f-1.py311.nbi").exists()
+    assert not ours.exists() and (other / "f-1.py311.nbi").exists()

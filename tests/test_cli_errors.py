@@ -116,9 +116,10 @@ def test_bad_input_in_a_real_process(name, tmp_path):
 def test_a_failed_run_exits_1_and_keeps_its_data(tmp_path):
     out = tmp_path / "fail.h5"
     result = CliRunner().invoke(cli, ["run", write(tmp_path, "g.yaml", GOOD), "-o", str(out),
-                                      "--set", "solver.max_iter=3"])
+                                      "--set", "solver.max_iter=3", "--set", "solver.max_halvings=0"])
     assert result.exit_code == 1
-    assert_one_line_error(result.stderr, "run failed: EHBVM(6,3): the fixed-point iteration did not converge")
+    assert_one_line_error(result.stderr, "run failed: EHBVM(6,3): the simplified Newton did not converge "
+                                         "(max_iter = 3) at step 1")
     with h5py.File(out, "r") as f:
         assert f.attrs["status"].startswith("failed: EHBVM(6,3)")
     inspect = CliRunner().invoke(cli, ["inspect", str(out)])

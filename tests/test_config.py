@@ -15,7 +15,7 @@ from bounds import bounded_example
 import elimfast
 from elimfast import problems
 from elimfast.config import ConfigError, RunSpec, load_run, load_run_from_dict
-from elimfast.integrate import Integration
+from elimfast.integrate import Integration, SolverSettings
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 ALL_CONFIGS = sorted(CONFIGS.glob("*.yaml"))
@@ -71,7 +71,9 @@ def test_kepler_config_is_the_make_run_config():
     assert spec.method.name == "EHBVM(12,3)" and spec.conserve == ("angular_momentum", "lrl_y")
     assert (spec.h, spec.t0, spec.t_end, spec.n_steps) == (0.1, 0.0, 1000.0, 10000)
     assert (spec.output_path, spec.output_every) == ("out/kepler.h5", 10)
-    assert (spec.tol, spec.max_iter, spec.rhs, spec.warm_start) == (None, 100, "stable", True)
+    # simplified Newton with the defaults of docs/solver.md (max_iter 30: ELIM imposing invariants)
+    assert spec.solver == SolverSettings(max_iter=30)
+    assert (spec.solver.method, spec.solver.max_iter, spec.solver.max_halvings) == ("newton", 30, 4)
     assert spec.problem.name == "kepler" and spec.problem.parameters == {"eccentricity": 0.6}
 
 
@@ -89,12 +91,13 @@ def test_user_problems_in_configs_are_the_builtin_kepler():
 def test_numbers_are_arithmetic_and_integration_matches_the_python_api():
     data = kepler_data()
     data["integration"] = {"h": "pi/30", "t_end": "20*pi"}
-    data["solver"] = {"tol": "1e-15", "max_iter": "2*50"}
+    data["solver"] = {"tol": "1e-15", "max_iter": "2*50", "method": "fixed_point", "max_halvings": "2+1"}
     spec = load_run_from_dict(data)
     assert spec.h == math.pi / 30 and spec.n_steps == 600 and spec.t_end == 20 * math.pi
-    assert spec.tol == 1e-15 and spec.max_iter == 100
+    assert spec.solver == SolverSettings(method="fixed_point", tol=1e-15, max_iter=100, max_halvings=3)
     run = spec.integration()
     assert (run.h, run.n_steps, run.tol, run.store_every) == (math.pi / 30, 600, 1e-15, 10)
+    assert run.solver is spec.solver
 
 
 def test_overrides_are_yaml_values_and_validated():
@@ -118,7 +121,8 @@ def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
     assert resolved["integration"] == {"h": math.pi / 30, "t0": 0.0, "t_end": 60 * (math.pi / 30), "n_steps": 60}
     assert resolved["problem"]["initial"] == {"q1": 0.4, "q2": 0.0, "p1": 0.0, "p2": math.sqrt(1.6 / 0.4)}
     assert resolved["method"] == {"name": "ehbvm", "k": 12, "s": 3}
-    assert resolved["solver"] == {"tol": None, "max_iter": 100, "rhs": "stable", "warm_start": True}
+    assert resolved["solver"] == {"method": "newton", "tol": 2.0 ** -52, "max_iter": 30, "max_halvings": 4,
+                                  "predictor": True, "warm_start": True, "rhs": "stable"}
     yaml.safe_dump(resolved)
 
 
@@ -193,6 +197,8 @@ BAD = [
     ("rhs literal only", _set(("solver", "rhs"), "fancy"), "solver.rhs", "'stable' or 'literal'"),
     ("tol negative", _set(("solver", "tol"), -1), "solver.tol", "must be >= 0"),
     ("max_iter zero", _set(("solver", "max_iter"), 0), "solver.max_iter", "must be >= 1"),
+    ("solver unknown", _set(("solver", "method"), "newtn"), "solver.method", "must be one of newton, fixed_point"),
+    ("halvings too many", _set(("solver", "max_halvings"), 64), "solver.max_halvings", "must be <= 20"),
     ("every zero", _set(("output", "every"), 0), "output.every", "must be >= 1"),
     ("section not mapping", _set(("solver",), "fast"), "solver", "must be a mapping"),
     ("boolean key", _set(("problem", "initial"), {True: 1.0}), "problem.initial.True", "quote the key"),
@@ -328,7 +334,8 @@ def test_malicious_configs_are_rejected_and_have_no_effect(tmp_path):
 
 KEYS = ["problem", "method", "integration", "solver", "output", "conserve", "builtin", "python", "coordinates",
         "hamiltonian", "invariants", "parameters", "initial", "check", "name", "k", "s", "r", "h", "t_end",
-        "n_steps", "t0", "tol", "max_iter", "rhs", "warm_start", "path", "every", "q", "p", "eccentricity",
+        "n_steps", "t0", "tol", "max_iter", "max_halvings", "predictor", "rhs", "warm_start", "path", "every", "q",
+        "p", "eccentricity",
         "q1", "p2", "junk"]
 SCALARS = st.one_of(
     st.none(), st.booleans(), st.integers(-5, 100), st.floats(allow_nan=True, allow_infinity=True),

@@ -82,7 +82,7 @@ def test_sweep_runs_in_parallel_give_the_same_numbers_and_orders(tmp_path):
 
 def test_a_failing_run_does_not_stop_the_others(tmp_path):
     path = write_sweep(tmp_path, {
-        "base": {**BASE, "solver": {"max_iter": 30}},
+        "base": {**BASE, "solver": {"max_iter": 30, "method": "fixed_point", "max_halvings": 0}},
         "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/4"]}],
         "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}})
     outcomes, reference = run_sweep(load_sweep(path), workers=2)
@@ -147,7 +147,7 @@ def test_cli_sweep_stores_every_run_marks_the_failed_one_and_exits_1(tmp_path):
     from elimfast_cli.main import cli
 
     path = write_sweep(tmp_path, {
-        "base": {**BASE, "solver": {"max_iter": 30}},
+        "base": {**BASE, "solver": {"max_iter": 30, "method": "fixed_point", "max_halvings": 0}},
         "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/4"], "labels": ["small", "huge"]}],
         "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}})
     out = tmp_path / "sweep.h5"

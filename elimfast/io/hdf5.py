@@ -8,7 +8,8 @@ extended as the run goes):
     /y                      (samples, 2m)        state; attribute ``coordinates`` (q names, then p names)
     /invariants/H           (samples,)           the Hamiltonian at each sample
     /invariants/<name>      (samples,)           every invariant of the problem; attribute ``imposed``
-    /steps/iterations       (steps_done,) int32  fixed-point iterations of each step
+    /steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
+    /steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split (spec 8)
     /steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
     /steps/lambda           (steps_done, nu+1)   LIM/GHBVM (H first, then the imposed invariants)
     /method/A, b, c         the Runge-Kutta form (all but LIM/GHBVM; for ELIM/EHBVM the
@@ -657,7 +658,7 @@ _RECORD_HEADER = ("sequence", "steps_done", "n_samples", "wall_time_s", "kernel_
 
 
 def _record_length(n: int, s: int, n_mult: int) -> int:
-    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1
+    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + 1
 
 
 def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float, kernel_time_s: float) -> np.ndarray:
@@ -665,7 +666,7 @@ def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float,
         np.array([sequence, state["steps_done"], n_samples, wall_time_s, kernel_time_s], dtype=np.float64),
         np.asarray(state["clock"], dtype=np.float64).ravel(), np.asarray(state["y"], dtype=np.float64).ravel(),
         np.asarray(state["y_comp"], dtype=np.float64).ravel(), np.asarray(state["coef"], dtype=np.float64).ravel(),
-        np.asarray(state["multipliers"], dtype=np.float64).ravel()])
+        np.asarray(state["multipliers"], dtype=np.float64).ravel(), np.asarray(state["last_h"], dtype=np.float64).ravel()])
     return np.append(body, float(zlib.crc32(body.astype("<f8").tobytes())))
 
 
@@ -679,7 +680,7 @@ def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int) -> dict | None:
     at = len(_RECORD_HEADER)
     parts = {}
     for key, size, shape in (("clock", 2, (2,)), ("y", n, (n,)), ("y_comp", n, (n,)), ("coef", s * n, (s, n)),
-                             ("multipliers", n_mult, (n_mult,))):
+                             ("multipliers", n_mult, (n_mult,)), ("last_h", 1, (1,))):
         parts[key] = row[at:at + size].reshape(shape).copy()
         at += size
     return {**parts, "steps_done": int(header["steps_done"]), "n_samples": int(header["n_samples"]),
@@ -744,6 +745,7 @@ class RunWriter:
         self._t, self._y = datasets["t"], datasets["y"]
         self._invariants = datasets["invariants"]    # in the column order of Chunk.invariants
         self._iterations = datasets["iterations"]
+        self._substeps = datasets.get("substeps")    # absent in files written before the step engine
         self._multipliers = datasets.get("multipliers")
         self._state = datasets["state"]
         self._record = datasets.get("record")
@@ -763,6 +765,7 @@ class RunWriter:
             "t": _Growing(f["t"].id), "y": _Growing(f["y"].id),
             "invariants": [_Growing(f["invariants"][name].id) for name in order],
             "iterations": _Growing(steps["iterations"].id),
+            "substeps": _Growing(steps["substeps"].id) if "substeps" in steps else None,
             "multipliers": _Growing(multipliers.id) if multipliers is not None else None,
             "state": state, "record": f["state"]["record"].id if "record" in f["state"] else None},
             guard=guard, sequence=sequence)
@@ -802,7 +805,7 @@ class RunWriter:
             guard.lock()
             mult = multiplier_name(run)
             names = ("H",) + tuple(problem.invariant_names)
-            n_datasets = 3 + len(names) + (mult is not None)
+            n_datasets = 4 + len(names) + (mult is not None)
             guard.reserve(SPACE_BASE + n_datasets * SPACE_MARGIN)
             _set_attributes(f, {
                 **version_attributes(), "format": FORMAT, "format_version": FORMAT_VERSION,
@@ -822,6 +825,7 @@ class RunWriter:
                 _set_attributes(dataset, {"imposed": name in run.conserve})
             steps = f.create_group("steps")
             datasets["iterations"] = _growing(steps, "iterations", None, "i4")
+            datasets["substeps"] = _growing(steps, "substeps", None, "i4")
             if mult is not None:
                 datasets["multipliers"] = _growing(steps, mult, run.multipliers.size, "f8")
                 imposed = ("H",) + run.conserve if mult == "lambda" else run.conserve
@@ -860,7 +864,7 @@ class RunWriter:
             raise
 
     @classmethod
-    def resume(cls, path, *, restore=None, stop=None) -> tuple["RunWriter", dict]:
+    def resume(cls, path, *, restore=None, stop=None, config_text: str | None = None) -> tuple["RunWriter", dict]:
         """Reopen a run for writing; return (writer, saved) with saved = the state and the root attributes.
 
         Nothing is changed until everything the run will build on has been read back and
@@ -868,7 +872,9 @@ class RunWriter:
         to the saved state, the state record) and ``restore(saved)`` has accepted the
         state (it raises ValueError or KeyError if the state does not fit the run). A file
         left by a killed writer (SWMR flags still set) is then repaired; if reopening it
-        still fails, the flags are put back as they were.
+        still fails, the flags are put back as they were. ``config_text``: the resolved
+        config the run continues with, when its solver settings differ from the stored
+        one's; it replaces the stored config, and ``solver_history`` records the change.
         """
         path = Path(path)
         if not path.exists():
@@ -880,7 +886,7 @@ class RunWriter:
         with RunFile(path) as existing:
             saved = existing.saved_state()
             existing.verify(stop=stop)
-            n_datasets = 3 + len(existing.invariant_names) + (existing.multiplier_name is not None)
+            n_datasets = 4 + len(existing.invariant_names) + (existing.multiplier_name is not None)
         # A format 1 file (no checksums, no record) is continued in its own format.
         if restore is not None:
             try:
@@ -917,6 +923,11 @@ class RunWriter:
             for d in f["steps"].values():
                 d.resize(saved["steps_done"], axis=0)
             f.attrs["status"] = STATUS_RUNNING
+            if config_text is not None:
+                history = list(_plain(f.attrs.get("solver_history", [])) or [])
+                history.append(f"from step {saved['steps_done']}: {_solver_line(config_text)} "
+                               f"(before: {_solver_line(str(attrs.get('config', '')))})")
+                _replace_attributes(f, {"config": config_text, "solver_history": history})
             for key in ("failed_step_iterations",):
                 if key in f.attrs:
                     del f.attrs[key]
@@ -940,7 +951,7 @@ class RunWriter:
     # --- disk space ---
     @property
     def n_datasets(self) -> int:
-        return 3 + len(self._invariants) + (self._multipliers is not None)
+        return 3 + len(self._invariants) + (self._substeps is not None) + (self._multipliers is not None)
 
     def fit_steps(self, steps: int, step_bytes: float) -> int:
         """How many of ``steps`` steps (at ``step_bytes`` each) the disk can take; their
@@ -976,6 +987,8 @@ class RunWriter:
             self.failed_step_iterations = int(iterations[steps_done])
             iterations = iterations[:steps_done]
         self._iterations.append(iterations)
+        if self._substeps is not None:
+            self._substeps.append(chunk.substeps)
         if self._multipliers is not None:
             self._multipliers.append(chunk.multipliers)
 
@@ -989,7 +1002,9 @@ class RunWriter:
                               _pack_record(state, self._sequence, n_samples, wall_time_s, kernel_time_s))
         values = dict(state, n_samples=n_samples, wall_time_s=wall_time_s, kernel_time_s=kernel_time_s)
         for key, value in values.items():
-            dataset = self._state[key]
+            dataset = self._state.get(key)
+            if dataset is None:     # last_h, in a file written before the step engine (its record has none)
+                continue
             dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
         self._file.flush()
         self.saved = {"steps_done": int(state["steps_done"]), "n_samples": n_samples,
@@ -1265,6 +1280,23 @@ def _write_method(group, method) -> None:
     if method.imposes_invariants:
         _small_dataset(group, "invariant_quadrature_nodes", method.chat)
         _small_dataset(group, "invariant_quadrature_weights", method.bhat)
+
+
+def _solver_line(config_text: str) -> str:
+    """The solver section of a resolved config, on one line."""
+    import yaml
+    try:
+        solver = (yaml.safe_load(config_text) or {}).get("solver") or {}
+    except (yaml.YAMLError, AttributeError):
+        return "?"
+    return ", ".join(f"{key} {value}" for key, value in solver.items()) if isinstance(solver, dict) else "?"
+
+
+def _replace_attributes(obj, values: dict) -> None:
+    for name in values:
+        if name in obj.attrs:
+            del obj.attrs[name]
+    _set_attributes(obj, values)
 
 
 def _set_attributes(obj, values: dict) -> None:
@@ -1575,6 +1607,29 @@ class RunFile:
         p99 = int(np.searchsorted(cumulative, math.ceil(0.99 * count)))
         return {"count": count, "total": total, "mean": total / count, "min": low, "median": median,
                 "p99": p99, "max": high}
+
+    def initial_invariants(self) -> dict[str, float]:
+        """H and every invariant at the first sample (t0), NaN when there is none."""
+        values = {}
+        for name in self.invariant_names:
+            first = math.nan
+            for block in self._blocks(f"invariants/{name}", min(self.n_samples, 1)):
+                first = float(block[0])
+            values[name] = first
+        return values
+
+    def substep_stats(self) -> dict:
+        """{"split": steps split into substeps (spec 8, "Fallback"), "max": the most substeps of
+        one step}; zeros for a file written before the step engine (no /steps/substeps)."""
+        with self._reading("/steps"):
+            present = "substeps" in self._file["steps"]
+        split, largest = 0, 1 if self.steps_done else 0
+        if present:
+            for block in self._blocks("steps/substeps", self.steps_done):
+                if block.size:
+                    split += int(np.count_nonzero(block > 1))
+                    largest = max(largest, int(block.max()))
+        return {"split": split, "max": largest}
 
     def max_abs_multipliers(self) -> list[float]:
         if self.multiplier_name is None:

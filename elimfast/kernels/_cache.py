@@ -6,11 +6,12 @@ change there left the cached machine code of time_loop in place (last round, a c
 ``error_model`` in signatures.py kept raising ZeroDivisionError from stale built-in
 problem functions). So every function elimfast compiles (the kernels, the built-in
 problems, and the generated or copied problem modules in elimfast's cache) is cached
-under ``<cache>/kernels/<key>/``, where key is a hash of the elimfast version, the Numba
-version and the text of every module of ``elimfast.kernels``: a changed kernel source
-or version can never load old code; it compiles into a new folder.
-
-With NUMBA_CACHE_DIR set, the keyed folder goes there instead of elimfast's cache.
+in a folder named by a key, a hash of the elimfast version, the Numba version and the
+text of every module of ``elimfast.kernels``: a changed kernel source or version can
+never load old code; it compiles into a new folder. The package's own functions go to
+``elimfast/__pycache__/kernels/<key>/`` (elimfast's cache if the package is not
+writable), the generated problem modules to ``<cache>/kernels/<key>/``; with
+NUMBA_CACHE_DIR set, both go to ``$NUMBA_CACHE_DIR/elimfast-kernels/<key>/``.
 """
 from __future__ import annotations
 
@@ -35,48 +36,63 @@ def cache_key() -> str:
     return digest.hexdigest()[:16]
 
 
-def kernels_root() -> Path:
-    """The folder holding one subfolder per key (``elimfast cache clear --kernels`` empties it)."""
+def kernels_root(in_package: bool = False) -> Path:
+    """The folder holding one subfolder per key (``elimfast cache clear --kernels`` empties it):
+    $NUMBA_CACHE_DIR/elimfast-kernels if set; else, for the package's own files
+    (``in_package``), the package's __pycache__ (where Numba itself would put them, so
+    that a changed ELIMFAST_CACHE_DIR does not recompile the kernels); for the generated
+    problem modules, elimfast's cache."""
     override = os.environ.get("NUMBA_CACHE_DIR")
     if override:
         return Path(override).expanduser() / "elimfast-kernels"
+    if in_package:
+        return PACKAGE_DIR / "__pycache__" / "kernels"
     from ..cache import cache_dir
     return cache_dir() / "kernels"
 
 
 _KEY = cache_key()
-_ROOT = kernels_root() / _KEY
 
 
-def kernel_cache_dir() -> Path:
-    """This process's keyed folder."""
-    return _ROOT
+def kernel_cache_dir(in_package: bool = False) -> Path:
+    """This process's keyed folder (under the root as it is set now)."""
+    return kernels_root(in_package) / _KEY
 
 
-def _ours(py_file: str) -> bool:
+def _place(py_file: str) -> str | None:
+    """'package' for elimfast's own modules, 'cache' for the modules in elimfast's cache, else None."""
     path = Path(py_file).resolve()
     if PACKAGE_DIR in path.parents:
-        return True
+        return "package"
     from ..cache import cache_dir
-    return Path(cache_dir()).resolve() in path.parents
+    return "cache" if Path(cache_dir()).resolve() in path.parents else None
 
 
 class KeyedCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
     """Numba cache locator for elimfast's own files: <root>/<key>/<Numba's subpath of the file>."""
 
-    def __init__(self, py_func, py_file):
+    def __init__(self, py_func, py_file, root: Path):
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno
-        self._cache_path = str(_ROOT / self.get_suitable_cache_subpath(py_file))
+        self._cache_path = str(root / self.get_suitable_cache_subpath(py_file))
 
     def get_cache_path(self):
         return self._cache_path
 
     @classmethod
     def from_function(cls, py_func, py_file):
-        if not _ours(py_file):
+        place = _place(py_file)
+        if place is None or not os.path.exists(py_file):
             return None
-        return super().from_function(py_func, py_file)   # None when the folder cannot be created
+        roots = [kernel_cache_dir(in_package=True), kernel_cache_dir()] if place == "package" else [kernel_cache_dir()]
+        for root in roots:   # an installed package may not be writable: then elimfast's cache
+            locator = cls(py_func, py_file, root)
+            try:
+                locator.ensure_cache_path()
+            except OSError:
+                continue
+            return locator
+        return None
 
 
 def install() -> None:

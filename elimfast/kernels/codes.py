@@ -1,8 +1,14 @@
-"""The integer codes kernels and the Python layer share: statuses, families, solvers.
+"""The integer codes kernels and the Python layer share (statuses, families, solvers), and
+the compile options of the kernels' internal functions.
 
 One owner for each code: kernels return these, ``elimfast.integrate`` turns them into
 exceptions and messages.
 """
+from numba import njit
+
+# Functions only kernels call: no wrappers for calls from Python or C (each costs
+# compile time, several seconds for a function that takes the Workspace's 40 arrays).
+internal = njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 
 # Status of a step or a kernel call.
 STATUS_OK = 0

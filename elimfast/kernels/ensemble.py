@@ -23,7 +23,7 @@ from numba import njit, prange, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 from numba.extending import intrinsic
 
-from .codes import STATUS_EXCEPTION, STATUS_OK
+from .codes import STATUS_EXCEPTION, STATUS_OK, internal
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import N_DIAGNOSTICS, try_step
@@ -33,9 +33,9 @@ warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, modu
 warnings.filterwarnings("ignore", message="First-class function type feature is experimental")
 
 
-@njit(cache=True)
+@internal
 def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables, conserve_idx,
-                    h, y0, t0, n_steps, n_mult, y, errors, counts, reals):
+                    h, y0, t0, n_steps, n_mult, y, errors, counts, reals, diagnostics):
     """One trajectory from y0 (n,): ``stepper.time_loop`` with store_every = 1, reduced on the fly.
 
     The steps are ``stepper.try_step``, exactly as time_loop takes them (same settings,
@@ -43,8 +43,9 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     integrate makes. Writes, current after every step (so that they hold the last
     completed step if a problem function raises): y (n,) the state; errors (1 + n_inv,)
     max |I(y_n) - I(y0)| for H, then every invariant; counts (3,) = [steps done,
-    iterations so far, split steps]; reals (2,) = [t, max |multiplier|]. Returns the
-    status; a failed step is not applied (its iterations are counted).
+    iterations so far, split steps]; reals (2,) = [t, max |multiplier|]; diagnostics
+    (N_DIAGNOSTICS,) of a failed step (stepper.try_step). Returns the status; a failed
+    step is not applied (its iterations are counted).
     """
     n = y0.shape[0]
     n_inv = errors.shape[0] - 1
@@ -58,7 +59,6 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     y_comp = np.zeros(n)
     clock = np.array([t0, 0.0])
     last_h = np.array([h])
-    diagnostics = np.zeros(N_DIAGNOSTICS)
 
     for p in range(n):
         y[p] = y0[p]
@@ -101,14 +101,15 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
             error = abs(inv_values[a] - inv_initial[a])
             if error > errors[1 + a]:
                 errors[1 + a] = error
-    keep_alive((owners, y_comp, clock, coef, multipliers, last_h, diagnostics))
+    keep_alive((owners, y_comp, clock, coef, multipliers, last_h))
     return status
 
 
-@njit(cache=True)
+@njit(cache=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _guarded_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables, conserve_idx,
                         h, y0, t0, n_steps, n_mult, index,
-                        y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps):
+                        y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps,
+                        diagnostics):
     """Trajectory ``index``: _run_trajectory, then its results copied to row ``index`` of the outputs.
 
     An exception from a problem function becomes STATUS_EXCEPTION: escaping a prange
@@ -125,9 +126,10 @@ def _guarded_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, 
     errors = np.zeros(inv_error.shape[1])
     counts = np.zeros(3, dtype=np.int64)
     reals = np.zeros(2)
+    failure = np.zeros(N_DIAGNOSTICS)
     try:
         status = _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables,
-                                 conserve_idx, h, y0, t0, n_steps, n_mult, y, errors, counts, reals)
+                                 conserve_idx, h, y0, t0, n_steps, n_mult, y, errors, counts, reals, failure)
     except Exception:  # noqa: BLE001 - Numba cannot bind or filter the exception object
         status = STATUS_EXCEPTION
     for p in range(y.shape[0]):
@@ -139,6 +141,8 @@ def _guarded_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, 
     split_steps[index] = counts[2]
     t_final[index] = reals[0]
     max_multiplier[index] = reals[1]
+    for a in range(N_DIAGNOSTICS):
+        diagnostics[index, a] = failure[a]
     return status
 
 
@@ -166,6 +170,7 @@ ENSEMBLE_SIGNATURE = types.void(
     MATRIX, types.float64, types.int64, types.int64, types.int64,                      # Y0, t0, n_steps, n_mult,
     #                                                                                    n_workers
     MATRIX, VECTOR, MATRIX, INT_VECTOR, VECTOR, INT_VECTOR, INT_VECTOR, INT_VECTOR,    # outputs
+    MATRIX,
 )
 
 
@@ -174,10 +179,10 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                   family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
                   h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
                   newton_values, newton_vectors, newton_inverse, newton_weights,
-              newton_values, newton_vectors, newton_inverse, newton_weights,
                   conserve_idx,
                   Y0, t0, n_steps, n_mult, n_workers,
-                  y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps):
+                  y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps,
+                  diagnostics):
     """Run n_steps steps of one method from each row of Y0, trajectories in parallel.
 
     Each trajectory is the run ``stepper.time_loop`` makes from step 0 with
@@ -199,7 +204,8 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
       status (n_traj,): STATUS_OK, the failing step's status, or STATUS_EXCEPTION when
         a problem function raised (the outputs then hold the last completed step); a
         failure ends that trajectory only; steps_done (n_traj,): steps completed;
-      split_steps (n_traj,): steps that were split into substeps.
+      split_steps (n_traj,): steps that were split into substeps;
+      diagnostics (n_traj, N_DIAGNOSTICS): of a failed trajectory's failed step.
     """
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings)
     tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
@@ -215,4 +221,4 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
             status[i] = _guarded_trajectory(
                 H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables, conserve_idx,
                 h, Y0[i], t0, n_steps, n_mult, i,
-                y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps)
+                y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps, diagnostics)

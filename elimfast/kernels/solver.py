@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .codes import (FAMILY_LIM, SOLVER_NEWTON, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK,
+from .codes import (internal, FAMILY_LIM, SOLVER_NEWTON, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK,
                     STATUS_SINGULAR)
 from .linalg import lu_factor, lu_solve_factored
 from .maps import EPS, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
@@ -30,14 +30,16 @@ MAX_CONDITION = 1e13       # an accepted alpha with cond(Gamma) above this is sp
 MAX_ETA_CORRECTION = 0.5   # ... and so is one with |h^(2(s-1-j)) alpha_j| above this
 
 
-@njit(cache=True, error_model="numpy")
-def newton_factor(hess_H, params, y, h, tables, work):
+@internal
+def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     """Factorise the simplified Newton matrix M = I - h X (x) J0, J0 = J Hess(H)(y) (spec 8).
 
     Equilibrated: the unknowns are measured in units of the state, D = diag(d_p) with
-    d_p = |y_p| (the largest |y_i| where y_p = 0), so that M~ = D^-1 M D has entries of
-    size h/(time scale) whatever the units (the solar system's momenta are 1e-11 to
-    1e-5 of its positions: unscaled, cond(M) was 1.7e19).
+    d_p = max(|y_p|, |h f_p(y)|) (the scale of the stopping rule; the largest of them where
+    both vanish), so that M~ = D^-1 M D has entries of size h/(time scale) whatever the
+    units (the solar system's momenta are 1e-11 to 1e-5 of its positions: unscaled,
+    cond(M) was 1.7e19). The |h f_p| term matters where a coordinate passes through
+    zero (Kepler's q2 and p1 at apocentre, ~1e-16): |y_p| alone made M~ singular there.
 
     Two forms, chosen per method (elimfast.methods): with X = V Lambda V^-1 (tables
     newton_values, newton_vectors, newton_inverse non-empty), M~ is block diagonal in
@@ -50,13 +52,18 @@ def newton_factor(hess_H, params, y, h, tables, work):
     m = n // 2
     X = tables.X
     s = X.shape[0]
-    hessian, jacobian, unit = work.hessian, work.jacobian, work.newton_scale
+    hessian, jacobian, unit, gradient = work.hessian, work.jacobian, work.newton_scale, work.scale
     hess_H(y, params, hessian)
+    grad_H(y, params, gradient)
     largest = 0.0
+    for p in range(m):   # |f| = |J grad H|: f_q = grad_p H, f_p = -grad_q H
+        unit[p] = max(abs(y[p]), abs(h * gradient[m + p]))
+        unit[m + p] = max(abs(y[m + p]), abs(h * gradient[p]))
     for p in range(n):
-        largest = max(largest, abs(y[p]))
+        largest = max(largest, unit[p])
     for p in range(n):
-        unit[p] = abs(y[p]) if y[p] != 0.0 else (largest if largest > 0.0 else 1.0)
+        if not (unit[p] > 0.0):
+            unit[p] = largest if largest > 0.0 else 1.0
     # J0~[p, q] = (J Hess)[p, q] d_q / d_p, with (J Hess)[p] = Hess[m + p] and [m + p] = -Hess[p].
     for p in range(m):
         for q in range(n):
@@ -132,7 +139,7 @@ def newton_solve(tables, work, delta):
             delta[j * n + p] *= unit[p]
 
 
-@njit(cache=True, error_model="numpy")
+@internal
 def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
     """omega of spec 8, component by component, into work.rounding_level; returns max_p omega_p.
 
@@ -171,30 +178,45 @@ def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
     return omega
 
 
-@njit(cache=True, error_model="numpy")
-def _within_rounding(h, mult, solved, settings, tables, nu, s, work):
-    """A stalled iterate's test: is every component's increment within its own rounding band?
+@internal
+def _carried_level(h, work):
+    """Add to each omega_p (at least eps) the rounding of the other components carried into p
+    by one step of the dynamics, h/2 sum_q |J0~[p, q]| omega_q (J0~: the equilibrated
+    Jacobian of newton_factor; |X| <= 1/2), in place; returns the new max_p omega_p.
 
-    d_p <= max(tol, min(4 omega'_p, 1e-9)), omega'_p = omega_p plus the rounding of the
-    other components carried into p by one step of the dynamics, h/2 sum_q |J0~[p, q]|
-    omega_q (J0~ the equilibrated Jacobian of newton_factor; |X| <= 1/2). Pluto's position
-    inherits the rounding of its momentum through 1/m: that term, not omega_p, bounds it.
+    Near a pericentre of Kepler e = 0.9, |J0| ~ 1/r^3 ~ 10^3 turns the eps of the stage
+    sums into increments of ~6 eps that no iteration removes; Pluto's position inherits
+    the rounding of its momentum through 1/m. Simplified Newton only (it has J0~).
     """
-    _rounding_level(h, mult, solved, settings, tables, nu, s, work)
-    level, component, jacobian, unit, scale = (work.rounding_level, work.component_increment, work.jacobian,
-                                               work.newton_scale, work.scale)
+    level, jacobian, unit, scale, carried = (work.rounding_level, work.jacobian, work.newton_scale, work.scale,
+                                             work.carried)
     n = level.shape[0]
     for p in range(n):
-        carried = 0.0
+        acc = 0.0
         for q in range(n):
-            carried += abs(jacobian[p, q]) * level[q] * (scale[q] / unit[q])
-        bound = level[p] + 0.5 * abs(h) * carried * (unit[p] / scale[p])
-        if not (component[p] <= max(settings.tol, min(BAND_FACTOR * bound, RESCUE_BAND_CAP))):
+            acc += abs(jacobian[p, q]) * max(level[q], EPS) * (scale[q] / unit[q])
+        carried[p] = 0.5 * abs(h) * acc * (unit[p] / scale[p])
+    largest = 0.0
+    for p in range(n):
+        level[p] = max(level[p], EPS) + carried[p]
+        largest = max(largest, level[p])
+    return largest
+
+
+@internal
+def _within_rounding(h, mult, solved, settings, tables, nu, s, work):
+    """A stalled iterate's test: is every component's increment within its own rounding band,
+    d_p <= max(tol, min(4 omega'_p, 1e-9)), omega' as in _carried_level?"""
+    _rounding_level(h, mult, solved, settings, tables, nu, s, work)
+    _carried_level(h, work)
+    level, component = work.rounding_level, work.component_increment
+    for p in range(level.shape[0]):
+        if not (component[p] <= max(settings.tol, min(BAND_FACTOR * level[p], RESCUE_BAND_CAP))):
             return False
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@internal
 def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work, y, h, coef, mult, cold):
     """Iterate a family's map from the guess coef to a converged iterate (spec 8).
 
@@ -204,11 +226,12 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
 
     Stopping rule (spec 8), on d = max_{j,i} |h Delta_{j,i}| / sc_i, sc_i = max(|y_i|, |h G_0,i|):
       accept when d <= settings.tol (round-off);
-      inside the rounding band d <= B = min(4 omega, 1e-12), accept after 2 iterations in a
-      row that fail to improve the best in-band d;
-      after 6 iterations without a new best d (stalled), Newton on LIM accepts if every
-      component is within its own band (_within_rounding), else fails; fail at max_iter or
-      on NaN.
+      inside the rounding band d <= B = min(4 max(omega, eps), 1e-12), accept after 2
+      iterations in a row that fail to improve the best in-band d (Newton: omega plus the
+      rounding carried in by the Jacobian, _carried_level);
+      after 6 iterations without a new best d (stalled), Newton on LIM (or on ELIM with the
+      literal right-hand side) accepts if every component is within its own band
+      (_within_rounding), else fails; fail at max_iter or on NaN.
     The stalled LIM case is beyond the spec: with LIM imposing momenta of the solar system,
     the rounding of lambda (eps times the largest momenta) reaches every momentum, and
     Pluto's, 1e-6 of Jupiter's, cannot settle below ~1e-11 relative; the iteration then
@@ -292,7 +315,13 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 # Estimated once per solve, at the first small increment: the iterates then
                 # differ by less than 1e-12 relative, and so do their rounding levels.
                 omega = _rounding_level(h, mult, singular == 0 and not plain_sweep, settings, tables, nu, s, work)
-                band = min(BAND_FACTOR * omega, BAND_CAP)
+                # Never narrower than 4 eps: the stage sums y + h sum_j Is c_j round at eps
+                # relative to sc (>= |y|), so d does not settle below ~eps whatever omega
+                # says (LIM(8,10,3) on Kepler stalled at d = 1.3 eps with omega = 7e-17);
+                # Newton adds that rounding as carried by the dynamics (_carried_level).
+                if newton:
+                    omega = _carried_level(h, work)
+                band = min(BAND_FACTOR * max(omega, EPS), BAND_CAP)
             if d <= band:
                 if d < best_in_band:
                     best_in_band = d
@@ -308,10 +337,12 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
         else:
             without_progress += 1
             if without_progress >= MAX_WITHOUT_PROGRESS:
-                # Only LIM: there the rounding of lambda is what stalls an iterate. ELIM stalls
-                # near steps symmetric about a pericentre, where Gamma is nearly singular and
-                # an in-band test would accept unconverged iterates (spec 8): those are split.
-                if d <= RESCUE_BAND_CAP and newton and is_lim:
+                # LIM, and ELIM with the paper's literal right-hand side: there the rounding of
+                # the multipliers is what stalls an iterate (spec 3b). ELIM with the stable
+                # form stalls near steps symmetric about a pericentre, where Gamma is nearly
+                # singular and an in-band test would accept unconverged iterates (spec 8):
+                # those are split, and their halves are well-conditioned.
+                if d <= RESCUE_BAND_CAP and newton and (is_lim or settings.stable_rhs == 0):
                     accepted = _within_rounding(h, mult, singular == 0 and not plain_sweep, settings, tables,
                                                 nu, s, work)
                 break

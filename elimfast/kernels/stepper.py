@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from .codes import (FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
+from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
@@ -46,7 +46,7 @@ def kahan_add(value, compensation, increment):
     return new_value, (value - new_value) + corrected
 
 
-@njit(cache=True, error_model="numpy")
+@internal
 def extrapolate(tables, work, theta, base, out):
     """The predictor of spec 8: out_i = sum_j E_ij(theta) base_j,
     E_ij = int_0^1 P_i(tau) P_j(1 + theta tau) dtau by (s+1)-point Gauss (exact: degree <= 2s-2).
@@ -80,7 +80,7 @@ def _copy(source, target):
         target[index] = source[index]
 
 
-@njit(cache=True, error_model="numpy")
+@internal
 def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
              y, h, h_prev, have_prev, coef, mult):
     """Solve one (sub)step from y with step h: predicted guess, then the unextrapolated one.
@@ -90,29 +90,30 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     Returns (status, iterations of both tries).
     """
     if settings.solver == SOLVER_NEWTON:
-        status = newton_factor(hess_H, params, y, h, tables, work)
+        status = newton_factor(grad_H, hess_H, params, y, h, tables, work)
         if status != STATUS_OK:
             work.info[0], work.info[1], work.info[2], work.info[3] = np.inf, 0.0, 0.0, 0.0
             return status, 0
+    # cold is a variable, not a literal True/False at the calls: one compiled solve serves both.
     cold = not (have_prev and settings.warm_start != 0)
     if cold:
         coef[:, :] = 0.0
         mult[:] = 0.0
-        status, iterations = solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
-                                   y, h, coef, mult, True)
-        return status, iterations
-    _copy(coef, work.coef_base)
-    _copy(mult, work.mult_base)
-    if settings.predictor != 0:
-        extrapolate(tables, work, h / h_prev, work.coef_base, coef)
+    else:
+        _copy(coef, work.coef_base)
+        _copy(mult, work.mult_base)
+        if settings.predictor != 0:
+            extrapolate(tables, work, h / h_prev, work.coef_base, coef)
     status, iterations = solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
-                               y, h, coef, mult, False)
+                               y, h, coef, mult, cold)
+    if cold:
+        return status, iterations
     if status != STATUS_OK and settings.predictor != 0:
         # Retry once from the unextrapolated coefficients (spec 8, "Fallback").
         _copy(work.coef_base, coef)
         _copy(work.mult_base, mult)
         status, more = solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
-                             y, h, coef, mult, False)
+                             y, h, coef, mult, cold)
         iterations += more
     if status != STATUS_OK:
         _copy(work.coef_base, coef)
@@ -120,7 +121,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     return status, iterations
 
 
-@njit(cache=True, error_model="numpy")
+@internal
 def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
              y, y_comp, clock, coef, mult, h, last_h, have_prev, diagnostics):
     """One step of size h from (y, clock): predict, solve, fall back, commit (spec 7, 8).

@@ -63,6 +63,7 @@ Workspace = namedtuple("Workspace", [
     "sizes",             # (1 + n_t, n) F_p = max_l |f_{l,p}|, then A_{a,p} = max_i |grad L_a(uhat_i)_p|
     "rounding_level",    # (n,) omega_p, the relative rounding level of each component
     "component_increment",   # (n,) max_j |h Delta_{j,p}| / sc_p of the last iteration
+    "carried",           # (n,) rounding carried into each component by the Jacobian (solver._carried_level)
     "h_powers",          # (max(nu, 1),) w_c = h^(2(nu-1-c)) of the step being solved
     "new_coef",          # (s, n) the map G(coef)
     "delta",             # (s n,) the increment (Newton: M^-1 (G - coef))
@@ -127,7 +128,7 @@ def borrow_workspace(w):
         borrowed(w.grads_hat), borrowed(w.inv_grads), borrowed(w.phi), borrowed(w.gamma_hat),
         borrowed(w.small_matrix), borrowed(w.small_copy), borrowed(w.small_inverse), borrowed(w.small_vector),
         borrowed(w.small_pivots), borrowed(w.small_rounding), borrowed(w.sizes), borrowed(w.rounding_level),
-        borrowed(w.component_increment), borrowed(w.h_powers), borrowed(w.new_coef),
+        borrowed(w.component_increment), borrowed(w.carried), borrowed(w.h_powers), borrowed(w.new_coef),
         borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
         borrowed(w.newton_blocks), borrowed(w.newton_block_pivots), borrowed(w.newton_block_rhs),
         borrowed(w.newton_scale),
@@ -149,7 +150,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_blocks):
         np.zeros((n_tilde + 1, r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)), np.zeros((n_big, n)),
         np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros(n_t),
         np.zeros(n_t, dtype=np.int64), np.zeros((1, n_t)), np.zeros((1 + n_t, n)), np.zeros(n), np.zeros(n),
-        np.zeros(max(nu, 1)),
+        np.zeros(n), np.zeros(max(nu, 1)),
         np.zeros((s, n)), np.zeros(s * n), np.zeros(n),
         np.zeros((n_full, n_full)), np.zeros(n_full, dtype=np.int64),
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
