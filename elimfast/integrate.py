@@ -339,6 +339,7 @@ class Integration:
         n_mult = nu + 1 if method.kernel_family == codes.FAMILY_LIM else nu
         self.multipliers = np.zeros(n_mult)
         self.last_h = np.array([self.signed_h])
+        self.newton_base = np.zeros(n + 3)   # where the Newton matrix was factorised (kernels/stepper.py)
         self.steps_done = 0
         self.status = codes.STATUS_OK
         self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
@@ -367,14 +368,16 @@ class Integration:
         """Everything needed to continue the run exactly (for resume)."""
         return {"y": self.y.copy(), "y_comp": self.y_comp.copy(), "clock": self.clock.copy(),
                 "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "last_h": self.last_h.copy(),
-                "steps_done": self.steps_done}
+                "newton_base": self.newton_base.copy(), "steps_done": self.steps_done}
 
     def restore(self, state: dict) -> None:
-        """Continue from a saved state. A state saved before the step engine has no last_h:
-        the previous step is then taken to have been a whole step (theta = 1)."""
+        """Continue from a saved state. A state saved before the step engine has no last_h and
+        no newton_base: the previous step is then taken to have been a whole step (theta =
+        1), and the first step factorises its Newton matrix afresh."""
         state = dict(state)
         state.setdefault("last_h", np.array([self.signed_h]))
-        for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h"):
+        state.setdefault("newton_base", np.zeros(self.newton_base.size))
+        for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h", "newton_base"):
             target = getattr(self, key)
             value = np.asarray(state[key], dtype=np.float64)
             if value.shape != target.shape:
@@ -428,7 +431,7 @@ class Integration:
             return Chunk(t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self.steps_done, self.status)
         status = stepper.time_loop(
             *self.kernel_settings(),
-            self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h,
+            self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
             self.steps_done, n_run, self.n_steps, self.store_every,
             t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self._progress, self.diagnostics)
         done, samples = int(self._progress[0]), int(self._progress[1])

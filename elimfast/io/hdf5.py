@@ -658,7 +658,7 @@ _RECORD_HEADER = ("sequence", "steps_done", "n_samples", "wall_time_s", "kernel_
 
 
 def _record_length(n: int, s: int, n_mult: int) -> int:
-    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + 1
+    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + (n + 3) + 1
 
 
 def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float, kernel_time_s: float) -> np.ndarray:
@@ -666,7 +666,8 @@ def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float,
         np.array([sequence, state["steps_done"], n_samples, wall_time_s, kernel_time_s], dtype=np.float64),
         np.asarray(state["clock"], dtype=np.float64).ravel(), np.asarray(state["y"], dtype=np.float64).ravel(),
         np.asarray(state["y_comp"], dtype=np.float64).ravel(), np.asarray(state["coef"], dtype=np.float64).ravel(),
-        np.asarray(state["multipliers"], dtype=np.float64).ravel(), np.asarray(state["last_h"], dtype=np.float64).ravel()])
+        np.asarray(state["multipliers"], dtype=np.float64).ravel(), np.asarray(state["last_h"], dtype=np.float64).ravel(),
+        np.asarray(state["newton_base"], dtype=np.float64).ravel()])
     return np.append(body, float(zlib.crc32(body.astype("<f8").tobytes())))
 
 
@@ -680,7 +681,7 @@ def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int) -> dict | None:
     at = len(_RECORD_HEADER)
     parts = {}
     for key, size, shape in (("clock", 2, (2,)), ("y", n, (n,)), ("y_comp", n, (n,)), ("coef", s * n, (s, n)),
-                             ("multipliers", n_mult, (n_mult,)), ("last_h", 1, (1,))):
+                             ("multipliers", n_mult, (n_mult,)), ("last_h", 1, (1,)), ("newton_base", n + 3, (n + 3,))):
         parts[key] = row[at:at + size].reshape(shape).copy()
         at += size
     return {**parts, "steps_done": int(header["steps_done"]), "n_samples": int(header["n_samples"]),
@@ -1003,7 +1004,7 @@ class RunWriter:
         values = dict(state, n_samples=n_samples, wall_time_s=wall_time_s, kernel_time_s=kernel_time_s)
         for key, value in values.items():
             dataset = self._state.get(key)
-            if dataset is None:     # last_h, in a file written before the step engine (its record has none)
+            if dataset is None:     # last_h, newton_base: a file written before the step engine (no record)
                 continue
             dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
         self._file.flush()

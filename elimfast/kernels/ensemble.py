@@ -59,6 +59,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     y_comp = np.zeros(n)
     clock = np.array([t0, 0.0])
     last_h = np.array([h])
+    newton_base = np.zeros(n + 3)
 
     for p in range(n):
         y[p] = y0[p]
@@ -77,11 +78,13 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     params_view, conserve_view, y_view = borrowed(params), borrowed(conserve_idx), borrowed(y)
     y_comp_view, clock_view, coef_view = borrowed(y_comp), borrowed(clock), borrowed(coef)
     mult_view, last_h_view, diagnostics_view = borrowed(multipliers), borrowed(last_h), borrowed(diagnostics)
+    base_view = borrowed(newton_base)
     status = STATUS_OK
     for step in range(n_steps):
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
-            y_view, y_comp_view, clock_view, coef_view, mult_view, h, last_h_view, step > 0, diagnostics_view)
+            y_view, y_comp_view, clock_view, coef_view, mult_view, h, last_h_view, base_view, step > 0,
+            diagnostics_view)
         counts[1] += iterations
         if status != STATUS_OK:
             break
@@ -101,7 +104,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
             error = abs(inv_values[a] - inv_initial[a])
             if error > errors[1 + a]:
                 errors[1 + a] = error
-    keep_alive((owners, y_comp, clock, coef, multipliers, last_h))
+    keep_alive((owners, y_comp, clock, coef, multipliers, last_h, newton_base))
     return status
 
 

@@ -49,8 +49,9 @@ def lu_factor(a, pivots):
                 tmp = a[col, j]
                 a[col, j] = a[pivot_row, j]
                 a[pivot_row, j] = tmp
+        inverse_pivot = 1.0 / a[col, col]
         for i in range(col + 1, n):
-            factor = a[i, col] / a[col, col]
+            factor = a[i, col] * inverse_pivot
             a[i, col] = factor
             if factor != 0.0:
                 for j in range(col + 1, n):

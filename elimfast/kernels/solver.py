@@ -41,11 +41,12 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     cond(M) was 1.7e19). The |h f_p| term matters where a coordinate passes through
     zero (Kepler's q2 and p1 at apocentre, ~1e-16): |y_p| alone made M~ singular there.
 
-    Two forms, chosen per method (elimfast.methods): with X = V Lambda V^-1 (tables
-    newton_values, newton_vectors, newton_inverse non-empty), M~ is block diagonal in
-    the eigenbasis, one complex n x n factorisation of I - h lambda J0~ per eigenvalue
-    (one per conjugate pair), as in Hairer & Wanner's RADAU5; else (large s, where V is
-    ill-conditioned) one real (s n) x (s n) LU of M~.
+    Two forms (the workspace's arrays say which, workspace.make_workspace): for large
+    s n, with X = V Lambda V^-1 (tables newton_values, newton_vectors, newton_inverse),
+    M~ is block diagonal in the eigenbasis, one complex n x n factorisation of
+    I - h lambda J0~ per eigenvalue (one per conjugate pair), as in Hairer & Wanner's
+    RADAU5; else (small s n, or large s, where V is ill-conditioned) one real
+    (s n) x (s n) LU of M~.
     Returns STATUS_OK, STATUS_NONFINITE (Hessian not finite) or STATUS_SINGULAR.
     """
     n = y.shape[0]
@@ -66,15 +67,16 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
             unit[p] = largest if largest > 0.0 else 1.0
     # J0~[p, q] = (J Hess)[p, q] d_q / d_p, with (J Hess)[p] = Hess[m + p] and [m + p] = -Hess[p].
     for p in range(m):
+        inverse_q, inverse_p = 1.0 / unit[p], 1.0 / unit[m + p]
         for q in range(n):
-            jacobian[p, q] = hessian[m + p, q] * (unit[q] / unit[p])
-            jacobian[m + p, q] = -hessian[p, q] * (unit[q] / unit[m + p])
+            jacobian[p, q] = hessian[m + p, q] * unit[q] * inverse_q
+            jacobian[m + p, q] = -hessian[p, q] * unit[q] * inverse_p
     for p in range(n):
         for q in range(n):
             if not (abs(jacobian[p, q]) <= 1e308):
                 return STATUS_NONFINITE
     values = tables.newton_values
-    if values.shape[0] > 0:
+    if work.newton_blocks.shape[0] > 0:
         blocks, pivots = work.newton_blocks, work.newton_block_pivots
         for b in range(values.shape[0]):
             factor = -h * values[b]
@@ -113,7 +115,7 @@ def newton_solve(tables, work, delta):
     unit = work.newton_scale
     values = tables.newton_values
     s = tables.X.shape[0]
-    if values.shape[0] > 0:
+    if work.newton_blocks.shape[0] > 0:
         V, V_inverse, weights = tables.newton_vectors, tables.newton_inverse, tables.newton_weights
         blocks, pivots, rhs = work.newton_blocks, work.newton_block_pivots, work.newton_block_rhs
         for b in range(values.shape[0]):
@@ -155,7 +157,7 @@ def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
     n = scale.shape[0]
     is_lim = settings.family == FAMILY_LIM
     n_rows = nu + 1 if is_lim else nu
-    gradient_sizes(work, n_rows, tables.Ihat.shape[0])
+    gradient_sizes(work, n_rows if solved else 0, tables.Ihat.shape[0])
     for p in range(n):
         level[p] = 4.0 * EPS * h * sizes[0, p] / scale[p]
     if solved and is_lim:
@@ -204,6 +206,16 @@ def _carried_level(h, work):
 
 
 @internal
+def _band(h, mult, solved, newton, settings, tables, nu, s, work):
+    """The rounding band B = min(4 max(omega, eps), 1e-12) of spec 8 (omega from _rounding_level,
+    and for Newton with the rounding the Jacobian carries, _carried_level)."""
+    omega = _rounding_level(h, mult, solved, settings, tables, nu, s, work)
+    if newton:
+        omega = _carried_level(h, work)
+    return min(BAND_FACTOR * max(omega, EPS), BAND_CAP)
+
+
+@internal
 def _within_rounding(h, mult, solved, settings, tables, nu, s, work):
     """A stalled iterate's test: is every component's increment within its own rounding band,
     d_p <= max(tol, min(4 omega'_p, 1e-9)), omega' as in _carried_level?"""
@@ -227,8 +239,9 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     Stopping rule (spec 8), on d = max_{j,i} |h Delta_{j,i}| / sc_i, sc_i = max(|y_i|, |h G_0,i|):
       accept when d <= settings.tol (round-off);
       inside the rounding band d <= B = min(4 max(omega, eps), 1e-12), accept after 2
-      iterations in a row that fail to improve the best in-band d (Newton: omega plus the
-      rounding carried in by the Jacobian, _carried_level);
+      iterations in a row that fail to improve the best d below 1e-12, when that best is
+      in the band too (Newton: omega plus the rounding carried in by the Jacobian,
+      _carried_level; B is estimated only once an iteration fails to improve);
       after 6 iterations without a new best d (stalled), Newton on LIM (or on ELIM with the
       literal right-hand side) accepts if every component is within its own band
       (_within_rounding), else fails; fail at max_iter or on NaN.
@@ -259,6 +272,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     best_in_band = np.inf
     stalls = 0
     band = 0.0
+    band_complete = False
     d = np.inf
     accepted = False
     singular = 0
@@ -306,27 +320,32 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
             # alpha has just switched on: the map changed, progress counts afresh
             best = np.inf
             without_progress = 0
+            best_in_band = np.inf
             band = 0.0
+            band_complete = False
         if d <= tol:
             accepted = True
             break
         if d <= BAND_CAP:
-            if band == 0.0:
-                # Estimated once per solve, at the first small increment: the iterates then
-                # differ by less than 1e-12 relative, and so do their rounding levels.
-                omega = _rounding_level(h, mult, singular == 0 and not plain_sweep, settings, tables, nu, s, work)
-                # Never narrower than 4 eps: the stage sums y + h sum_j Is c_j round at eps
-                # relative to sc (>= |y|), so d does not settle below ~eps whatever omega
-                # says (LIM(8,10,3) on Kepler stalled at d = 1.3 eps with omega = 7e-17);
-                # Newton adds that rounding as carried by the dynamics (_carried_level).
-                if newton:
-                    omega = _carried_level(h, work)
-                band = min(BAND_FACTOR * max(omega, EPS), BAND_CAP)
-            if d <= band:
-                if d < best_in_band:
-                    best_in_band = d
-                    stalls = 0
-                else:
+            if d < best_in_band:
+                # Still improving below the cap: the band is not needed yet (most steps end
+                # here at d <= tol, and estimating the band costs about a tenth of a step).
+                best_in_band = d
+                stalls = 0
+            else:
+                # Not improving: is it the rounding level? Estimated at most twice per solve,
+                # first without the multipliers' share (a lower bound, spec 8's first term
+                # and, for Newton, what the Jacobian carries), then with it if that does not
+                # explain d. Never narrower than 4 eps: the stage sums y + h sum_j Is c_j
+                # round at eps relative to sc (>= |y|), so d does not settle below ~eps
+                # whatever omega says (LIM(8,10,3) on Kepler stalled at d = 1.3 eps with
+                # omega = 7e-17).
+                if band == 0.0:
+                    band = _band(h, mult, False, newton, settings, tables, nu, s, work)
+                if (d > band or best_in_band > band) and not band_complete:
+                    band = _band(h, mult, singular == 0 and not plain_sweep, newton, settings, tables, nu, s, work)
+                    band_complete = True
+                if d <= band and best_in_band <= band:
                     stalls += 1
                     if stalls >= IN_BAND_STALLS:
                         accepted = True
