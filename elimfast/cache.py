@@ -4,6 +4,7 @@ Location: ``$ELIMFAST_CACHE_DIR`` if set, else ``platformdirs.user_cache_dir("el
 Layout (everything elimfast writes lives in these two folders; nothing else is touched):
 
     <cache>/problems/p_<sha256>.py        code generated from expressions (symbolic.py)
+    <cache>/problems/f_<sha256>.py        events and time scales from expressions (symbolic.py)
     <cache>/problems/u_<sha256>.py        copies of ``python:`` problem files (user_file.py)
     <cache>/keys/<sha256>                 input key -> generated file name (skips sympy when warm)
     <cache>/kernels/<key>/...             Numba's cache of the modules above, one folder per key
@@ -123,7 +124,7 @@ def cache_info() -> dict:
             size += path.stat().st_size
         except OSError:
             continue
-        if path.parent == problems and path.suffix == ".py" and path.name[:2] in ("p_", "u_"):
+        if path.parent == problems and path.suffix == ".py" and path.name[:2] in ("p_", "u_", "f_"):
             entries += 1
     return {"path": str(root), "entries": entries, "bytes": size}
 

@@ -197,6 +197,14 @@ class Result:
     status: str
     solver: SolverSettings = field(default_factory=SolverSettings)
     extra: dict = field(default_factory=dict)
+    # Runs through the adaptive kernel (docs/adaptive.md): the end time and size of every
+    # step, the step control used (None: fixed steps), counts of steps and evaluations,
+    # and the events found (name -> EventRecord with .t and .y).
+    step_t: np.ndarray | None = None
+    step_h: np.ndarray | None = None
+    step_control: object = None
+    stats: dict = field(default_factory=dict)
+    events: dict = field(default_factory=dict)
 
     def invariant_errors(self) -> dict[str, float]:
         """max over samples of |I(t) - I(t0)| for H and every invariant."""
@@ -213,8 +221,12 @@ class Result:
 
     def __repr__(self) -> str:
         errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
-        return (f"<Result {self.method.name} on {self.problem.name}, h = {self.h:g}, "
-                f"{self.steps_done}/{self.n_steps} steps, {self.status}; max |I - I0|: {errors}>")
+        if self.step_control is not None:
+            steps = f"{self.steps_done} adaptive steps ({self.step_control.controller})"
+        else:
+            steps = f"h = {self.h:g}, {self.steps_done}/{self.n_steps} steps"
+        return (f"<Result {self.method.name} on {self.problem.name}, {steps}, {self.status}; "
+                f"max |I - I0|: {errors}>")
 
 
 def energy_warning(method: Method, h: float, H_values) -> str | None:
@@ -471,13 +483,25 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
 
 
-def integrate(problem: Problem, method: Method, h: float, t_end: float | None = None, n_steps: int | None = None,
+def integrate(problem: Problem, method: Method, h: float | None = None, t_end: float | None = None,
+              n_steps: int | None = None,
               conserve: Iterable[str] = (), tol: float | None = None, max_iter: int | None = None,
               store_every: int = 1, rhs: str = "stable", warm_start: bool = True, t0: float = 0.0,
               y0=None, backward: bool = False, chunk_steps: int = DEFAULT_CHUNK_STEPS,
               solver: str | SolverSettings = DEFAULT_SOLVER, predictor: bool = True,
-              max_halvings: int = DEFAULT_MAX_HALVINGS) -> Result:
-    """Integrate ``problem`` with ``method`` and constant step ``h``; return a Result.
+              max_halvings: int = DEFAULT_MAX_HALVINGS, rtol: float | None = None, atol: float | None = None,
+              step_control: str | None = None, epsilon: float | None = None, verify: bool = False,
+              h_max: float | None = None, t_eval=None, events=None) -> Result:
+    """Integrate ``problem`` with ``method``; return a Result.
+
+    Fixed steps: give h. Adaptive steps (docs/adaptive.md): give rtol (error-controlled
+    steps; atol defaults to rtol, h is then only the first step, chosen from the problem
+    when absent; verify=True estimates by step doubling), or step_control='time_scale'
+    with epsilon (time-reversible steps for problems with a time scale). Adaptive runs
+    take t_end and land on it exactly. t_eval: times at which to sample the solution
+    (side steps of the method itself: the integrator's accuracy, every invariant kept);
+    events: {name: {"expression": "...", "direction": 1|-1|0, "terminal": bool}}, found
+    to the integrator's accuracy (Result.events[name].t, .y). h_max bounds the steps.
 
     Give t_end (a whole number of steps after t0, to 1e-9 relative) or n_steps.
     conserve: names of the problem's invariants to impose (ELIM/EHBVM: fewer than s;
@@ -497,6 +521,16 @@ def integrate(problem: Problem, method: Method, h: float, t_end: float | None = 
     Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
     every depth, Gamma is singular, or the solution stops being finite.
     """
+    adaptive = rtol is not None or atol is not None or step_control is not None or epsilon is not None
+    if adaptive or t_eval is not None or events:
+        return _integrate_with_adaptive_kernel(
+            problem, method, h=h, t_end=t_end, n_steps=n_steps, conserve=conserve, store_every=store_every, t0=t0,
+            y0=y0, backward=backward, chunk_steps=chunk_steps,
+            solver=_solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs),
+            control=(_step_control(step_control, rtol, atol, epsilon, verify, h, h_max) if adaptive else None),
+            t_eval=t_eval, events=events)
+    if h is None:
+        raise ValueError("give h (fixed steps), or rtol for adaptive steps (docs/adaptive.md)")
     if t_end is not None and backward:
         raise ValueError("with backward=True give n_steps, not t_end")
     h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
@@ -535,3 +569,104 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
         status="complete" if run.status == codes.STATUS_OK else STATUS_NAMES[run.status],
         solver=run.solver,
     )
+
+
+def _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs) -> SolverSettings:
+    if isinstance(solver, SolverSettings):
+        return solver
+    return SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
+                          max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)
+
+
+def _step_control(step_control, rtol, atol, epsilon, verify, h, h_max):
+    from .adaptive import StepControl
+    if isinstance(step_control, StepControl):
+        return step_control
+    return StepControl(controller=step_control or "error", rtol=rtol, atol=atol, epsilon=epsilon, verify=verify,
+                       h=h, h_max=h_max)
+
+
+def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve, store_every, t0, y0, backward,
+                                    chunk_steps, solver, control, t_eval, events) -> Result:
+    """Adaptive steps, or fixed steps with output times or events (elimfast.adaptive)."""
+    from .adaptive import AdaptiveIntegration, EventRecord, EventSpec
+
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
+    if not isinstance(method, Method):
+        raise TypeError(f"method must be an elimfast Method, got {type(method).__name__}")
+    if backward:
+        raise ValueError("backward runs take fixed steps without t_eval or events; integrate forwards with t_end")
+    names, conserve_idx = resolve_conserve(problem, method, conserve)
+    solver = solver.resolved_for(method, len(names))
+    store_every = _whole_number("store_every", store_every, 1, np.iinfo(np.int64).max)
+    if control is not None:
+        control.check_method(method)
+        control.check_problem(problem)
+        if t_end is None or n_steps is not None:
+            raise ValueError("adaptive runs take t_end (not n_steps)")
+        t_end = float(t_end)
+        if not (math.isfinite(t_end) and t_end > t0):
+            raise ValueError(f"t_end must be a finite time after t0 = {t0}, got {t_end!r}")
+    else:
+        h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
+        t_end = t0 + n_steps * h
+    n = 2 * problem.degrees_of_freedom
+    y_start = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
+    if y_start.shape != (n,) or not np.all(np.isfinite(y_start)):
+        raise ValueError(f"the initial state must be {n} finite numbers, got {y_start!r}")
+    if t_eval is not None:
+        t_eval = np.asarray(t_eval, dtype=np.float64).ravel()
+        if t_eval.size == 0 or not np.all(np.isfinite(t_eval)) or np.any(np.diff(t_eval) <= 0):
+            raise ValueError("t_eval must be a non-empty list of finite, strictly increasing times")
+        if t_eval[0] < t0 or t_eval[-1] > t_end * (1 + 1e-15) + 1e-300:
+            raise ValueError(f"t_eval must lie in [t0, t_end] = [{t0:g}, {t_end:g}], "
+                             f"got [{t_eval[0]:g}, {t_eval[-1]:g}]")
+    event_spec = EventSpec.build(problem, events) if events else None
+    run = AdaptiveIntegration(problem, method, conserve_idx, names, solver, control, t_end=t_end, t0=t0,
+                              y0=y_start, t_eval=t_eval, events=event_spec, store_every=store_every, h=h,
+                              n_steps=n_steps)
+    t_parts, y_parts, inv_parts = map(lambda a: [a], run.initial_samples())
+    step_t, step_h, mult, iterations, substeps, event_parts = [], [], [], [], [], []
+    while not run.finished:
+        chunk = run.advance(chunk_steps)
+        t_parts.append(chunk.t)
+        y_parts.append(chunk.y)
+        inv_parts.append(chunk.invariants)
+        step_t.append(chunk.step_t)
+        step_h.append(chunk.step_h)
+        mult.append(chunk.multipliers)
+        iterations.append(chunk.iterations)
+        substeps.append(chunk.substeps)
+        event_parts.append((chunk.event_index, chunk.event_t, chunk.event_y))
+    inv = np.concatenate(inv_parts)
+    invariants = {"H": inv[:, 0].copy()}
+    for i, name in enumerate(problem.invariant_names):
+        invariants[name] = inv[:, 1 + i].copy()
+    is_lim = method.kernel_family == codes.FAMILY_LIM
+    mult = np.concatenate(mult) if mult else np.zeros((0, run.multipliers.size))
+    found = {}
+    if event_spec is not None:
+        index = np.concatenate([e[0] for e in event_parts])
+        times = np.concatenate([e[1] for e in event_parts])
+        states = np.concatenate([e[2] for e in event_parts]) if event_parts else np.zeros((0, n))
+        for i, name in enumerate(event_spec.names):
+            found[name] = EventRecord(times[index == i], states[index == i])
+    steps_h = np.concatenate(step_h) if step_h else np.zeros(0)
+    result = Result(
+        problem=problem, method=method, h=float(run.h), conserve=names,
+        t=np.concatenate(t_parts), y=np.concatenate(y_parts), invariants=invariants,
+        alpha=mult if (method.imposes_invariants and not is_lim) else None, lam=mult if is_lim else None,
+        iterations=np.concatenate(iterations) if iterations else np.zeros(0, dtype=np.int64),
+        substeps=np.concatenate(substeps) if substeps else np.zeros(0, dtype=np.int64),
+        y_final=run.y.copy(), t_final=run.t, n_steps=run.steps_done if n_steps is None else n_steps,
+        steps_done=run.steps_done, status="complete" if run.status == codes.STATUS_OK else STATUS_NAMES[run.status],
+        solver=solver, step_t=np.concatenate(step_t) if step_t else np.zeros(0), step_h=steps_h,
+        step_control=control, stats=run.stats(), events=found)
+    if run.status != codes.STATUS_OK:
+        message = failure_message(method, solver, run.status, run.steps_done + 1, run.t,
+                                  float(run.diagnostics[stepper.DIAG_STEP]), run.diagnostics)
+        result.status = "failed: " + message
+        raise ConvergenceError(message, step=run.steps_done + 1, time=run.t, result=result,
+                               reason=STATUS_NAMES[run.status])
+    return result

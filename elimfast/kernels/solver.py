@@ -56,6 +56,7 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     hessian, jacobian, unit, gradient = work.hessian, work.jacobian, work.newton_scale, work.scale
     hess_H(y, params, hessian)
     grad_H(y, params, gradient)
+    work.info[4] += 1.0
     largest = 0.0
     for p in range(m):   # |f| = |J grad H|: f_q = grad_p H, f_p = -grad_q H
         unit[p] = max(abs(y[p]), abs(h * gradient[m + p]))

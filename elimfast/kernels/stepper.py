@@ -51,18 +51,21 @@ def kahan_add(value, compensation, increment):
 
 
 @internal
-def extrapolate(tables, work, theta, base, out):
-    """The predictor of spec 8: out_i = sum_j E_ij(theta) base_j,
-    E_ij = int_0^1 P_i(tau) P_j(1 + theta tau) dtau by (s+1)-point Gauss (exact: degree <= 2s-2).
+def extrapolate(tables, work, offset, theta, base, out):
+    """The predictor of spec 8: out_i = sum_j E_ij base_j,
+    E_ij = int_0^1 P_i(tau) P_j(offset + theta tau) dtau by (s+1)-point Gauss (exact:
+    degree <= 2s-2).
 
-    base are the previous step's coefficients (its polynomial u' = sum_j base_j P_j on
-    [0, 1] in units of the previous step), theta = h_new / h_prev.
+    base are a step's coefficients (its polynomial u' = sum_j base_j P_j on [0, 1] in
+    units of that step). offset = 1, theta = h_new / h_prev: the previous step carried
+    over to the next one; offset = 0, theta = h_side / h: the same step restricted to
+    its first h_side (the side steps of dense output, spec 9).
     """
     s = base.shape[0]
     n = base.shape[1]
     points, values, E = work.predictor_points, work.predictor_values, work.extrapolation
     for q in range(points.shape[0]):
-        points[q] = 1.0 + theta * tables.predictor_nodes[q]
+        points[q] = offset + theta * tables.predictor_nodes[q]
     legendre_table(points, s, values)
     for i in range(s):
         for j in range(s):
@@ -116,7 +119,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             coef[:, :] = 0.0
             mult[:] = 0.0
         elif settings.predictor != 0:
-            extrapolate(tables, work, h / h_prev, work.coef_base, coef)
+            extrapolate(tables, work, 1.0, h / h_prev, work.coef_base, coef)
         else:
             _copy(work.coef_base, coef)
             _copy(work.mult_base, mult)

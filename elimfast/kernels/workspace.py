@@ -85,7 +85,8 @@ Workspace = namedtuple("Workspace", [
     "predictor_points",  # (s + 1,) 1 + theta x_q
     "predictor_values",  # (s + 1, s) P_j(1 + theta x_q)
     "extrapolation",     # (s, s) E(theta)
-    "info",              # (4,) of the last solve: last increment, cond(Gamma), iterations, rounding band
+    "info",              # (5,) of the last solve: last increment, cond(Gamma), iterations, rounding band;
+    #                      then the count of Newton factorisations (Hessian evaluations) of the call
 ])
 
 
@@ -176,4 +177,4 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
-        np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(4))
+        np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(5))

@@ -43,7 +43,10 @@ class Problem:
     units: {quantity: unit} when the problem has physical units, e.g. {"length": "AU",
     "time": "day", "mass": "solar mass"}, else empty;
     source_file: the user's own file of a ``python:`` problem (error messages name it
-    rather than its copy in the cache), else None.
+    rather than its copy in the cache), else None;
+    time_scale: a compiled ``time_scale(y, params, out)`` writing out[0] = sigma(y), the
+    local time scale of the motion, and out[1:] = grad sigma(y) (the time-reversible step
+    control of docs/adaptive.md), or None when the problem defines none.
     """
 
     name: str
@@ -62,6 +65,7 @@ class Problem:
     description: str = ""
     units: dict = field(default_factory=dict)
     source_file: str | None = None
+    time_scale: Any = field(repr=False, default=None)
 
     def __post_init__(self):
         if len(self.q_names) != len(self.p_names):

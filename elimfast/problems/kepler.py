@@ -81,6 +81,20 @@ def grad_invariants(y, params, out):
     out[2, 3] = -p1 * q1
 
 
+@jit_invariants
+def time_scale(y, params, out):
+    """sigma = |q|^(3/2) (the local period's scale at distance |q|) and its gradient
+    (docs/adaptive.md, the time-reversible controller)."""
+    r = math.sqrt(y[0] * y[0] + y[1] * y[1])
+    sigma = r * math.sqrt(r)
+    out[0] = sigma
+    factor = 1.5 * sigma / (r * r)
+    out[1] = factor * y[0]
+    out[2] = factor * y[1]
+    out[3] = 0.0
+    out[4] = 0.0
+
+
 def kepler(eccentricity: float = 0.6) -> Problem:
     """The planar Kepler problem of the paper, e in [0, 1)."""
     e = float(eccentricity)
@@ -94,4 +108,5 @@ def kepler(eccentricity: float = 0.6) -> Problem:
         invariant_names=("angular_momentum", "lrl_x", "lrl_y"),
         y0=y0, params=np.zeros(0), parameters={"eccentricity": e},
         description="planar Kepler problem, H = |p|^2/2 - 1/|q|, period 2 pi",
+        time_scale=time_scale,
     )

@@ -146,6 +146,36 @@ def hess_H(y, params, out):
 
 
 @jit_invariants
+def time_scale(y, params, out):
+    """sigma = min over pairs of |q_i - q_j|^(3/2) / sqrt(G (m_i + m_j)), the shortest local
+    orbital time scale, and its gradient (that of the pair attaining the minimum;
+    docs/adaptive.md, the time-reversible controller)."""
+    G = params[0]
+    n_bodies = y.shape[0] // 6
+    best = np.inf
+    best_i, best_j = 0, 1
+    for i in range(n_bodies):
+        for j in range(i + 1, n_bodies):
+            dx, dy, dz = y[3 * i] - y[3 * j], y[3 * i + 1] - y[3 * j + 1], y[3 * i + 2] - y[3 * j + 2]
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            sigma = d * math.sqrt(d / (G * (params[1 + i] + params[1 + j])))
+            if sigma < best:
+                best, best_i, best_j = sigma, i, j
+    for p in range(y.shape[0] + 1):
+        out[p] = 0.0
+    out[0] = best
+    d2 = 0.0
+    for c in range(3):
+        diff = y[3 * best_i + c] - y[3 * best_j + c]
+        d2 += diff * diff
+    factor = 1.5 * best / d2
+    for c in range(3):
+        diff = y[3 * best_i + c] - y[3 * best_j + c]
+        out[1 + 3 * best_i + c] = factor * diff
+        out[1 + 3 * best_j + c] = -factor * diff
+
+
+@jit_invariants
 def invariants(y, params, out):
     n_bodies = y.shape[0] // 6
     offset = 3 * n_bodies
@@ -265,4 +295,5 @@ def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_
         units=dict(SOLAR_SYSTEM_UNITS) if G == SOLAR_SYSTEM_G else {},
         description=f"gravitational {n_bodies}-body problem in 3D, {frame} frame"
                     + (" (outer solar system, HLW I.2.4)" if default_data else ""),
+        time_scale=time_scale,
     )

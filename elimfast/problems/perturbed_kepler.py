@@ -18,6 +18,7 @@ import numpy as np
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants)
 from .base import Problem
+from .kepler import time_scale as kepler_time_scale
 
 
 @jit_hamiltonian
@@ -87,4 +88,5 @@ def perturbed_kepler(eccentricity: float = 0.6, delta: float = 0.01) -> Problem:
         invariant_names=("angular_momentum",),
         y0=y0, params=np.array([delta]), parameters={"eccentricity": e, "delta": delta},
         description="perturbed Kepler problem, H = |p|^2/2 - 1/|q| - delta/(2|q|^3)",
+        time_scale=kepler_time_scale,   # |q|^(3/2), as for Kepler
     )

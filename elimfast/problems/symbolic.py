@@ -517,3 +517,73 @@ class _NumbaPrinter:
 
     def doprint(self, expr) -> str:
         return self._printer.doprint(expr)
+
+
+# --- functions of the state for a run: events and time scales ---------------------------------
+
+FUNCTIONS_GENERATOR_VERSION = 1
+
+
+def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gradient: bool = False,
+                            what: str = "event", key_prefix: str = "events"):
+    """A compiled ``values(y, params, out)`` (the INVARIANTS signature) for expressions in the
+    problem's coordinates: out[i] = the i-th expression; with ``gradient`` (one expression),
+    out[0] = its value and out[1:] = its gradient with respect to y (a time scale,
+    docs/adaptive.md). Numeric parameters of the problem may be used by name: their values
+    are written into the code as constants (they are fixed for a run). Expressions are
+    data: parsed and validated like a problem's (expressions.py). Compiled once per
+    machine and cached by content, like the problems. Raises ExpressionError naming
+    ``<key_prefix>.<name>``."""
+    import sympy
+
+    coordinate_names = tuple(problem.q_names) + tuple(problem.p_names)
+    constants = {name: float(value) for name, value in problem.parameters.items()
+                 if isinstance(value, (int, float)) and not isinstance(value, bool) and name not in coordinate_names}
+    declared = coordinate_names + tuple(constants)
+    trees = []
+    for name, text in expressions.items():
+        if not isinstance(text, str):
+            raise ExpressionError(f"{what} {name} must be an expression string, got {text!r}", key=f"{key_prefix}.{name}")
+        trees.append((name, text, _checked(parse, text, declared, what=f"{what} {name}", key=f"{key_prefix}.{name}")))
+    spec = {"y": coordinate_names, "constants": sorted(constants.items()), "gradient": bool(gradient),
+            "expressions": [[name, canonical(tree)] for name, _, tree in trees]}
+    key = cache.content_hash(f"state-functions-v{FUNCTIONS_GENERATOR_VERSION}", json.dumps(spec, sort_keys=True))
+    path = cache.problems_dir() / f"f_{key}.py"   # f_: functions of the state (cache.py counts them)
+    if str(path) in _MODULES:
+        return _MODULES[str(path)].values
+    if not path.exists() or not _state_module_intact(path, key):
+        symbols = {n: sympy.Symbol(n, real=True) for n in declared}
+        exprs = []
+        for name, text, tree in trees:
+            expr = to_sympy(tree, symbols, what=f"{what} {name}", text=text)
+            exprs.append(expr.subs({symbols[c]: sympy.Float(v, 17) for c, v in constants.items()}))
+        targets = [f"out[{i}] = " for i in range(len(exprs))]
+        if gradient:
+            exprs = exprs[:1] + [sympy.diff(exprs[0], symbols[c]) for c in coordinate_names]
+            targets = [f"out[{i}] = " for i in range(len(exprs))]
+        for expr in exprs:
+            _check_printable(expr, f"{key_prefix}.{trees[0][0] if trees else ''}")
+        printer = _NumbaPrinter({s: f"v_{s.name}" for s in symbols.values()})
+        local = {symbols[n]: f"y[{i}]" for i, n in enumerate(coordinate_names)}
+        temporaries, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols("t"), order="none")
+        used = set()
+        for expr in [e for _, e in temporaries] + list(reduced):
+            used |= expr.free_symbols
+        body = [f"    v_{s.name} = {local[s]}" for s in symbols.values() if s in used and s in local]
+        body += [f"    {printer.doprint(t)} = {printer.doprint(e)}" for t, e in temporaries]
+        body += [f"    {target}{printer.doprint(e)}" for target, e in zip(targets, reduced)]
+        source = "\n".join([
+            f'"""elimfast: {what} functions generated from expressions; do not edit. Key {key}."""',
+            "import math", "", "from numba import njit", "",
+            "from elimfast.kernels.signatures import INVARIANTS_SIGNATURE", "", "",
+            "@njit(INVARIANTS_SIGNATURE, cache=True, error_model=\"numpy\")",
+            "def values(y, params, out):", *(body or ["    return"]), ""])
+        cache.write_atomic(path, source)
+    return _import(path).values
+
+
+def _state_module_intact(path: Path, key: str) -> bool:
+    try:
+        return f"Key {key}." in path.read_text(encoding="utf-8").splitlines()[0]
+    except (OSError, UnicodeDecodeError, IndexError):
+        return False

@@ -1,0 +1,368 @@
+"""Runs with varying steps, output at requested times and events (docs/adaptive.md).
+
+Data flow as for fixed steps: (problem, method, StepControl, ...) -> AdaptiveIntegration
+-> kernels.adaptive.adaptive_loop -> AdaptiveChunk -> Result. The step control's rules
+(which controller, tolerances, the first step) live in StepControl; the kernel only
+applies them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from .errors import ParameterError
+from .kernels import adaptive as kernel
+from .kernels import codes, stepper
+from .kernels.signatures import no_invariants
+from .methods import Method
+from .problems import Problem
+
+CONTROLLERS = {"error": kernel.CONTROL_ERROR, "time_scale": kernel.CONTROL_TIME_SCALE}
+DEFAULT_EPSILON = 0.05
+MAX_RTOL = 1e-2
+MIN_RTOL = 1e-16
+EVENT_DIRECTIONS = (-1, 0, 1)
+
+
+@dataclass(frozen=True)
+class StepControl:
+    """How the step size is chosen (docs/adaptive.md).
+
+    controller 'error' (the default): local error estimate with tolerances rtol (and atol,
+    default rtol) and Gustafsson's controller; verify: estimate by step doubling instead
+    (exact to 0.2%, three steps' work); h: the first step (None: chosen from the problem).
+    controller 'time_scale': Hairer & Soderlind's time-reversible steps h ~ epsilon
+    sigma(y), for problems that define a time scale sigma. h_max: the largest step.
+    """
+
+    controller: str = "error"
+    rtol: float | None = None
+    atol: float | None = None
+    epsilon: float | None = None
+    verify: bool = False
+    h: float | None = None
+    h_max: float | None = None
+
+    def __post_init__(self):
+        if self.controller not in CONTROLLERS:
+            raise ParameterError("step_control", f"must be one of {', '.join(CONTROLLERS)} (the error estimate, the "
+                                                 f"default, or time-reversible steps from the problem's time scale), "
+                                                 f"got {self.controller!r}")
+        if self.controller == "error":
+            if self.rtol is None:
+                raise ParameterError("rtol", "is needed for error-controlled steps, e.g. rtol = 1e-10")
+            rtol = _positive("rtol", self.rtol)
+            if not MIN_RTOL <= rtol <= MAX_RTOL:
+                raise ParameterError("rtol", f"must be between {MIN_RTOL:g} and {MAX_RTOL:g}, got {rtol:g}")
+            object.__setattr__(self, "rtol", rtol)
+            object.__setattr__(self, "atol", rtol if self.atol is None else _positive("atol", self.atol, zero=True))
+            if self.epsilon is not None:
+                raise ParameterError("epsilon", "belongs to step_control = 'time_scale'; the error controller takes "
+                                                "rtol (and atol)")
+        else:
+            if self.rtol is not None or self.atol is not None:
+                raise ParameterError("rtol", "belongs to step_control = 'error'; time-scale steps take epsilon")
+            if self.verify:
+                raise ParameterError("verify", "belongs to step_control = 'error' (step doubling checks its "
+                                               "estimate)")
+            epsilon = DEFAULT_EPSILON if self.epsilon is None else _positive("epsilon", self.epsilon)
+            if epsilon > 1.0:
+                raise ParameterError("epsilon", f"must be at most 1 (a fraction of the local time scale per step), "
+                                                f"got {epsilon:g}; 0.05 is a good start")
+            object.__setattr__(self, "epsilon", epsilon)
+        for name in ("h", "h_max"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        if not isinstance(self.verify, (bool, np.bool_)):
+            raise ParameterError("verify", f"must be true or false, got {self.verify!r}")
+        object.__setattr__(self, "verify", bool(self.verify))
+
+    @property
+    def code(self) -> int:
+        return CONTROLLERS[self.controller]
+
+    def as_dict(self) -> dict:
+        return {"controller": self.controller, "rtol": self.rtol, "atol": self.atol, "epsilon": self.epsilon,
+                "verify": self.verify, "h": self.h, "h_max": self.h_max}
+
+    def check_method(self, method: Method) -> None:
+        """The error estimate needs gamma_s, which k = s nodes cannot give (P_s vanishes there)."""
+        if self.controller == "error" and not self.verify and method.k <= method.s:
+            raise ParameterError("method", f"{method.name} has k = s = {method.s}: the error estimate needs k > s "
+                                           f"(use HBVM(2s,s), the default for adaptive runs: "
+                                           f"{'hbvm' if method.family in ('gauss', 'hbvm') else method.family}"
+                                           f"(k={2 * method.s}, s={method.s})), or verify = true (step doubling)")
+
+    def check_problem(self, problem: Problem) -> None:
+        if self.controller == "time_scale" and problem.time_scale is None:
+            raise ParameterError("step_control", f"problem {problem.name!r} defines no time scale: declare "
+                                                 "time_scale: \"<expression>\" in the problem, or use "
+                                                 "step_control = 'error' with rtol")
+
+
+def _positive(name: str, value, zero: bool = False) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(name, f"must be a number, got {value!r}") from None
+    if not (math.isfinite(number) and (number > 0.0 or (zero and number == 0.0))):
+        raise ParameterError(name, f"must be a {'non-negative' if zero else 'positive'} finite number, got {value!r}")
+    return number
+
+
+@dataclass(frozen=True)
+class EventSpec:
+    """Events g(y) = 0 of a run: names, expressions, directions (+1 up, -1 down, 0 both),
+    terminal flags; ``function`` is their compiled g (problems.symbolic)."""
+
+    names: tuple[str, ...]
+    expressions: tuple[str, ...]
+    directions: np.ndarray
+    terminal: np.ndarray
+    function: object = field(repr=False, default=None)
+
+    @classmethod
+    def build(cls, problem: Problem, events: Mapping | None) -> "EventSpec":
+        from .problems.symbolic import compile_state_functions
+
+        events = dict(events or {})
+        names, expressions, directions, terminal = [], [], [], []
+        for name, entry in events.items():
+            if not isinstance(name, str) or not name.isidentifier():
+                raise ParameterError("events", f"event names must be identifiers, got {name!r}")
+            if isinstance(entry, str):
+                entry = {"expression": entry}
+            if not isinstance(entry, Mapping) or "expression" not in entry:
+                raise ParameterError(f"events.{name}", "must be a mapping with an 'expression' (and optional "
+                                                       "'direction': 1, -1 or 0, and 'terminal': true/false)")
+            unknown = set(entry) - {"expression", "direction", "terminal"}
+            if unknown:
+                raise ParameterError(f"events.{name}", f"unknown key(s) {', '.join(sorted(map(str, unknown)))}; "
+                                                       "allowed: expression, direction, terminal")
+            direction = entry.get("direction", 0)
+            if isinstance(direction, bool) or direction not in EVENT_DIRECTIONS:
+                raise ParameterError(f"events.{name}.direction", f"must be 1 (g increasing through 0), -1 "
+                                                                 f"(decreasing) or 0 (both), got {direction!r}")
+            term = entry.get("terminal", False)
+            if not isinstance(term, (bool, np.bool_)):
+                raise ParameterError(f"events.{name}.terminal", f"must be true or false, got {term!r}")
+            names.append(name)
+            expressions.append(entry["expression"])
+            directions.append(int(direction))
+            terminal.append(int(bool(term)))
+        function = (compile_state_functions(problem, dict(zip(names, expressions)), what="event",
+                                            key_prefix="events") if names else no_invariants)
+        return cls(tuple(names), tuple(expressions), np.array(directions, dtype=np.int64),
+                   np.array(terminal, dtype=np.int64), function)
+
+
+@dataclass
+class EventRecord:
+    """The occurrences of one event: times t (n,) and states y (n, 2m)."""
+
+    t: np.ndarray
+    y: np.ndarray
+
+    def __repr__(self) -> str:
+        return f"<EventRecord {self.t.size} occurrence(s)>"
+
+
+@dataclass
+class AdaptiveChunk:
+    """What one adaptive kernel call produced."""
+
+    t: np.ndarray
+    y: np.ndarray
+    invariants: np.ndarray
+    step_t: np.ndarray
+    step_h: np.ndarray
+    multipliers: np.ndarray
+    iterations: np.ndarray
+    substeps: np.ndarray
+    event_index: np.ndarray
+    event_t: np.ndarray
+    event_y: np.ndarray
+    first_step: int
+    status: int
+
+
+def initial_step(problem: Problem, method: Method, y0: np.ndarray, rtol: float, atol: float) -> float:
+    """A first step from the problem (Hairer, Norsett & Wanner, Solving ODEs I, II.4): the
+    controller corrects it within a few steps."""
+    weights = atol + rtol * np.abs(y0)
+    m = problem.degrees_of_freedom
+
+    def f(y):
+        g = problem.gradient(y)
+        return np.concatenate((g[m:], -g[:m]))
+
+    f0 = f(y0)
+    d0 = np.max(np.abs(y0) / weights)
+    d1 = np.max(np.abs(f0) / weights)
+    h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+    f1 = f(y0 + h0 * f0)
+    d2 = np.max(np.abs(f1 - f0) / weights) / h0
+    order = 2 * method.s
+    h1 = max(1e-6, h0 * 1e-3) if max(d1, d2) <= 1e-15 else (0.01 / max(d1, d2)) ** (1.0 / (order + 1))
+    return float(min(100.0 * h0, h1))
+
+
+def evaluations_per_iteration(method: Method, n_imposed: int, stable_rhs: bool) -> tuple[int, int]:
+    """(grad H, grad L) evaluations of one iteration of the family's map (kernels/maps.py)."""
+    k, r = method.k, method.r
+    grad_H = k
+    if method.kernel_family == codes.FAMILY_LIM:
+        grad_H += r if r != k else 0
+    elif n_imposed > 0 and stable_rhs and r != k:
+        grad_H += r
+    grad_L = r if n_imposed > 0 else 0
+    return grad_H, grad_L
+
+
+class AdaptiveIntegration:
+    """A run with the adaptive kernel: varying steps, or fixed steps with output times or
+    events. Mirrors integrate.Integration: ``advance``, ``state``/``restore`` (the
+    controller's state and counters included, so a resumed run is bit for bit the
+    uninterrupted one)."""
+
+    def __init__(self, problem: Problem, method: Method, conserve_idx, conserve, solver, control: StepControl | None,
+                 t_end: float, t0: float, y0, t_eval=None, events: EventSpec | None = None,
+                 store_every: int = 1, h: float | None = None, n_steps: int | None = None):
+        self.problem, self.method, self.solver = problem, method, solver
+        self.conserve, self.conserve_idx = conserve, conserve_idx
+        self.control = control
+        self.t0, self.t_end = float(t0), float(t_end)
+        self.events = events or EventSpec((), (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                                          no_invariants)
+        self.store_every = store_every
+        n = 2 * problem.degrees_of_freedom
+        self.y = np.array(y0, dtype=np.float64)
+        self.y_comp = np.zeros(n)
+        self.clock = np.array([self.t0, 0.0])
+        self.coef = np.zeros((method.s, n))
+        nu = len(conserve)
+        self.multipliers = np.zeros(nu + 1 if method.kernel_family == codes.FAMILY_LIM else nu)
+        self.newton_base = np.zeros(n + 3)
+        self.control_state = np.zeros(kernel.N_CONTROL_STATE)
+        self.counters = np.zeros(kernel.N_COUNTERS, dtype=np.int64)
+        self.t_eval = np.zeros(0) if t_eval is None else np.ascontiguousarray(t_eval, dtype=np.float64)
+        if control is None:   # fixed steps (with output times or events)
+            self.n_steps = int(n_steps)
+            self.h = float(h)
+            self.controls = np.array([0.0, 0.0, 0.0, self.t0 + self.n_steps * self.h, np.inf])
+            self.options = np.array([kernel.CONTROL_FIXED, 0, store_every, self.n_steps], dtype=np.int64)
+        else:
+            self.n_steps = None
+            self.h = control.h if control.h is not None else (
+                initial_step(problem, method, self.y, control.rtol, control.atol) if control.controller == "error"
+                else 0.0)
+            self.h = min(self.h, self.t_end - self.t0) if self.h > 0 else self.h
+            self.controls = np.array([control.rtol or 0.0, control.atol or 0.0, control.epsilon or 0.0, self.t_end,
+                                      np.inf if control.h_max is None else control.h_max])
+            self.options = np.array([control.code, int(control.verify), store_every, 0], dtype=np.int64)
+        self.last_h = np.array([self.h if self.h > 0 else 1.0])
+        self.status = codes.STATUS_OK
+        self.finished_flag = False
+        self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
+        self._progress = np.zeros(kernel.N_PROGRESS, dtype=np.int64)
+
+    @property
+    def t(self) -> float:
+        return float(self.clock[0])
+
+    @property
+    def steps_done(self) -> int:
+        return int(self.counters[kernel.CNT_STEPS])
+
+    @property
+    def finished(self) -> bool:
+        return self.finished_flag or self.status != codes.STATUS_OK
+
+    def state(self) -> dict:
+        return {"y": self.y.copy(), "y_comp": self.y_comp.copy(), "clock": self.clock.copy(),
+                "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "last_h": self.last_h.copy(),
+                "newton_base": self.newton_base.copy(), "control_state": self.control_state.copy(),
+                "counters": self.counters.copy(), "finished": int(self.finished_flag),
+                "steps_done": self.steps_done}
+
+    def restore(self, state: dict) -> None:
+        for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h", "newton_base", "control_state",
+                    "counters"):
+            target = getattr(self, key)
+            value = np.asarray(state[key], dtype=target.dtype)
+            if value.shape != target.shape:
+                raise ValueError(f"saved state {key!r} has shape {value.shape}, expected {target.shape}")
+            target[...] = value
+        self.finished_flag = bool(state.get("finished", 0))
+        self.status = codes.STATUS_OK
+
+    def initial_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sample at t0 when it is wanted (always without t_eval; with t_eval when it lists t0)."""
+        p = self.problem
+        values = np.empty(len(p.invariant_names))
+        p.invariants(self.y, p.params, values)
+        inv = np.concatenate(([p.H(self.y, p.params)], values))[None, :]
+        if self.t_eval.size and self.t_eval[0] != self.t0:
+            return np.zeros(0), np.zeros((0, self.y.size)), np.zeros((0, inv.shape[1]))
+        return np.array([self.t]), self.y[None, :].copy(), inv
+
+    def advance(self, max_steps: int) -> AdaptiveChunk:
+        p, m, solver = self.problem, self.method, self.solver
+        n_eval_left = int(self._kernel_t_eval.size - self.counters[kernel.CNT_NEXT_EVAL])
+        # Every requested time of the rest of the run fits: one step may cover many of them.
+        capacity = n_eval_left + 1 if self.t_eval.size else max_steps // self.store_every + 2
+        n_events = self.events.directions.size
+        event_capacity = 64 * n_events + n_events
+        dim = self.y.size
+        t_out, y_out = np.empty(capacity), np.empty((capacity, dim))
+        inv_out = np.empty((capacity, 1 + len(p.invariant_names)))
+        step_t, step_h = np.empty(max_steps), np.empty(max_steps)
+        mult_out = np.empty((max_steps, self.multipliers.size))
+        iter_out = np.zeros(max_steps, dtype=np.int64)
+        substeps_out = np.zeros(max_steps, dtype=np.int64)
+        event_out = np.zeros(event_capacity, dtype=np.int64)
+        event_t, event_y = np.empty(event_capacity), np.empty((event_capacity, dim))
+        first = self.steps_done
+        status = kernel.adaptive_loop(
+            p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
+            p.time_scale if p.time_scale is not None else no_invariants, self.events.function,
+            m.kernel_family, solver.code, int(solver.rhs == "stable"), int(solver.warm_start), int(solver.predictor),
+            solver.tol, solver.max_iter, solver.max_halvings,
+            self.h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
+            m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
+            m.newton_weights, self.conserve_idx,
+            self.controls, self.options, self._kernel_t_eval, self.events.directions, self.events.terminal,
+            self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
+            self.control_state, self.counters, max_steps,
+            step_t, step_h, mult_out, iter_out, substeps_out, t_out, y_out, inv_out, event_out, event_t, event_y,
+            self._progress, self.diagnostics)
+        done, samples, found, finished = (int(v) for v in self._progress)
+        self.status = int(status)
+        self.finished_flag = bool(finished)
+        return AdaptiveChunk(t_out[:samples], y_out[:samples], inv_out[:samples], step_t[:done], step_h[:done],
+                             mult_out[:done], iter_out[:done], substeps_out[:done], event_out[:found],
+                             event_t[:found], event_y[:found], first, int(status))
+
+    @property
+    def _kernel_t_eval(self) -> np.ndarray:
+        """The requested times after t0 (a requested t0 is the initial sample)."""
+        if self.t_eval.size and self.t_eval[0] == self.t0:
+            return self.t_eval[1:]
+        return self.t_eval
+
+    def stats(self) -> dict:
+        """What users compare methods by: steps, rejections and evaluations (docs/adaptive.md)."""
+        c = self.counters
+        per_grad_H, per_grad_L = evaluations_per_iteration(self.method, len(self.conserve), self.solver.rhs == "stable")
+        iterations = int(c[kernel.CNT_ITERATIONS] + c[kernel.CNT_SIDE_ITERATIONS])
+        return {
+            "steps": int(c[kernel.CNT_STEPS]), "rejected_steps": int(c[kernel.CNT_REJECTED]),
+            "failed_solves": int(c[kernel.CNT_FAILED]), "split_steps": int(c[kernel.CNT_SPLIT]),
+            "side_steps": int(c[kernel.CNT_SIDE_STEPS]), "iterations": iterations,
+            "grad_H_evaluations": per_grad_H * iterations, "grad_L_evaluations": per_grad_L * iterations,
+            "hessian_evaluations": int(c[kernel.CNT_FACTORISATIONS] + c[kernel.CNT_ESTIMATE_HESSIANS]),
+            "events": int(c[kernel.CNT_EVENTS]),
+        }

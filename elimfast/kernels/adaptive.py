@@ -1,0 +1,550 @@
+"""Adaptive steps, output at requested times and events (docs/adaptive.md; spec section 9).
+
+Numba only, like stepper.py, whose ``try_step`` takes every step here: the controllers
+only choose h. HBVM, ELIM and LIM keep H and the imposed invariants at every step
+whatever its size, so h may change at every step without losing conservation.
+
+Controllers (``options[OPT_CONTROL]``):
+  CONTROL_ERROR (default): the local error estimate of docs/adaptive.md,
+      E = C_s h || (h J(u(h/2)))^s gamma_s ||,  C_s = sqrt(2s+1) s! / (2s+1)!,
+    in the norm max_i |v_i| / (atol + rtol max(|y0_i|, |y1_i|)); accept when E <= 1;
+    h_new = h min(2, max(0.2, min(F, F (h / h_prev) (E_prev / E)^(1/(2s+1))))),
+    F = 0.9 E^(-1/(2s+1)) (Gustafsson's factor: without it, 662 rejections at e = 0.99).
+    With ``verify``, E comes from step doubling instead (two extra half steps).
+    A step whose solve fails is retried with half the step.
+  CONTROL_TIME_SCALE: Hairer & Soderlind's time-reversible steps for a problem with a
+    time scale sigma(y): rho_1/2 = 1/sigma(y0) + eps G(y0)/2, h_n = eps / rho_n+1/2,
+    rho_n+3/2 = rho_n+1/2 + eps G(y_n+1), G = -grad sigma . f / sigma. No estimate,
+    no rejection; a step whose solve fails is split (try_step).
+  CONTROL_FIXED: h constant (used when a fixed-step run asks for output times or events).
+The last step is clipped so that t_end is reached exactly.
+
+Output at requested times and events use side steps: from the start of the step that
+contains the time, a step of the method itself to that time, started from the step's
+own polynomial; the side state then has the integrator's accuracy and keeps every
+invariant (the stage polynomial between steps keeps neither). Events g(y) = 0 are
+bracketed by the sign of g at the step points, located on the stage polynomial, then
+refined by Newton iterations whose every value of g is taken at a side step.
+"""
+import math
+import warnings
+
+import numpy as np
+from numba import njit, types
+from numba.core.errors import NumbaExperimentalFeatureWarning
+
+from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK
+from .quadrature import legendre_integral_table
+from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
+                         INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
+from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
+                      _sample, extrapolate, kahan_add, restore_newton_matrix, try_step)
+from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
+
+warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
+warnings.filterwarnings("ignore", message="First-class function type feature is experimental")
+
+CONTROL_ERROR = 0
+CONTROL_TIME_SCALE = 1
+CONTROL_FIXED = 2
+
+# controls (float64): the run's real parameters.
+CTL_RTOL, CTL_ATOL, CTL_EPSILON, CTL_T_END, CTL_H_MAX = range(5)
+N_CONTROLS = 5
+# options (int64): the run's integer parameters.
+OPT_CONTROL, OPT_VERIFY, OPT_STORE_EVERY, OPT_N_TOTAL = range(4)
+N_OPTIONS = 4
+# control_state (float64), saved with the run so that a resumed run continues exactly:
+# the next step to try, the last accepted step and its error estimate (0: none yet), and
+# rho of the time-reversible controller (0: not started).
+CS_H_NEXT, CS_H_PREV, CS_ERR_PREV, CS_RHO = range(4)
+N_CONTROL_STATE = 4
+# counters (int64), saved with the run: steps accepted, steps rejected by the estimate,
+# failed solves (h halved), split steps, iterations of accepted and rejected steps,
+# side steps and their iterations, the next requested time, events found,
+# Newton factorisations (Hessian evaluations), Hessians of the error estimate.
+(CNT_STEPS, CNT_REJECTED, CNT_FAILED, CNT_SPLIT, CNT_ITERATIONS, CNT_SIDE_STEPS, CNT_SIDE_ITERATIONS,
+ CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS) = range(11)
+N_COUNTERS = 11
+# progress (int64) of one call: steps, samples, events written; 1 when the run is finished
+# (t_end reached or a terminal event).
+N_PROGRESS = 4
+
+SAFETY = 0.9
+MIN_FACTOR = 0.2
+MAX_FACTOR = 2.0
+MAX_CONSECUTIVE_FAILURES = 40      # halvings of one step before the run fails
+EVENT_NEWTON_STEPS = 6             # side steps to refine one event
+POLYNOMIAL_ROOT_ITERATIONS = 60
+
+
+@njit(cache=True)
+def error_constant(s):
+    """C_s = sqrt(2s+1) s! / (2s+1)! of the error estimate."""
+    value = math.sqrt(2.0 * s + 1.0)
+    for i in range(s + 1, 2 * s + 2):
+        value /= i
+    return value
+
+
+@internal
+def _apply_jacobian(hessian, v, out):
+    """out = J Hess v with J = [[0, I], [-I, 0]] (y = (q, p))."""
+    n = v.shape[0]
+    m = n // 2
+    for i in range(n):
+        acc = 0.0
+        row = i + m if i < m else i - m
+        for j in range(n):
+            acc += hessian[row, j] * v[j]
+        out[i] = acc if i < m else -acc
+
+
+@internal
+def stage_at(tau, y, h, coef, integrals, out):
+    """u(tau h) = y + h sum_j coef_j int_0^tau P_j: the stage polynomial of a step (spec 1)."""
+    s = coef.shape[0]
+    n = y.shape[0]
+    point = np.empty(1)
+    point[0] = tau
+    legendre_integral_table(point, s, integrals)
+    for p in range(n):
+        acc = 0.0
+        for j in range(s):
+            acc += integrals[0, j] * coef[j, p]
+        out[p] = y[p] + h * acc
+
+
+@internal
+def error_estimate(hess_H, params, tables, work, y0, y1, h, coef, rtol, atol, scratch, hessian, integrals):
+    """E = C_s h || (h J(u(h/2)))^s gamma_s || (docs/adaptive.md, spec 9), the last step's
+    local error estimate in the weighted max norm. gamma_s = J sum_l b_l P_s(c_l) grad H(u_l)
+    from the gradients of the last iteration (work.grads, no new evaluation); needs k > s.
+    scratch (3, n); hessian (n, n); integrals (1, s)."""
+    n = y0.shape[0]
+    s = coef.shape[0]
+    m = n // 2
+    projection, grads = tables.projection, work.grads
+    k = grads.shape[0]
+    v, w, mid = scratch[0], scratch[1], scratch[2]
+    for p in range(n):
+        acc = 0.0
+        for l in range(k):
+            acc += projection[s, l] * grads[l, p]
+        w[p] = acc
+    for p in range(m):   # gamma_s = J w
+        v[p] = w[p + m]
+        v[p + m] = -w[p]
+    stage_at(0.5, y0, h, coef, integrals, mid)
+    hess_H(mid, params, hessian)
+    for _ in range(s):
+        _apply_jacobian(hessian, v, w)
+        for p in range(n):
+            v[p] = h * w[p]
+    largest = 0.0
+    for p in range(n):
+        weight = atol + rtol * max(abs(y0[p]), abs(y1[p]))
+        largest = max(largest, abs(v[p]) / weight)
+    return error_constant(s) * abs(h) * largest
+
+
+@internal
+def _time_scale_rate(grad_H, time_scale, params, y, scratch):
+    """(sigma(y), G(y)) with G = -grad sigma . f / sigma, f = J grad H (spec 9).
+    scratch (2, n + 1): time_scale writes [sigma, grad sigma] into row 0."""
+    n = y.shape[0]
+    m = n // 2
+    out, grad = scratch[0], scratch[1]
+    time_scale(y, params, out)
+    grad_H(y, params, grad[:n])
+    acc = 0.0
+    for p in range(m):   # f_q = dH/dp, f_p = -dH/dq
+        acc += out[1 + p] * grad[m + p] - out[1 + m + p] * grad[p]
+    return out[0], -acc / out[0]
+
+
+SIDE_STATE = 6   # rows of side_state: y, y_comp, clock (2 in the first two slots), last_h, newton scratch
+
+
+@internal
+def side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+              y_start, y_comp_start, t_start, h_step, coef_step, mult_step, h_side, newton_base,
+              y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, diagnostics):
+    """The state h_side after the start of a step (0 < h_side <= h_step), by a step of the
+    method itself from (y_start, t_start) started from the step's polynomial restricted to
+    [0, h_side] (docs/adaptive.md). Nothing of the main run changes but the Newton matrix
+    (newton_base says where it is). Returns (status, iterations) and y_side."""
+    _copy(y_start, y_side)
+    _copy(y_comp_start, side_comp)
+    side_clock[0] = t_start
+    side_clock[1] = 0.0
+    extrapolate(tables, work, 0.0, h_side / h_step, coef_step, side_coef)
+    _copy(mult_step, side_mult)
+    side_last_h[0] = h_side
+    status, iterations, _ = try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                                     y_side, side_comp, side_clock, side_coef, side_mult, h_side, side_last_h,
+                                     newton_base, True, diagnostics)
+    return status, iterations
+
+
+@internal
+def _crossed(direction, g_old, g_new):
+    """g went from g_old to g_new through 0 in the event's direction (+1 up, -1 down, 0 both)."""
+    up = g_old < 0.0 and g_new >= 0.0
+    down = g_old > 0.0 and g_new <= 0.0
+    if direction > 0:
+        return up
+    if direction < 0:
+        return down
+    return up or down
+
+
+ADAPTIVE_LOOP_SIGNATURE = types.int64(
+    H_TYPE, GRAD_H_TYPE, HESS_H_TYPE, INVARIANTS_TYPE, GRAD_INVARIANTS_TYPE, VECTOR,   # problem
+    INVARIANTS_TYPE, INVARIANTS_TYPE,                                                  # time_scale, events
+    types.int64, types.int64, types.int64, types.int64, types.int64,                   # family, solver, stable_rhs,
+    types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
+    #                                                                                    max_iter, max_halvings
+    types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h0 and the method's tables
+    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,
+    INT_VECTOR,                                                                        # conserve_idx
+    VECTOR, INT_VECTOR, VECTOR, INT_VECTOR, INT_VECTOR,                                # controls, options, t_eval,
+    #                                                                                    event direction, terminal
+    VECTOR, VECTOR, VECTOR, MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, INT_VECTOR,        # y, y_comp, clock, coef,
+    #                                                                                    multipliers, last_h,
+    #                                                                                    newton_base, control_state,
+    #                                                                                    counters
+    types.int64,                                                                       # max_steps
+    VECTOR, VECTOR, MATRIX, INT_VECTOR, INT_VECTOR,                                    # per step: t, h, mult,
+    #                                                                                    iterations, substeps
+    VECTOR, MATRIX, MATRIX,                                                            # samples: t, y, invariants
+    INT_VECTOR, VECTOR, MATRIX,                                                        # events: which, t, y
+    INT_VECTOR, VECTOR,                                                                # progress, diagnostics
+)
+
+
+@njit(ADAPTIVE_LOOP_SIGNATURE, cache=True, nogil=True, error_model="numpy")
+def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_scale, events,
+                  family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
+                  h0, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
+                  newton_values, newton_vectors, newton_inverse, newton_weights,
+                  conserve_idx,
+                  controls, options, t_eval, event_direction, event_terminal,
+                  y, y_comp, clock, coef, multipliers, last_h, newton_base, control_state, counters,
+                  max_steps,
+                  step_t, step_h, mult_out, iter_out, substeps_out,
+                  t_out, y_out, inv_out,
+                  event_out, event_t_out, event_y_out,
+                  progress, diagnostics):
+    """Up to max_steps accepted steps of a run with varying h (module docstring), from and
+    into the run's state (as stepper.time_loop, plus control_state and counters, see
+    the CS_* and CNT_* constants), so that consecutive calls continue one run exactly.
+
+    controls: CTL_*; options: OPT_* (the controller, step doubling, store_every, and for
+    CONTROL_FIXED the run's total number of steps). h0: the first step (CONTROL_ERROR,
+    CONTROL_FIXED: the step). t_eval: requested output times, increasing, after t0 (empty:
+    a sample every store_every steps and at t_end). events: g(y, params, out) for the
+    len(event_direction) events; event_direction +1, -1, 0; event_terminal 1 stops the run.
+
+    Per accepted step (index from 0 in this call): step_t the time at its end, step_h its
+    size, mult_out, iter_out (every try, rejected ones included), substeps_out. Samples
+    into t_out, y_out, inv_out; events into event_out (the event's index), event_t_out,
+    event_y_out. The call returns when max_steps steps are done, when a sample or event
+    buffer is full (their lengths), when the run is finished (progress[3] = 1), or on a
+    failure (the status; the state is then the last good step's).
+    """
+    n = y.shape[0]
+    k = Is.shape[0]
+    r = Ihat.shape[0]
+    s = coef.shape[0]
+    n_inv = inv_out.shape[1] - 1
+    n_events = event_direction.shape[0]
+    control = options[OPT_CONTROL]
+    verify = options[OPT_VERIFY] != 0
+    store_every = options[OPT_STORE_EVERY]
+    rtol, atol, epsilon, t_end, h_max = (controls[CTL_RTOL], controls[CTL_ATOL], controls[CTL_EPSILON],
+                                         controls[CTL_T_END], controls[CTL_H_MAX])
+    # Main steps: the error controller halves a failing step itself; the others split it.
+    main_halvings = 0 if control == CONTROL_ERROR else max_halvings
+    settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, main_halvings)
+    # Side steps start from their own step's polynomial (no predictor) and may split.
+    side_settings = Settings(family, solver, stable_rhs, warm_start, 0, tol, max_iter, max_halvings)
+    tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
+                                  predictor_basis, newton_values, newton_vectors, newton_inverse,
+                                  newton_weights))
+    owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
+                            newton_values.shape[0])
+    work = borrow_workspace(owners)
+    n_mult = multipliers.shape[0]
+    inv_values = np.zeros(n_inv)
+    # The step's start (for rejection, side steps and events) and the side steps' state.
+    y_back, comp_back, coef_back, mult_back = np.empty(n), np.empty(n), np.empty((s, n)), np.empty(n_mult)
+    clock_back, last_h_back = np.empty(2), np.empty(1)
+    y_side, side_comp, side_clock = np.empty(n), np.empty(n), np.empty(2)
+    side_coef, side_mult, side_last_h = np.empty((s, n)), np.empty(n_mult), np.empty(1)
+    y_half, half_comp, half_clock = np.empty(n), np.empty(n), np.empty(2)
+    half_coef, half_mult, half_last_h = np.empty((s, n)), np.empty(n_mult), np.empty(1)
+    scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((1, s))
+    scale_scratch = np.zeros((2, n + 1))
+    g_old, g_new, g_side = np.empty(n_events), np.empty(n_events), np.empty(n_events)
+    poly_state = np.empty(n)
+    side_diagnostics = np.empty(N_DIAGNOSTICS)
+    order_exponent = 1.0 / (2.0 * s + 1.0)
+
+    params_view, conserve_view, y_view = borrowed(params), borrowed(conserve_idx), borrowed(y)
+    y_comp_view, clock_view, coef_view = borrowed(y_comp), borrowed(clock), borrowed(coef)
+    mult_view, last_h_view, diagnostics_view = borrowed(multipliers), borrowed(last_h), borrowed(diagnostics)
+    base_view = borrowed(newton_base)
+    restore_newton_matrix(grad_H, hess_H, params_view, settings, tables, work, base_view)
+    work.info[4] = 0.0
+
+    for i in range(N_PROGRESS):
+        progress[i] = 0
+    n_samples = 0
+    n_found = 0
+    if n_events > 0:
+        events(y, params, g_old)
+    if control == CONTROL_TIME_SCALE and control_state[CS_RHO] == 0.0:
+        sigma, rate = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
+        control_state[CS_RHO] = 1.0 / sigma + 0.5 * epsilon * rate
+    if control_state[CS_H_NEXT] == 0.0:
+        control_state[CS_H_NEXT] = h0
+    status = STATUS_OK
+    step = 0
+    consecutive_failures = 0
+    finished = False
+    while step < max_steps and not finished:
+        if n_samples >= t_out.shape[0] or n_found + n_events > event_out.shape[0]:
+            break   # the caller drains the buffers and calls again
+        global_step = counters[CNT_STEPS]
+        remaining = (t_end - clock[0]) - clock[1]
+        if control == CONTROL_TIME_SCALE:
+            h = epsilon / control_state[CS_RHO]
+        else:
+            h = control_state[CS_H_NEXT]
+        h = min(h, h_max)
+        last = False
+        if control == CONTROL_FIXED:
+            last = global_step + 1 == options[OPT_N_TOTAL]
+        elif h >= remaining or remaining - h < 0.01 * h:
+            h = remaining   # no sliver of a step at the end
+            last = True
+        # The step's start, for a rejection and for side steps.
+        _copy(y, y_back)
+        _copy(y_comp, comp_back)
+        _copy(coef, coef_back)
+        _copy(multipliers, mult_back)
+        _copy(clock, clock_back)
+        last_h_back[0] = last_h[0]
+        status, iterations, substeps = try_step(
+            grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
+            y_view, y_comp_view, clock_view, coef_view, mult_view, h, last_h_view, base_view, global_step > 0,
+            diagnostics_view)
+        counters[CNT_ITERATIONS] += iterations
+        if status != STATUS_OK:
+            if control != CONTROL_ERROR:
+                break
+            counters[CNT_FAILED] += 1
+            consecutive_failures += 1
+            if consecutive_failures >= MAX_CONSECUTIVE_FAILURES:
+                break
+            control_state[CS_H_NEXT] = 0.5 * h
+            continue
+        if control == CONTROL_ERROR:
+            if verify:
+                # Step doubling: two half steps from the same start (exact to 0.2%, spec 9).
+                _copy(y_back, y_half)
+                _copy(comp_back, half_comp)
+                _copy(clock_back, half_clock)
+                _copy(coef_back, half_coef)
+                _copy(mult_back, half_mult)
+                half_last_h[0] = last_h_back[0]
+                half_status = STATUS_OK
+                for _ in range(2):
+                    half_status, used, _ = try_step(
+                        grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
+                        y_half, half_comp, half_clock, half_coef, half_mult, 0.5 * h, half_last_h, base_view,
+                        global_step > 0, side_diagnostics)
+                    counters[CNT_ITERATIONS] += used
+                    if half_status != STATUS_OK:
+                        break
+                if half_status != STATUS_OK:
+                    estimate = np.inf
+                else:
+                    largest = 0.0
+                    for p in range(n):
+                        weight = atol + rtol * max(abs(y_back[p]), abs(y[p]))
+                        largest = max(largest, abs((y[p] - y_half[p]) + (y_comp[p] - half_comp[p])) / weight)
+                    estimate = largest / (1.0 - 0.5 ** (2 * s))
+            else:
+                estimate = error_estimate(hess_H, params_view, tables, work, y_back, y, h, coef, rtol, atol,
+                                          scratch, hessian, integrals)
+                counters[CNT_ESTIMATE_HESSIANS] += 1
+            if not (estimate <= 1.0):
+                # Rejected: back to the step's start, with a smaller step.
+                _copy(y_back, y)
+                _copy(comp_back, y_comp)
+                _copy(coef_back, coef)
+                _copy(mult_back, multipliers)
+                _copy(clock_back, clock)
+                last_h[0] = last_h_back[0]
+                counters[CNT_REJECTED] += 1
+                factor = MIN_FACTOR
+                if estimate < np.inf:
+                    factor = max(MIN_FACTOR, SAFETY * estimate ** (-order_exponent))
+                control_state[CS_H_NEXT] = h * min(factor, 1.0)
+                consecutive_failures += 1
+                if consecutive_failures >= MAX_CONSECUTIVE_FAILURES:
+                    status = STATUS_NOT_CONVERGED
+                    diagnostics[DIAG_TIME] = clock[0]
+                    diagnostics[DIAG_STEP] = h
+                    diagnostics[DIAG_INCREMENT] = estimate
+                    diagnostics[DIAG_DEPTH] = 0
+                    diagnostics[DIAG_ITERATIONS] = iterations
+                    break
+                continue
+            # Accepted: the next step (Gustafsson's controller).
+            safe = max(estimate, 1e-300)
+            factor = SAFETY * safe ** (-order_exponent)
+            if control_state[CS_ERR_PREV] > 0.0 and control_state[CS_H_PREV] > 0.0:
+                factor = min(factor, factor * (h / control_state[CS_H_PREV])
+                             * (control_state[CS_ERR_PREV] / safe) ** order_exponent)
+            if not last:
+                control_state[CS_H_PREV] = h
+                control_state[CS_ERR_PREV] = safe
+                control_state[CS_H_NEXT] = h * min(MAX_FACTOR, max(MIN_FACTOR, factor))
+        elif control == CONTROL_TIME_SCALE:
+            sigma, rate = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
+            control_state[CS_RHO] += epsilon * rate
+        consecutive_failures = 0
+        if last and control != CONTROL_FIXED:
+            clock[0] = t_end   # exactly, whatever the rounding of the sum of the steps
+            clock[1] = 0.0
+        counters[CNT_STEPS] += 1
+        if substeps > 1:
+            counters[CNT_SPLIT] += 1
+        step_t[step] = clock[0]
+        step_h[step] = h
+        iter_out[step] = iterations
+        substeps_out[step] = substeps
+        for a in range(n_mult):
+            mult_out[step, a] = multipliers[a]
+        step += 1
+        progress[0] = step
+        if last:
+            finished = True
+
+        # Events: a sign change of g over the step, located on the stage polynomial, then
+        # refined by Newton steps whose values of g are taken at side steps. A terminal
+        # event ends the step, and the run, at the event.
+        h_end = h   # where this step ends for the samples below
+        if n_events > 0:
+            events(y, params, g_new)
+            terminal_hit = False
+            for e in range(n_events):
+                if not _crossed(event_direction[e], g_old[e], g_new[e]):
+                    continue
+                # Illinois on the stage polynomial, in units of the step.
+                a, b, g_a, g_b = 0.0, 1.0, g_old[e], g_new[e]
+                tau = 1.0
+                for _ in range(POLYNOMIAL_ROOT_ITERATIONS):
+                    if g_b == g_a:
+                        break
+                    tau = (a * g_b - b * g_a) / (g_b - g_a)
+                    stage_at(tau, y_back, h, coef, integrals, poly_state)
+                    events(poly_state, params, g_side)
+                    g_tau = g_side[e]
+                    if g_tau == 0.0 or (b - a) < 1e-15:
+                        break
+                    if (g_tau < 0.0) == (g_b < 0.0):
+                        b, g_b = tau, g_tau
+                        g_a *= 0.5
+                    else:
+                        a, g_a = tau, g_tau
+                        g_b *= 0.5
+                # The slope of g along the step, from the polynomial.
+                upper, lower = min(1.0, tau + 1e-6), max(0.0, tau - 1e-6)
+                stage_at(upper, y_back, h, coef, integrals, poly_state)
+                events(poly_state, params, g_side)
+                g_plus = g_side[e]
+                stage_at(lower, y_back, h, coef, integrals, poly_state)
+                events(poly_state, params, g_side)
+                slope = (g_plus - g_side[e]) / (upper - lower)
+                for _ in range(EVENT_NEWTON_STEPS):
+                    if tau >= 1.0:
+                        _copy(y, y_side)
+                        _copy(y_comp, side_comp)
+                        events(y_side, params, g_side)
+                    else:
+                        side_status, used = side_step(
+                            grad_H, hess_H, grad_invariants, params_view, side_settings, tables, conserve_view,
+                            work, y_back, comp_back, clock_back[0], h, coef, multipliers, tau * h, base_view,
+                            y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, side_diagnostics)
+                        counters[CNT_SIDE_STEPS] += 1
+                        counters[CNT_SIDE_ITERATIONS] += used
+                        if side_status != STATUS_OK:
+                            stage_at(tau, y_back, h, coef, integrals, y_side)
+                        events(y_side, params, g_side)
+                    if slope == 0.0 or g_side[e] == 0.0:
+                        break
+                    new_tau = min(1.0, max(0.0, tau - g_side[e] / slope))
+                    if abs(new_tau - tau) * abs(h) <= 2e-16 * (abs(clock_back[0]) + abs(h)):
+                        break
+                    tau = new_tau
+                event_out[n_found] = e
+                event_t_out[n_found] = clock_back[0] + (clock_back[1] + tau * h)
+                for p in range(n):
+                    event_y_out[n_found, p] = y_side[p]
+                n_found += 1
+                counters[CNT_EVENTS] += 1
+                if event_terminal[e] != 0:
+                    terminal_hit = True
+                    _copy(y_side, y)
+                    _copy(side_comp, y_comp)
+                    clock[0] = event_t_out[n_found - 1]
+                    clock[1] = 0.0
+                    h_end = tau * h
+                    step_t[step - 1] = clock[0]
+                    step_h[step - 1] = h_end
+                    break
+            for e in range(n_events):
+                g_old[e] = g_new[e]
+            if terminal_hit:
+                finished = True
+
+        # Samples: at the requested times inside this step, by side steps from its start;
+        # else every store_every steps and at the end of the run.
+        if t_eval.shape[0] > 0:
+            while counters[CNT_NEXT_EVAL] < t_eval.shape[0] and n_samples < t_out.shape[0]:
+                t_wanted = t_eval[counters[CNT_NEXT_EVAL]]
+                offset = (t_wanted - clock_back[0]) - clock_back[1]
+                if offset > h_end * (1.0 + 1e-14):
+                    break
+                if offset >= h_end * (1.0 - 1e-15):
+                    _sample(H, invariants, params, y, t_wanted, n_samples, t_out, y_out, inv_out, inv_values)
+                else:
+                    side_status, used = side_step(
+                        grad_H, hess_H, grad_invariants, params_view, side_settings, tables, conserve_view, work,
+                        y_back, comp_back, clock_back[0], h, coef, multipliers, offset, base_view,
+                        y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, side_diagnostics)
+                    counters[CNT_SIDE_STEPS] += 1
+                    counters[CNT_SIDE_ITERATIONS] += used
+                    if side_status != STATUS_OK:
+                        # The stage polynomial instead: accurate to O(h^(s+1)) (spec 9).
+                        stage_at(offset / h, y_back, h, coef, integrals, y_side)
+                    _sample(H, invariants, params, y_side, t_wanted, n_samples, t_out, y_out, inv_out,
+                            inv_values)
+                n_samples += 1
+                counters[CNT_NEXT_EVAL] += 1
+        elif (global_step + 1) % store_every == 0 or finished:
+            _sample(H, invariants, params, y, clock[0], n_samples, t_out, y_out, inv_out, inv_values)
+            n_samples += 1
+        progress[1] = n_samples
+        progress[2] = n_found
+    progress[0] = step
+    progress[1] = n_samples
+    progress[2] = n_found
+    progress[3] = 1 if finished else 0
+    counters[CNT_FACTORISATIONS] += np.int64(work.info[4])
+    keep_alive(owners)
+    return status
