@@ -364,5 +364,5 @@ class AdaptiveIntegration:
             "side_steps": int(c[kernel.CNT_SIDE_STEPS]), "iterations": iterations,
             "grad_H_evaluations": per_grad_H * iterations, "grad_L_evaluations": per_grad_L * iterations,
             "hessian_evaluations": int(c[kernel.CNT_FACTORISATIONS] + c[kernel.CNT_ESTIMATE_HESSIANS]),
-            "events": int(c[kernel.CNT_EVENTS]),
+            "events": int(c[kernel.CNT_EVENTS]), "polynomial_samples": int(c[kernel.CNT_SIDE_FALLBACKS]),
         }

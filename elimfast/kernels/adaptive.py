@@ -62,10 +62,11 @@ N_CONTROL_STATE = 4
 # counters (int64), saved with the run: steps accepted, steps rejected by the estimate,
 # failed solves (h halved), split steps, iterations of accepted and rejected steps,
 # side steps and their iterations, the next requested time, events found,
-# Newton factorisations (Hessian evaluations), Hessians of the error estimate.
+# Newton factorisations (Hessian evaluations), Hessians of the error estimate, and
+# states taken from the stage polynomial because both side steps failed.
 (CNT_STEPS, CNT_REJECTED, CNT_FAILED, CNT_SPLIT, CNT_ITERATIONS, CNT_SIDE_STEPS, CNT_SIDE_ITERATIONS,
- CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS) = range(11)
-N_COUNTERS = 11
+ CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS, CNT_SIDE_FALLBACKS) = range(12)
+N_COUNTERS = 12
 # progress (int64) of one call: steps, samples, events written; 1 when the run is finished
 # (t_end reached or a terminal event).
 N_PROGRESS = 4
@@ -163,28 +164,52 @@ def _time_scale_rate(grad_H, time_scale, params, y, scratch):
     return out[0], -acc / out[0]
 
 
-SIDE_STATE = 6   # rows of side_state: y, y_comp, clock (2 in the first two slots), last_h, newton scratch
-
-
 @internal
 def side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-              y_start, y_comp_start, t_start, h_step, coef_step, mult_step, h_side, newton_base,
+              y_from, comp_from, t_from, position, h_step, coef_step, mult_step, h_side, newton_base,
               y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, diagnostics):
-    """The state h_side after the start of a step (0 < h_side <= h_step), by a step of the
-    method itself from (y_start, t_start) started from the step's polynomial restricted to
-    [0, h_side] (docs/adaptive.md). Nothing of the main run changes but the Newton matrix
-    (newton_base says where it is). Returns (status, iterations) and y_side."""
-    _copy(y_start, y_side)
-    _copy(y_comp_start, side_comp)
-    side_clock[0] = t_start
+    """A step of the method itself of size h_side from a point of a step of size h_step:
+    its start (position 0, h_side > 0) or its end (position 1, h_side < 0, backwards),
+    started from the step's own polynomial (docs/adaptive.md). Nothing of the main run
+    changes but the Newton matrix (newton_base says where it is). Returns (status,
+    iterations); the state is y_side."""
+    _copy(y_from, y_side)
+    _copy(comp_from, side_comp)
+    side_clock[0] = t_from
     side_clock[1] = 0.0
-    extrapolate(tables, work, 0.0, h_side / h_step, coef_step, side_coef)
+    extrapolate(tables, work, position, h_side / h_step, coef_step, side_coef)
     _copy(mult_step, side_mult)
     side_last_h[0] = h_side
     status, iterations, _ = try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                      y_side, side_comp, side_clock, side_coef, side_mult, h_side, side_last_h,
                                      newton_base, True, diagnostics)
     return status, iterations
+
+
+@internal
+def dense_state(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                y_start, comp_start, t_start, y_end, comp_end, t_end, h, coef, mult, offset, newton_base,
+                y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, diagnostics, integrals, counters):
+    """The state at offset (0 < offset < h) into the step [t_start, t_start + h]: a side step
+    from the nearer end, else from the other one (a side step of a tiny fraction of the
+    step can fail: its Gamma is then nearly singular), else the stage polynomial
+    (accurate to O(h^(s+1)) but keeping no invariant; counted in CNT_SIDE_FALLBACKS)."""
+    for attempt in range(2):
+        from_start = (offset <= 0.5 * h) == (attempt == 0)
+        if from_start:
+            status, used = side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                                     y_start, comp_start, t_start, 0.0, h, coef, mult, offset, newton_base,
+                                     y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, diagnostics)
+        else:
+            status, used = side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                                     y_end, comp_end, t_end, 1.0, h, coef, mult, offset - h, newton_base,
+                                     y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, diagnostics)
+        counters[CNT_SIDE_STEPS] += 1
+        counters[CNT_SIDE_ITERATIONS] += used
+        if status == STATUS_OK:
+            return
+    counters[CNT_SIDE_FALLBACKS] += 1
+    stage_at(offset / h, y_start, h, coef, integrals, y_side)
 
 
 @internal
@@ -282,6 +307,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     clock_back, last_h_back = np.empty(2), np.empty(1)
     y_side, side_comp, side_clock = np.empty(n), np.empty(n), np.empty(2)
     side_coef, side_mult, side_last_h = np.empty((s, n)), np.empty(n_mult), np.empty(1)
+    y_end_state, comp_end_state = np.empty(n), np.empty(n)
     y_half, half_comp, half_clock = np.empty(n), np.empty(n), np.empty(2)
     half_coef, half_mult, half_last_h = np.empty((s, n)), np.empty(n_mult), np.empty(1)
     scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((1, s))
@@ -437,7 +463,10 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         # Events: a sign change of g over the step, located on the stage polynomial, then
         # refined by Newton steps whose values of g are taken at side steps. A terminal
         # event ends the step, and the run, at the event.
-        h_end = h   # where this step ends for the samples below
+        h_end = h   # where this step ends for the samples below (a terminal event ends it early)
+        _copy(y, y_end_state)   # the step's end, for side steps backwards from it
+        _copy(y_comp, comp_end_state)
+        t_end_state = clock[0]
         if n_events > 0:
             events(y, params, g_new)
             terminal_hit = False
@@ -472,19 +501,15 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 slope = (g_plus - g_side[e]) / (upper - lower)
                 for _ in range(EVENT_NEWTON_STEPS):
                     if tau >= 1.0:
-                        _copy(y, y_side)
-                        _copy(y_comp, side_comp)
-                        events(y_side, params, g_side)
+                        _copy(y_end_state, y_side)
+                        _copy(comp_end_state, side_comp)
                     else:
-                        side_status, used = side_step(
-                            grad_H, hess_H, grad_invariants, params_view, side_settings, tables, conserve_view,
-                            work, y_back, comp_back, clock_back[0], h, coef, multipliers, tau * h, base_view,
-                            y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, side_diagnostics)
-                        counters[CNT_SIDE_STEPS] += 1
-                        counters[CNT_SIDE_ITERATIONS] += used
-                        if side_status != STATUS_OK:
-                            stage_at(tau, y_back, h, coef, integrals, y_side)
-                        events(y_side, params, g_side)
+                        dense_state(grad_H, hess_H, grad_invariants, params_view, side_settings, tables,
+                                    conserve_view, work, y_back, comp_back, clock_back[0], y_end_state,
+                                    comp_end_state, t_end_state, h,
+                                    coef, multipliers, tau * h, base_view, y_side, side_comp, side_clock, side_coef,
+                                    side_mult, side_last_h, side_diagnostics, integrals, counters)
+                    events(y_side, params, g_side)
                     if slope == 0.0 or g_side[e] == 0.0:
                         break
                     new_tau = min(1.0, max(0.0, tau - g_side[e] / slope))
@@ -518,20 +543,18 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             while counters[CNT_NEXT_EVAL] < t_eval.shape[0] and n_samples < t_out.shape[0]:
                 t_wanted = t_eval[counters[CNT_NEXT_EVAL]]
                 offset = (t_wanted - clock_back[0]) - clock_back[1]
-                if offset > h_end * (1.0 + 1e-14):
+                # Times within rounding of the step's end are the step's end (t_end itself,
+                # and fixed-step times such as 10.0 after 100 steps of 0.1).
+                slack = 4e-16 * (abs(clock_back[0]) + abs(h_end))
+                if offset > h_end + slack:
                     break
-                if offset >= h_end * (1.0 - 1e-15):
+                if offset >= h_end - slack:
                     _sample(H, invariants, params, y, t_wanted, n_samples, t_out, y_out, inv_out, inv_values)
                 else:
-                    side_status, used = side_step(
-                        grad_H, hess_H, grad_invariants, params_view, side_settings, tables, conserve_view, work,
-                        y_back, comp_back, clock_back[0], h, coef, multipliers, offset, base_view,
-                        y_side, side_comp, side_clock, side_coef, side_mult, side_last_h, side_diagnostics)
-                    counters[CNT_SIDE_STEPS] += 1
-                    counters[CNT_SIDE_ITERATIONS] += used
-                    if side_status != STATUS_OK:
-                        # The stage polynomial instead: accurate to O(h^(s+1)) (spec 9).
-                        stage_at(offset / h, y_back, h, coef, integrals, y_side)
+                    dense_state(grad_H, hess_H, grad_invariants, params_view, side_settings, tables, conserve_view,
+                                work, y_back, comp_back, clock_back[0], y_end_state, comp_end_state, t_end_state, h,
+                                coef, multipliers, offset, base_view, y_side, side_comp, side_clock, side_coef,
+                                side_mult, side_last_h, side_diagnostics, integrals, counters)
                     _sample(H, invariants, params, y_side, t_wanted, n_samples, t_out, y_out, inv_out,
                             inv_values)
                 n_samples += 1
