@@ -337,3 +337,20 @@ def test_lim_and_nbody_adaptive():
     assert errors["angular_momentum_z"] <= 1e-13 * abs(r.invariants["angular_momentum_z"][0]) * 100
     rev = elimfast.integrate(p, hbvm(8, 4), t_end=2e4, step_control="time_scale", epsilon=0.05, store_every=10)
     assert rev.status == "complete" and rev.steps_done < r.steps_done * 10
+
+
+def test_expression_time_scale_matches_the_builtin():
+    from elimfast.problems import problem_from_expressions
+    e = 0.9
+    p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
+                                 initial={"q1": 1 - e, "q2": 0, "p1": 0, "p2": math.sqrt((1 + e) / (1 - e))},
+                                 time_scale="(q1**2 + q2**2)**0.75")
+    y = np.array([0.3, 0.4, 0.1, 0.2])
+    mine, builtin = np.zeros(5), np.zeros(5)
+    p.time_scale(y, p.params, mine)
+    kepler(e).time_scale(y, np.zeros(0), builtin)
+    assert np.allclose(mine, builtin, rtol=1e-14, atol=0)
+    a = elimfast.integrate(p, hbvm(8, 4), t_end=4 * PERIOD, step_control="time_scale", epsilon=0.03)
+    b = elimfast.integrate(kepler(e), hbvm(8, 4), t_end=4 * PERIOD, step_control="time_scale", epsilon=0.03)
+    assert a.steps_done == b.steps_done
+    assert np.max(np.abs(a.y_final - b.y_final)) <= 1e-9

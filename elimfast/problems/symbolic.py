@@ -45,6 +45,7 @@ four Numba cache hits); kernel time, EHBVM(12,3) over 10^4 steps: 0.97-0.98 x th
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -85,14 +86,16 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
                              invariants: Mapping[str, str] | None = None,
                              parameters: Mapping[str, float | str] | None = None,
                              initial: Mapping[str, float | str] | None = None,
-                             name: str = "user", description: str = "") -> Problem:
+                             name: str = "user", description: str = "", time_scale: str | None = None) -> Problem:
     """A Problem from expression strings.
 
     coordinates: {'q': [names], 'p': [names]} (m each); hamiltonian: H(q, p, parameters);
     invariants: {name: expression} (the problem's L_i, in this order); parameters:
     {name: value} (numbers or numeric strings such as 'pi/3'), passed as params[i] in
     alphabetical order of the names;
-    initial: {coordinate: value} for every coordinate (values may use the parameters).
+    initial: {coordinate: value} for every coordinate (values may use the parameters);
+    time_scale: an expression for the local time scale sigma(y) of the motion (the
+    time-reversible step control of docs/adaptive.md), e.g. "(q1**2 + q2**2)**0.75".
     Raises ProblemDefinitionError / ExpressionError (``.key`` says which entry is wrong).
     """
     q_names, p_names = _coordinate_names(coordinates)
@@ -159,7 +162,7 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
         cache.write_atomic(cache.keys_dir() / key, filename + "\n")
         module = _import(path)
 
-    return Problem(
+    problem = Problem(
         name=name, q_names=q_names, p_names=p_names,
         H=module.H, grad_H=module.grad_H, hess_H=module.hess_H, hessian_source="symbolic",
         invariants=module.invariants, grad_invariants=module.grad_invariants,
@@ -167,6 +170,11 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
         y0=y0, params=np.array([param_values[p] for p in param_names], dtype=np.float64),
         parameters=param_values, description=description or f"H = {' '.join(hamiltonian.split())}",
     )
+    if time_scale is not None:
+        function = compile_state_functions(problem, {"time_scale": time_scale}, gradient=True, what="time scale",
+                                           key_prefix="time_scale")
+        problem = dataclasses.replace(problem, time_scale=function)
+    return problem
 
 
 def _checked(function, *args, key, **kwargs):
@@ -543,8 +551,11 @@ def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gr
     trees = []
     for name, text in expressions.items():
         if not isinstance(text, str):
-            raise ExpressionError(f"{what} {name} must be an expression string, got {text!r}", key=f"{key_prefix}.{name}")
-        trees.append((name, text, _checked(parse, text, declared, what=f"{what} {name}", key=f"{key_prefix}.{name}")))
+            raise ExpressionError(f"{what} {name} must be an expression string, got {text!r}",
+                                  key=key_prefix if key_prefix == name else f"{key_prefix}.{name}")
+        key = key_prefix if key_prefix == name else f"{key_prefix}.{name}"
+        trees.append((name, text, _checked(parse, text, declared, what=what if key == key_prefix else f"{what} {name}",
+                                           key=key)))
     spec = {"y": coordinate_names, "constants": sorted(constants.items()), "gradient": bool(gradient),
             "expressions": [[name, canonical(tree)] for name, _, tree in trees]}
     key = cache.content_hash(f"state-functions-v{FUNCTIONS_GENERATOR_VERSION}", json.dumps(spec, sort_keys=True))
