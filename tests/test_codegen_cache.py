@@ -203,7 +203,7 @@ LOAD_AND_RUN = textwrap.dedent("""
         report = {}
         for name in sys.argv[1:]:
             spec = load_run(name)
-            run = spec.integration()
+            run = elimfast.Integration.from_spec(spec)
             run.advance(5)
             stats = [f.stats for f in (spec.problem.H, spec.problem.grad_H, spec.problem.hess_H,
                                        spec.problem.invariants, spec.problem.grad_invariants)]

@@ -217,7 +217,7 @@ def test_fewer_trajectories_than_threads(kepler):
     (dict(conserve=["angular_momentum"], method=hbvm(6, 3)), "cannot impose invariants"),
     (dict(max_iter=0), "max_iter"),
     (dict(rhs="fancy"), "stable"),
-    (dict(h=-0.1), "positive"),
+    (dict(h=-0.1), "h must be > 0"),
     (dict(method="gauss3"), "elimfast Method"),
 ])
 def test_bad_arguments_say_what_to_change(kepler, kwargs, match):
