@@ -98,6 +98,8 @@ class ElimfastGroup(click.Group):
                 # The reader went away (elimfast inspect ... | head): not an error of ours.
                 sys.stderr.close()
                 os._exit(EXIT_OK)
+            except _Exit:
+                raise   # fail() inside a command: its message is printed, the code stands
             except Exception as err:
                 if debug:
                     raise
@@ -369,9 +371,10 @@ def plot(file, kind, output, overwrite):
     """
     from elimfast.io.hdf5 import OutputError, RunFile
 
-    from .plots import plot_run
+    from .plots import check_image_path, plot_run
 
     path = Path(output) if output else Path(file).with_name(f"{Path(file).stem}_{kind}.png")
+    check_image_path(path)   # before reading the run: a usage error, exit 2
     if path.exists() and not overwrite:
         raise OutputError(f"{path}: already exists; pass --overwrite to replace it or -o another name")
     if not path.parent.is_dir():
@@ -627,9 +630,21 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
     return EXIT_OK
 
 
+def paper_configs() -> Path:
+    """configs/paper of the current directory if it has one, else the repository's beside the
+    package (an editable install), so that `elimfast paper` works from any folder."""
+    here = Path("configs/paper")
+    if (here / "table1.yaml").is_file():
+        return here
+    import elimfast
+    beside = Path(elimfast.__file__).resolve().parents[1] / "configs" / "paper"
+    return beside if (beside / "table1.yaml").is_file() else here
+
+
 @cli.command(context_settings=CONTEXT)
-@click.option("--configs", "config_dir", default="configs/paper", show_default=True, metavar="DIR",
-              help="The folder holding table1.yaml and long_run.yaml.")
+@click.option("--configs", "config_dir", default=None, metavar="DIR",
+              help="The folder holding table1.yaml and long_run.yaml (default: configs/paper here, else the "
+                   "repository's beside the installed package).")
 @click.option("--out", "out_dir", default="paper-out", show_default=True, metavar="DIR",
               help="Where to write the tables (markdown) and figures (PNG).")
 @click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
@@ -648,10 +663,12 @@ def paper(config_dir, out_dir, workers, quiet):
         if not quiet:
             click.echo(f"[{done}/{total}] {outcome.label}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
 
+    if config_dir is None:
+        config_dir = paper_configs()
     for name in ("table1.yaml", "long_run.yaml"):
         if not (Path(config_dir) / name).is_file():
-            fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps",
-                 EXIT_USAGE)
+            fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps "
+                 "(configs/paper in the repository)", EXIT_USAGE)
     try:
         result = reproduction.reproduce(config_dir, out_dir, workers=workers, on_done=on_done)
     except RuntimeError as err:
