@@ -34,7 +34,7 @@ MAX_TOL = 1e-8                    # a looser tol would accept iterates far from 
 DEFAULT_MAX_ITER = 100
 DEFAULT_MAX_ITER_ELIM_NEWTON = 30
 MAX_MAX_ITER = 10_000             # bounds the work of one kernel call (simplified Newton needs 5-15)
-DEFAULT_MAX_HALVINGS = 4          # step splitting depth (spec 8: one level always sufficed)
+DEFAULT_MAX_HALVINGS = 4          # step splitting depth (docs/solver.md: one level always sufficed)
 MAX_MAX_HALVINGS = 20             # 2^20 substeps per step at most
 DEFAULT_CHUNK_STEPS = 1 << 16     # steps per kernel call in integrate()
 T_END_RELATIVE_TOLERANCE = 1e-9   # t_end must be a whole number of steps to this
@@ -84,7 +84,7 @@ def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
 
 @dataclass(frozen=True)
 class SolverSettings:
-    """How each step's nonlinear system is solved (spec 8; docs/solver.md).
+    """How each step's nonlinear system is solved (docs/solver.md).
 
     method: 'newton' (simplified Newton, the default) or 'fixed_point' (the paper's
     iteration, whose counts Table 2 reports); tol: accept an iterate whose relative
@@ -93,7 +93,7 @@ class SolverSettings:
     solve; max_halvings: how often a failing step may be split in two (0: never);
     predictor: start from the previous step's polynomial carried over; warm_start: start
     from the previous step at all (False: every step cold, from y_n); rhs: 'stable'
-    (spec 3b, the default) or 'literal' (the paper's right-hand side).
+    (docs/methods.md#stable-right-hand-side, the default) or 'literal' (the paper's right-hand side).
     """
 
     method: str = DEFAULT_SOLVER
@@ -127,7 +127,8 @@ class SolverSettings:
         object.__setattr__(self, "max_halvings", _whole_number(
             "max_halvings", self.max_halvings, 0, MAX_MAX_HALVINGS, f" (2^{MAX_MAX_HALVINGS} substeps per step)"))
         if self.rhs not in ("stable", "literal"):
-            raise ParameterError("rhs", f"must be 'stable' (spec 3b, the default) or 'literal' (the paper's), "
+            raise ParameterError("rhs", f"must be 'stable' (the default, docs/methods.md#stable-right-hand-side) or "
+                                        "'literal' (the paper's), "
                                         f"got {self.rhs!r}")
         for name in ("predictor", "warm_start"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
@@ -177,7 +178,7 @@ class Result:
     every invariant of the problem, imposed or not; alpha (n_steps, nu) for ELIM and
     lam (n_steps, nu+1) for LIM (None otherwise); iterations (n_steps,) per step, every
     try and substep counted; substeps (n_steps,): 1, or how many substeps a split step
-    took (spec 8, "Fallback"); y_final, t_final: the last state; status: 'complete' or
+    took (docs/solver.md#when-a-step-fails-retry-then-split); y_final, t_final: the last state; status: 'complete' or
     the failure reason; solver: the SolverSettings used.
     """
 
@@ -206,7 +207,7 @@ class Result:
 
     @property
     def split_steps(self) -> int:
-        """How many steps were split into substeps (spec 8, "Fallback")."""
+        """How many steps were split into substeps (docs/solver.md#when-a-step-fails-retry-then-split)."""
         return int(np.count_nonzero(self.substeps > 1))
 
     def energy_warning(self) -> str | None:
@@ -488,7 +489,7 @@ class Integration:
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
                     diagnostics) -> str:
-    """The one-line report of a step that failed at every level of splitting (spec 8)."""
+    """The one-line report of a step that failed at every level of splitting (docs/solver.md)."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -529,7 +530,7 @@ def integrate(problem: Problem, method: Method, h: float, t_end: float | None = 
     polynomial carried over; warm_start: start from the previous step at all (else from
     y_n); max_halvings: a step that fails is retried from the unextrapolated guess, then
     split into two half-steps, recursively to this depth (0: no splitting); rhs: 'stable'
-    (spec 3b, default) or 'literal' (the paper's form).
+    (docs/methods.md#stable-right-hand-side, default) or 'literal' (the paper's form).
 
     Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
     every depth, Gamma is singular, or the solution stops being finite.

@@ -57,7 +57,7 @@ def test_lim_matches_integrate_bit_for_bit(kepler, conserve):
 
 
 def test_separate_invariant_nodes_match_integrate(central_quartic):
-    # r != k: the stages at the r nodes and spec 3b's tail at those nodes.
+    # r != k: the stages at the r nodes and the stable tail (docs/methods.md#stable-right-hand-side) at those nodes.
     rng = np.random.default_rng(2)
     states = central_quartic.y0 + 0.2 * rng.standard_normal((4, 4))
     assert_same_as_one_by_one(central_quartic, elim(4, 6, 3), 0.1, states, ("angular_momentum",))

@@ -1,4 +1,4 @@
-"""Methods as data: validation, names, the registry and the Butcher tableaux (spec 2, 3)."""
+"""Methods as data: validation, names, the registry and the Butcher tableaux (docs/methods.md#hbvm, #elim)."""
 import math
 
 import numpy as np

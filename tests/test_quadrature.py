@@ -1,5 +1,5 @@
 """Gauss-Legendre nodes and weights against mpmath at 30+ digits, and the Legendre
-tables against an independent NumPy construction (spec section 1)."""
+tables against an independent NumPy construction (docs/methods.md#notation)."""
 import mpmath as mp
 import numpy as np
 import pytest
