@@ -92,8 +92,9 @@ def _markdown_table_1(rows) -> str:
 
 def _markdown_table_2(rows) -> str:
     lines = ["# Table 2: total fixed-point iterations", "",
-             "They depend on the stopping rule (docs/methods.md#elim, #the-papers-numbers): elimfast stops at round-off, starts each step from "
-             "the previous step's coefficients and uses the stable right-hand side of docs/methods.md#stable-right-hand-side, with which EHBVM "
+             "They depend on the stopping rule (docs/methods.md#the-papers-numbers): elimfast stops at round-off, "
+             "starts each step from the previous step's coefficients and uses the stable right-hand side "
+             "(docs/methods.md#stable-right-hand-side), with which EHBVM "
              "needs about as many iterations as HBVM.", "",
              "| h | method | elimfast | paper | ratio |", "|---|---|---|---|---|"]
     for h, column, value, paper in rows:

@@ -245,7 +245,7 @@ def test_builtin_invariants_pass_the_check(name):
 
 
 def test_the_papers_misprinted_lrl_is_rejected_showing_the_residual(cache_root):
-    misprinted = "p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)"     # sign of p1 L1 dropped (docs/methods.md#typos-in-the-paper)
+    misprinted = "p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)"     # sign of p1 L1 dropped (docs/methods.md)
     problem = problem_from_expressions(**{**KEPLER, "invariants": {**KEPLER["invariants"], "lrl_y": misprinted}})
     residuals = check_invariants(problem)
     assert residuals["lrl_y"] > 0.1 and residuals["angular_momentum"] < 1e-14 and residuals["lrl_x"] < 1e-14

@@ -1,4 +1,5 @@
-"""The paper's published numbers (docs/methods.md#the-papers-numbers) and the stable right-hand side (docs/methods.md#stable-right-hand-side)."""
+"""The paper's published numbers (docs/methods.md#the-papers-numbers) and the stable right-hand
+side (docs/methods.md#stable-right-hand-side)."""
 import math
 
 import numpy as np

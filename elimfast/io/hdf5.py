@@ -1622,7 +1622,7 @@ class RunFile:
         return values
 
     def substep_stats(self) -> dict:
-        """{"split": steps split into substeps (docs/solver.md#when-a-step-fails-retry-then-split), "max": the most substeps of
+        """{"split": steps split into substeps (docs/solver.md), "max": the most substeps of
         one step}; zeros for a file written before the step engine (no /steps/substeps)."""
         with self._reading("/steps"):
             present = "substeps" in self._file["steps"]
