@@ -78,7 +78,7 @@ def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
     if as_int < low:
         raise ParameterError(name, f"must be >= {low}, got {compact_number(as_int)}")
     if as_int > high:
-        raise ParameterError(name, f"must be <= {high}, got {compact_number(value)}{why}")
+        raise ParameterError(name, f"must be <= {compact_number(high)}, got {compact_number(value)}{why}")
     return as_int
 
 
@@ -309,7 +309,7 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
     if not (math.isfinite(span) and span > 0.0):
         raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}")
     if not span / h <= MAX_STEPS:
-        raise ParameterError("t_end", f"gives (t_end - t0)/h = {span / h:.3g} steps, more than "
+        raise ParameterError("t_end", f"(t_end - t0)/h = {span / h:.3g} steps, more than "
                                       f"{compact_number(MAX_STEPS)}: {STEPS_REASON}")
     steps = round(span / h)
     if steps < 1 or abs(steps * h - span) > T_END_RELATIVE_TOLERANCE * span:

@@ -35,7 +35,7 @@ def test_nodes_and_weights_match_mpmath_to_a_few_ulp(n):
 
 
 def test_quadrature_rejects_bad_n():
-    with pytest.raises(ValueError, match="n <= 64"):
+    with pytest.raises(ValueError, match="n must be <= 64"):
         quadrature(65)
     with pytest.raises(ValueError):
         quadrature(0)
