@@ -97,7 +97,7 @@ def exact_state(t):
 
 
 def invariants(Y):
-    """H, L, A_x, A_y of states Y (n, 4) (spec section 5)."""
+    """H, L, A_x, A_y of states Y (n, 4) (docs/methods.md#typos-in-the-paper)."""
     q1, q2, p1, p2 = Y[:, 0], Y[:, 1], Y[:, 2], Y[:, 3]
     r = np.sqrt(q1 * q1 + q2 * q2)
     L = q1 * p2 - q2 * p1

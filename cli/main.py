@@ -98,6 +98,8 @@ class ElimfastGroup(click.Group):
                 # The reader went away (elimfast inspect ... | head): not an error of ours.
                 sys.stderr.close()
                 os._exit(EXIT_OK)
+            except _Exit:
+                raise   # fail() inside a command: its message is printed, the code stands
             except Exception as err:
                 if debug:
                     raise
@@ -192,6 +194,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
       elimfast run configs/kepler.yaml -o out/kepler.h5 --resume
       elimfast run configs/kepler.yaml -o out/kepler.h5 --resume --set solver.max_halvings=8
     """
+    from elimfast.integrate import Integration
     from elimfast.io.hdf5 import check_output_path
 
     if overwrite and resume:
@@ -210,7 +213,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
     check_output_path(path, overwrite=overwrite, resume=resume)
     if resume and output is None and path.is_file():
         spec = _stored_spec(path, overrides)
-    integration = spec.integration()
+    integration = Integration.from_spec(spec)
 
     from elimfast import streaming
     label = f"{spec.method.name} {spec.problem.name}"
@@ -368,9 +371,10 @@ def plot(file, kind, output, overwrite):
     """
     from elimfast.io.hdf5 import OutputError, RunFile
 
-    from .plots import plot_run
+    from .plots import check_image_path, plot_run
 
     path = Path(output) if output else Path(file).with_name(f"{Path(file).stem}_{kind}.png")
+    check_image_path(path)   # before reading the run: a usage error, exit 2
     if path.exists() and not overwrite:
         raise OutputError(f"{path}: already exists; pass --overwrite to replace it or -o another name")
     if not path.parent.is_dir():
@@ -421,16 +425,6 @@ def problems():
     return EXIT_OK
 
 
-METHOD_NOTES = {
-    "gauss": "s-stage Gauss-Legendre collocation, order 2s, symplectic; imposes no invariant",
-    "hbvm": "Hamiltonian BVM, order 2s, conserves polynomial H of degree <= 2k/s; imposes no invariant",
-    "elim": "HBVM(k,s) with its last nu coefficients scaled to conserve nu < s invariants (r nodes for them)",
-    "ehbvm": "ELIM(k,k,s): conserves H and up to s-1 invariants",
-    "lim": "HBVM(k,s) with the correction -c h phi_0 lambda: H and any number of invariants (no RK form)",
-    "ghbvm": "LIM(k,k,s): conserves H and any number of invariants (no RK form)",
-}
-
-
 @cli.command(context_settings=CONTEXT)
 def methods():
     """List the method families, their parameters and what they conserve.
@@ -440,18 +434,14 @@ def methods():
       elimfast methods
       then in a config:  method: {name: ehbvm, k: 12, s: 3}
     """
-    import inspect as pyinspect
+    from elimfast.methods import FAMILIES
 
-    from elimfast.methods import METHODS
-
-    rows = []
-    for name, constructor in METHODS.items():
-        params = ", ".join(pyinspect.signature(constructor).parameters)
-        rows.append((f"{name}({params})", METHOD_NOTES.get(name, one_line((constructor.__doc__ or "").split("\n")[0]))))
+    rows = [(family.signature(), family.description) for family in FAMILIES.values()]
     width = max(len(r[0]) for r in rows)
     click.echo("\n".join(f"{sig:<{width}}  {note}" for sig, note in rows))
     click.echo("\nk, r: quadrature nodes (k >= s, r >= s, at most 64); s: the order is 2s. "
-               "Tableau: elimfast tableau NAME --k K --s S [--r R] [--eta ...]")
+               "Tableau: elimfast tableau NAME --k K --s S [--r R] [--eta ...]. "
+               "The methods and their math: docs/methods.md")
     return EXIT_OK
 
 
@@ -489,26 +479,20 @@ def tableau(name, k, s, r, eta):
       elimfast tableau hbvm --k 4 --s 2
       elimfast tableau elim --r 3 --k 3 --s 2 --eta 0.999
     """
-    import inspect as pyinspect
+    from elimfast import methods
+    from elimfast.errors import ParameterError
 
-    from elimfast.methods import METHODS
-
-    family = name.lower()
-    if family not in METHODS:
-        raise click.BadParameter(f"unknown method {name!r}; known: {', '.join(METHODS)}", param_hint="NAME")
-    expected = list(pyinspect.signature(METHODS[family]).parameters)
     given = {key: value for key, value in (("r", r), ("k", k), ("s", s)) if value is not None}
-    missing = [f"--{p}" for p in expected if p not in given]
-    extra = [f"--{p}" for p in given if p not in expected]
-    if missing or extra:
-        raise click.UsageError(f"{family}({', '.join(expected)}) needs {' '.join('--' + p for p in expected)}"
-                               + (f"; missing {' '.join(missing)}" if missing else "")
-                               + (f"; {' '.join(extra)} does not apply" if extra else ""))
     try:
-        method = METHODS[family](**given)
+        method = methods.get(name, **given)
+    except ParameterError as err:   # the library's rule and fix, with the option's name
+        option = "NAME" if err.parameter == "name" else f"--{err.parameter}"
+        raise click.UsageError(f"{option} {err.detail}") from None
+    try:
         eta_values = _parse_floats(eta)
-        if eta_values is not None and family not in ("elim", "ehbvm"):
-            raise ValueError(f"--eta applies to elim and ehbvm only; {method.name} has eta = 1")
+        if eta_values is not None and not method.kind.scales_tableau:
+            scaled = ", ".join(n for n, f in methods.FAMILIES.items() if f.scales_tableau)
+            raise ValueError(f"--eta applies to {scaled} only; {method.name} has eta = 1")
         A, b, c = method.butcher(eta_values)
     except (TypeError, ValueError) as err:
         raise click.UsageError(one_line(err)) from None
@@ -646,9 +630,21 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
     return EXIT_OK
 
 
+def paper_configs() -> Path:
+    """configs/paper of the current directory if it has one, else the repository's beside the
+    package (an editable install), so that `elimfast paper` works from any folder."""
+    here = Path("configs/paper")
+    if (here / "table1.yaml").is_file():
+        return here
+    import elimfast
+    beside = Path(elimfast.__file__).resolve().parents[1] / "configs" / "paper"
+    return beside if (beside / "table1.yaml").is_file() else here
+
+
 @cli.command(context_settings=CONTEXT)
-@click.option("--configs", "config_dir", default="configs/paper", show_default=True, metavar="DIR",
-              help="The folder holding table1.yaml and long_run.yaml.")
+@click.option("--configs", "config_dir", default=None, metavar="DIR",
+              help="The folder holding table1.yaml and long_run.yaml (default: configs/paper here, else the "
+                   "repository's beside the installed package).")
 @click.option("--out", "out_dir", default="paper-out", show_default=True, metavar="DIR",
               help="Where to write the tables (markdown) and figures (PNG).")
 @click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
@@ -667,10 +663,12 @@ def paper(config_dir, out_dir, workers, quiet):
         if not quiet:
             click.echo(f"[{done}/{total}] {outcome.label}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
 
+    if config_dir is None:
+        config_dir = paper_configs()
     for name in ("table1.yaml", "long_run.yaml"):
         if not (Path(config_dir) / name).is_file():
-            fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps",
-                 EXIT_USAGE)
+            fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps "
+                 "(configs/paper in the repository)", EXIT_USAGE)
     try:
         result = reproduction.reproduce(config_dir, out_dir, workers=workers, on_done=on_done)
     except RuntimeError as err:

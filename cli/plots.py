@@ -6,8 +6,68 @@ import numpy as np
 from elimfast.errors import ElimfastError
 
 MAX_POINTS = 200_000    # points per curve; longer data are strided (every n-th row)
-# Samples may be far apart (output.every): dots with a faint line, not chords alone.
+# Dense samples: a line with dots on it. Sparse ones (output.every large against the
+# orbit): markers alone, since lines between them are chords across the orbit.
 ORBIT_STYLE = {"marker": ".", "ms": 1.5, "lw": 0.2}
+SPARSE_ORBIT_STYLE = {"marker": ".", "ms": 3.0, "ls": "none"}
+# Samples are sparse when the median distance between consecutive ones exceeds this
+# fraction of the orbit's extent (the diagonal of its bounding box): 0.05 is about 60
+# samples per turn of a circle, below which the polygon visibly cuts corners.
+SPARSE_STEP_FRACTION = 0.05
+TITLE_STATUS_CHARS = 80   # the status part of a title; a failure's full message is in `inspect`
+
+
+def image_formats() -> dict[str, str]:
+    """The suffixes matplotlib can write (without the dot) and their descriptions."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib.backend_bases import FigureCanvasBase
+    return FigureCanvasBase.get_supported_filetypes()
+
+
+def check_image_path(path) -> None:
+    """PlotError (exit 2) unless path's suffix names a format matplotlib writes."""
+    from pathlib import Path
+    suffix = Path(path).suffix.lower().lstrip(".")
+    formats = image_formats()
+    if suffix not in formats:
+        what = f"unknown image format '.{suffix}'" if suffix else "no suffix to pick the image format"
+        raise PlotError(f"{path}: {what}; use a file name ending in one of {', '.join('.' + f for f in formats)} "
+                        f"(e.g. fig.png)")
+
+
+def status_text(status: str, limit: int = TITLE_STATUS_CHARS) -> str:
+    """A run's status short enough for a title: 'complete', or its first clause cut at a word.
+
+    A failure reads 'failed: EHBVM(12,3): the simplified Newton did not converge ... at step
+    N (...); last increment ...; advice': the method is in the title already, and the
+    advice belongs to `inspect`, so the title keeps 'failed: <what> at step N', without
+    the parenthesised details (max_iter, the times).
+    """
+    import re
+
+    status = " ".join(str(status).split())
+    head, _, reason = status.partition(": ")
+    if reason:
+        reason = reason.split("; ")[0]
+        method_prefix, sep, rest = reason.partition(": ")
+        if sep and "(" in method_prefix and " " not in method_prefix:
+            reason = rest
+        reason = re.sub(r"\s*\([^()]*\)", "", reason)
+        status = f"{head}: {reason}"
+    if len(status) > limit:
+        cut = status[:limit - 3].rsplit(" ", 1)[0].rstrip(",;:")
+        status = cut + "..."
+    return status
+
+
+def plot_title(run_file) -> str:
+    """Problem, method and h; a second line with the status unless the run is complete."""
+    attrs = run_file.attrs
+    title = f"{attrs.get('problem')}, {attrs.get('method')}, h = {attrs.get('h'):.6g}"
+    if run_file.status != "complete":
+        title += f"\n[{status_text(run_file.status)}]"
+    return title
 
 
 class PlotError(ElimfastError):
@@ -30,12 +90,22 @@ def _bodies(names):
 
 
 def plot_run(run_file, kind: str, path) -> None:
+    import matplotlib.pyplot as plt
+
+    check_image_path(path)
+    figure = draw(run_file, kind)
+    try:
+        figure.savefig(path)
+    finally:
+        plt.close(figure)
+
+
+def draw(run_file, kind: str):
+    """The matplotlib figure of one plot kind (the caller saves and closes it)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    attrs = run_file.attrs
-    title = f"{attrs.get('problem')}, {attrs.get('method')}, h = {attrs.get('h'):.6g}"
     figure, axes = plt.subplots(figsize=(8, 5), dpi=100)
     try:
         if kind == "orbit":
@@ -48,11 +118,24 @@ def plot_run(run_file, kind: str, path) -> None:
             _iterations(run_file, axes)
         else:
             raise PlotError(f"unknown plot kind {kind!r}; use orbit, invariants, alpha or iterations")
-        axes.set_title(title + ("" if run_file.status == "complete" else f" [{run_file.status}]"))
+        axes.set_title(plot_title(run_file), fontsize="medium")
         figure.tight_layout()
-        figure.savefig(path)
-    finally:
+    except BaseException:
         plt.close(figure)
+        raise
+    return figure
+
+
+def sparse(points: np.ndarray) -> bool:
+    """True when consecutive samples of an orbit (rows of (x, y)) are far apart against its size."""
+    finite = points[np.all(np.isfinite(points), axis=1)]
+    if len(finite) < 3:
+        return True
+    extent = float(np.hypot(*(finite.max(axis=0) - finite.min(axis=0))))
+    if extent == 0.0:
+        return False
+    steps = np.hypot(*np.diff(finite, axis=0).T)
+    return float(np.median(steps)) > SPARSE_STEP_FRACTION * extent
 
 
 def _orbit(run_file, axes) -> None:
@@ -63,23 +146,24 @@ def _orbit(run_file, axes) -> None:
     names = run_file.coordinate_names
     m = len(names) // 2
     pairs, labels = _bodies(names[:m])
-    if m == 1:
-        axes.plot(y[:, 0], y[:, 1], **ORBIT_STYLE)
-        axes.set_xlabel(names[0])
-        axes.set_ylabel(names[1])
+    if m == 1 or (m == 2 and pairs is None) or pairs is not None:
+        if m == 1 or pairs is None:
+            pairs, labels = [(0, 1)], [None]        # q against p (m = 1), or q1 against q2
+            axes.set_xlabel(names[0])
+            axes.set_ylabel(names[1])
+        else:
+            axes.set_xlabel("x")
+            axes.set_ylabel("y")
+        curves = [y[:, [i, j]] for i, j in pairs]
+        style = SPARSE_ORBIT_STYLE if any(sparse(points) for points in curves) else ORBIT_STYLE
+        for points, label in zip(curves, labels):
+            axes.plot(points[:, 0], points[:, 1], label=label, **style)
         axes.set_aspect("equal", adjustable="datalim")
-    elif pairs is not None:
-        for (i, j), label in zip(pairs, labels):
-            axes.plot(y[:, i], y[:, j], label=label, **ORBIT_STYLE)
-        axes.set_xlabel("x")
-        axes.set_ylabel("y")
-        axes.set_aspect("equal", adjustable="datalim")
-        axes.legend(fontsize="small")
-    elif m == 2:
-        axes.plot(y[:, 0], y[:, 1], **ORBIT_STYLE)
-        axes.set_xlabel(names[0])
-        axes.set_ylabel(names[1])
-        axes.set_aspect("equal", adjustable="datalim")
+        if labels[0] is not None:
+            axes.legend(fontsize="small")
+        if style is SPARSE_ORBIT_STYLE:
+            axes.annotate(f"{n} samples, far apart: markers only (lower output.every for a curve)", (0.01, 0.01),
+                          xycoords="axes fraction", fontsize="small", color="0.4")
     else:   # a chain: each q against t
         t = run_file.t(_stride(n))
         for i in range(min(m, 12)):

@@ -131,7 +131,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     if run_file.multiplier_name is None:
         row("max |alpha|", f"none: {a.get('method')} imposes no invariant")
     else:
-        symbol = "alpha" if run_file.multiplier_name == "alpha" else "lambda"
+        symbol = run_file.multiplier_name
         text = ", ".join(f"{v:.3e} ({label.split('[', 1)[1].rstrip(']')})" for v, label in zip(maxima, labels))
         row(f"max |{symbol}|", text if done else "no steps yet")
     if integrity is not None:

@@ -1,7 +1,7 @@
 """Planar Kepler problem as a ``python:`` problem file (see elimfast/problems/user_file.py).
 
 H = |p|^2/2 - mu/|q|, angular momentum L = q1 p2 - q2 p1 and the Laplace-Runge-Lenz
-vector A = (p2 L - mu q1/|q|, -p1 L - mu q2/|q|) (spec section 5, sign restored).
+vector A = (p2 L - mu q1/|q|, -p1 L - mu q2/|q|) (docs/methods.md#typos-in-the-paper, sign restored).
 With mu = 1 and the default Y0 this is the built-in ``kepler`` with eccentricity 0.6.
 """
 import math

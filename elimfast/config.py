@@ -1,4 +1,10 @@
-"""Run configs: YAML -> one validated, frozen ``RunSpec``. All validation happens here.
+"""Run configs: YAML -> one validated, frozen ``RunSpec``.
+
+The rules are the library's: ``methods.get`` checks the method, ``resolve_steps`` the
+integration, ``SolverSettings`` the solver, ``resolve_conserve`` the invariants to
+impose; each raises a ParameterError naming its parameter and the fix, and this module
+puts the YAML key in front of it (``PARAMETER_KEYS``). What is checked here is only what
+the YAML itself can get wrong: keys, types, sections, and the problem's definition.
 
 Format (every section but ``problem``, ``method`` and ``integration`` is optional)::
 
@@ -32,9 +38,7 @@ wrong; what to do``. ``load_run(path, overrides)`` applies ``--set``-style overr
 from __future__ import annotations
 
 import copy
-import difflib
 import inspect
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -43,20 +47,20 @@ import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, StrictBool, ValidationError
 
 from .cache import CacheError
-from .errors import ElimfastError
-from .errors import ParameterError
-from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, T_END_RELATIVE_TOLERANCE, Integration,
-                        SolverSettings, resolve_conserve)
+from . import methods
+from .errors import ElimfastError, ParameterError
+from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, SolverSettings, resolve_conserve, resolve_steps,
+                        resolve_store_every, suggest)
 from .integrate import compact_number as _count
-from .methods import MAX_NODES, Method
+from .methods import Method
 from .problems.base import Problem
 from .problems.expressions import ExpressionError, ProblemDefinitionError, evaluate_number
 
 MAX_FILE_BYTES = 1 << 20     # a config (or sweep, or python: problem file) larger than 1 MiB is a mistake
 MAX_YAML_NODES = 100_000     # scalars + containers in one config
 MAX_YAML_DEPTH = 20          # nesting of sections and lists
-# Ranges of the numbers in a config, each with its reason (said in the error).
-MAX_STEPS = 10 ** 10         # n_steps: hours to days even at 1 us per step, and 40 GB of per-step records
+# Ranges of the numbers in a config, each with its reason (said in the error); the ranges
+# of h, n_steps, output.every and the solver's settings are the library's (integrate.py).
 MAX_SIZE_PARAMETER = 100_000  # an integer size parameter of a built-in (fpu_beta's n): a state of 2n numbers
 
 
@@ -175,7 +179,15 @@ _EXAMPLES = {
     "method": "add e.g. method: {name: ehbvm, k: 12, s: 3}",
     "integration": "add e.g. integration: {h: 0.1, t_end: 1000}",
     "integration.h": "give the step size, e.g. h: pi/30",
-    "method.name": "name one of gauss, hbvm, elim, ehbvm, lim, ghbvm",
+    "method.name": f"name one of {', '.join(methods.FAMILIES)}",
+}
+
+# The YAML key of each parameter of the library's validators. Solver settings live under
+# solver.<parameter> (SolverSettings' own names, see _Builder.solver).
+PARAMETER_KEYS = {
+    "name": ("method", "name"), "r": ("method", "r"), "k": ("method", "k"), "s": ("method", "s"),
+    "h": ("integration", "h"), "t_end": ("integration", "t_end"), "n_steps": ("integration", "n_steps"),
+    "t0": ("integration", "t0"), "store_every": ("output", "every"), "conserve": ("conserve",),
 }
 
 
@@ -198,10 +210,6 @@ class RunSpec:
     output_every: int
     resolved: dict
 
-    def integration(self):
-        """A fresh ``elimfast.Integration`` for this run (``store_every`` = output.every)."""
-        return Integration(self.problem, self.method, self.h, self.n_steps, conserve=self.conserve,
-                           solver=self.solver, store_every=self.output_every, t0=self.t0)
 
 
 # --- entry points -------------------------------------------------------------------------
@@ -346,12 +354,7 @@ def _join(path) -> str:
     return out or "(top level)"
 
 
-def _suggest(word, options, label: str) -> str:
-    """'did you mean 'x'? (label: a, b, c)' or 'label: a, b, c'."""
-    options = [str(o) for o in options]
-    listed = ", ".join(options) or "none"
-    close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
-    return f"did you mean {close[0]!r}? ({label}: {listed})" if close else f"{label}: {listed}"
+_suggest = suggest
 
 
 class _Builder:
@@ -369,6 +372,14 @@ class _Builder:
     def error(self, path, text: str):
         return ConfigError(self.message(path, text), key=_join(path))
 
+    def parameter_error(self, err: ParameterError, section: tuple = ()):
+        """A library validator's error at the parameter's YAML key (section: where its
+        parameters live when they are not in PARAMETER_KEYS, e.g. ("solver",))."""
+        path = section + (err.parameter,) if section else PARAMETER_KEYS.get(err.parameter, (err.parameter,))
+        if err.index is not None:
+            path = path + (err.index,)
+        return self.error(path, err.detail)
+
     def build(self, data) -> RunSpec:
         if not isinstance(data, dict):
             raise ConfigError(f"{self.source}: the config must be a mapping of sections (problem, method, "
@@ -380,40 +391,47 @@ class _Builder:
             messages = tuple(self.message(e["loc"], self.describe(e)) for e in err.errors())
             raise ConfigError(messages[0], messages=messages, key=_join(err.errors()[0]["loc"])) from None
 
-        method = self.method(config.method)
-        h, n_steps, t0, t_end = self.steps(config.integration)
+        # Everything that needs no problem first: building the problem may compile code.
+        try:
+            method = methods.get(config.method.name, **{p: getattr(config.method, p) for p in ("r", "k", "s")
+                                                         if getattr(config.method, p) is not None})
+            integration = config.integration
+            h, n_steps = resolve_steps(integration.h, t_end=integration.t_end, n_steps=integration.n_steps,
+                                       t0=integration.t0)
+            every = resolve_store_every(config.output.every)
+            method.require_imposable(len(config.conserve))
+        except ParameterError as err:
+            raise self.parameter_error(err) from None
+        t0 = integration.t0
+        t_end = integration.t_end if integration.t_end is not None else t0 + n_steps * h
         solver = self.solver(config.solver)
-        if config.output.every < 1:
-            raise self.error(("output", "every"), f"must be >= 1 (store every n-th step), got {config.output.every}")
-        if config.output.every > MAX_STEPS:
-            raise self.error(("output", "every"), f"must be <= {_count(MAX_STEPS)} (the most steps a run may take), got "
-                                                  f"{_count(config.output.every)}; to keep only the first and last "
-                                                  "states, set it to the number of steps")
         if config.output.path is not None and not config.output.path.strip():
             raise self.error(("output", "path"), "is empty; give a file name such as out/run.h5, or leave it out")
-        self.conserve_fits_method(config.conserve, method)
 
         problem, resolved_problem = self.problem(config.problem)
-        conserve = self.conserve(config.conserve, problem, method)
+        try:
+            conserve = resolve_conserve(problem, method, config.conserve)[0]
+        except ParameterError as err:
+            raise self.parameter_error(err) from None
         solver = solver.resolved_for(method, len(conserve))
         resolved = {
             "problem": resolved_problem,
             "conserve": list(conserve),
-            "method": {"name": method.family, **{p: getattr(method, p) for p in _method_parameters(method.family)}},
+            "method": {"name": method.family, **method.parameters},
             "integration": {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps},
             "solver": solver.as_dict(),
-            "output": {"path": config.output.path, "every": config.output.every},
+            "output": {"path": config.output.path, "every": every},
         }
         return RunSpec(source=self.source, problem=problem, method=method, conserve=conserve, h=h, n_steps=n_steps,
                        t0=t0, t_end=t_end, solver=solver, output_path=config.output.path,
-                       output_every=config.output.every, resolved=resolved)
+                       output_every=every, resolved=resolved)
 
     def solver(self, section: SolverSection) -> SolverSettings:
         """The solver section, validated by SolverSettings (the one owner of its rules)."""
         try:
             return SolverSettings(**section.model_dump())
         except ParameterError as err:
-            raise self.error(("solver", err.parameter), err.detail) from None
+            raise self.parameter_error(err, ("solver",)) from None
 
     def check_keys(self, data) -> None:
         """Mapping keys must be strings (YAML reads yes/no/on/off/1 as other types); bounded size and depth."""
@@ -464,101 +482,6 @@ class _Builder:
             text = str(error["ctx"]["error"])
             return text.replace("the value ", "", 1) if text.startswith("the value ") else text
         return f"{error['msg']}, got {_short(value)}"
-
-    # method
-    def method(self, section: MethodSection) -> Method:
-        from .methods import METHODS
-
-        name = section.name.strip().lower()
-        if name not in METHODS:
-            raise self.error(("method", "name"), f"unknown method {section.name!r}; {_suggest(name, METHODS, 'known')}")
-        expected = _method_parameters(name)
-        signature = f"{name}({', '.join(expected)})"
-        given = {p: getattr(section, p) for p in ("r", "k", "s") if getattr(section, p) is not None}
-        for p in ("r", "k", "s"):
-            if p in given and p not in expected:
-                raise self.error(("method", p), f"{signature} takes no {p}; remove it")
-        for p in expected:
-            if p not in given:
-                raise self.error(("method", p), f"missing; {signature} needs {', '.join(expected)}")
-        for p, value in given.items():
-            if value < 1:
-                raise self.error(("method", p), f"must be >= 1, got {value}")
-            if value > MAX_NODES:
-                raise self.error(("method", p), f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified "
-                                                f"up to there), got {value}")
-        s = given["s"]
-        if "k" in given and given["k"] < s:
-            raise self.error(("method", "k"), f"k = {given['k']} must be >= s = {s} (the quadrature needs at least s "
-                                              "nodes); raise k or lower s")
-        if "r" in given and given["r"] < s:
-            raise self.error(("method", "r"), f"r = {given['r']} must be >= s = {s} (the invariants' quadrature "
-                                              "needs at least s nodes); raise r or lower s")
-        try:
-            return METHODS[name](**given)
-        except (TypeError, ValueError) as err:
-            raise self.error(("method",), f"{err}") from None
-
-    # integration
-    def steps(self, section: IntegrationSection):
-        h, t0 = section.h, section.t0
-        if not h > 0.0:
-            raise self.error(("integration", "h"), f"must be > 0, got {h!r}")
-        if section.t_end is None and section.n_steps is None:
-            raise self.error(("integration",), "give t_end (the final time) or n_steps")
-        n_steps = section.n_steps
-        if n_steps is not None and n_steps < 1:
-            raise self.error(("integration", "n_steps"), f"must be >= 1, got {n_steps}")
-        if n_steps is not None and n_steps > MAX_STEPS:
-            raise self.error(("integration", "n_steps"), f"must be <= {_count(MAX_STEPS)}, got {_count(n_steps)}: "
-                                                         f"{_STEPS_REASON}")
-        if section.t_end is not None:
-            span = section.t_end - t0
-            if not (math.isfinite(span) and span > 0.0):
-                raise self.error(("integration", "t_end"), f"must be after t0 = {t0!r}, got {section.t_end!r}")
-            if not span / h <= MAX_STEPS:
-                raise self.error(("integration", "t_end"), f"(t_end - t0)/h = {span / h:.3g} steps, more than "
-                                                           f"{_count(MAX_STEPS)}: {_STEPS_REASON}")
-            steps = round(span / h)
-            if steps < 1 or abs(steps * h - span) > T_END_RELATIVE_TOLERANCE * span:
-                raise self.error(("integration", "t_end"),
-                                 f"t_end - t0 = {span!r} is not a whole number of steps of h = {h!r} "
-                                 f"({span / h:.12g} steps); adjust h or t_end, or give n_steps instead")
-            if n_steps is not None and n_steps != steps:
-                raise self.error(("integration", "n_steps"), f"n_steps = {n_steps} disagrees with t_end: "
-                                                             f"(t_end - t0)/h = {steps}; give only one of them")
-            return h, int(steps), t0, section.t_end
-        t_end = t0 + n_steps * h
-        if not math.isfinite(t_end):
-            raise self.error(("integration", "h"), f"t0 + n_steps h = {t0!r} + {n_steps} * {h!r} is not a finite "
-                                                   "number; lower h or n_steps")
-        return h, int(n_steps), t0, t_end
-
-    # conserve
-    def conserve_fits_method(self, names, method: Method) -> None:
-        if names and not method.imposes_invariants:
-            raise self.error(("conserve",), f"{method.name} cannot impose invariants; use ehbvm/elim or ghbvm/lim, "
-                                            "or remove conserve")
-        limit = method.max_conserved()
-        if limit is not None and len(names) > limit:
-            raise self.error(("method", "s"), f"{method.name} imposes at most s - 1 = {limit} invariant(s) but "
-                                              f"conserve lists {len(names)}; raise method.s to {len(names) + 1} or "
-                                              "more, or conserve fewer")
-
-    def conserve(self, names, problem: Problem, method: Method) -> tuple[str, ...]:
-        for index, name in enumerate(names):
-            if name not in problem.invariant_names:
-                if name == "H":
-                    fix = "H is always conserved by HBVM/ELIM/LIM: leave it out"
-                else:
-                    fix = _suggest(name, problem.invariant_names, "its invariants")
-                raise self.error(("conserve", index), f"problem {problem.name!r} has no invariant {name!r}; {fix}")
-            if name in names[:index]:
-                raise self.error(("conserve", index), f"{name!r} is listed twice; list each invariant once")
-        try:
-            return resolve_conserve(problem, method, names)[0]
-        except (TypeError, ValueError) as err:
-            raise self.error(("conserve",), str(err)) from None
 
     # problem
     def problem(self, section: ProblemSection):
@@ -704,15 +627,6 @@ class _Builder:
         return problem, {"name": name, "coordinates": {k: list(v) for k, v in coordinates.items()},
                          "hamiltonian": section.hamiltonian, "invariants": dict(section.invariants or {}),
                          "parameters": dict(problem.parameters), "initial": _initial_dict(problem)}
-
-
-_STEPS_REASON = ("that many steps take hours to days even at a microsecond each, and their per-step records "
-                  "alone 40 GB; raise h or shorten the run")
-
-
-def _method_parameters(family: str) -> list[str]:
-    from .methods import METHODS
-    return list(inspect.signature(METHODS[family]).parameters)
 
 
 def _initial_dict(problem: Problem) -> dict:

@@ -14,14 +14,19 @@ class ElimfastError(Exception):
 class ParameterError(ElimfastError, ValueError):
     """A parameter of the library's API out of its range or of the wrong kind.
 
-    ``parameter`` names it (``"tol"``, ``"max_halvings"``, ...); the message says what is
-    wrong and what to do, worded so that the config layer can put the YAML key in front
-    of it (``solver.tol: must be ...``): the message starts with "must" or "is".
+    ``parameter`` names it as the API does (``"tol"``, ``"k"``, ``"t_end"``,
+    ``"conserve"``), ``index`` the entry of a list parameter at fault (``conserve[1]``),
+    and ``detail`` says what is wrong and what to do. ``str(err)`` is
+    ``"parameter[index] detail"``, so details read on from the name ("must be ...",
+    "is ..."). The validators that raise it are the only statement of each rule; the
+    config layer puts the YAML key and line in front of ``detail`` instead of the name.
     """
 
-    def __init__(self, parameter: str, message: str):
-        super().__init__(f"{parameter} {message}")
+    def __init__(self, parameter: str, message: str, *, index: int | None = None):
+        where = parameter if index is None else f"{parameter}[{index}]"
+        super().__init__(f"{where} {message}")
         self.parameter = parameter
+        self.index = index
         self.detail = message
 
 

@@ -5,6 +5,7 @@ Data flow: (problem, method, h, ...) -> Integration -> kernels.stepper.time_loop
 """
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass, field, replace
 from typing import Iterable
@@ -33,10 +34,11 @@ MAX_TOL = 1e-8                    # a looser tol would accept iterates far from 
 DEFAULT_MAX_ITER = 100
 DEFAULT_MAX_ITER_ELIM_NEWTON = 30
 MAX_MAX_ITER = 10_000             # bounds the work of one kernel call (simplified Newton needs 5-15)
-DEFAULT_MAX_HALVINGS = 4          # step splitting depth (spec 8: one level always sufficed)
+DEFAULT_MAX_HALVINGS = 4          # step splitting depth (docs/solver.md: one level always sufficed)
 MAX_MAX_HALVINGS = 20             # 2^20 substeps per step at most
 DEFAULT_CHUNK_STEPS = 1 << 16     # steps per kernel call in integrate()
 T_END_RELATIVE_TOLERANCE = 1e-9   # t_end must be a whole number of steps to this
+MAX_STEPS = 10 ** 10              # hours to days even at 1 us per step, and 40 GB of per-step records
 H_WARNING_RELATIVE = 1e-12        # an H error above this (relative) means k is too small for this h
 
 _FAILURE_TEXT = {
@@ -76,13 +78,13 @@ def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
     if as_int < low:
         raise ParameterError(name, f"must be >= {low}, got {compact_number(as_int)}")
     if as_int > high:
-        raise ParameterError(name, f"must be <= {high}, got {compact_number(value)}{why}")
+        raise ParameterError(name, f"must be <= {compact_number(high)}, got {compact_number(value)}{why}")
     return as_int
 
 
 @dataclass(frozen=True)
 class SolverSettings:
-    """How each step's nonlinear system is solved (spec 8; docs/solver.md).
+    """How each step's nonlinear system is solved (docs/solver.md).
 
     method: 'newton' (simplified Newton, the default) or 'fixed_point' (the paper's
     iteration, whose counts Table 2 reports); tol: accept an iterate whose relative
@@ -91,7 +93,7 @@ class SolverSettings:
     solve; max_halvings: how often a failing step may be split in two (0: never);
     predictor: start from the previous step's polynomial carried over; warm_start: start
     from the previous step at all (False: every step cold, from y_n); rhs: 'stable'
-    (spec 3b, the default) or 'literal' (the paper's right-hand side).
+    (docs/methods.md#stable-right-hand-side, the default) or 'literal' (the paper's right-hand side).
     """
 
     method: str = DEFAULT_SOLVER
@@ -125,7 +127,8 @@ class SolverSettings:
         object.__setattr__(self, "max_halvings", _whole_number(
             "max_halvings", self.max_halvings, 0, MAX_MAX_HALVINGS, f" (2^{MAX_MAX_HALVINGS} substeps per step)"))
         if self.rhs not in ("stable", "literal"):
-            raise ParameterError("rhs", f"must be 'stable' (spec 3b, the default) or 'literal' (the paper's), "
+            raise ParameterError("rhs", f"must be 'stable' (the default, docs/methods.md#stable-right-hand-side) or "
+                                        "'literal' (the paper's), "
                                         f"got {self.rhs!r}")
         for name in ("predictor", "warm_start"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
@@ -175,7 +178,7 @@ class Result:
     every invariant of the problem, imposed or not; alpha (n_steps, nu) for ELIM and
     lam (n_steps, nu+1) for LIM (None otherwise); iterations (n_steps,) per step, every
     try and substep counted; substeps (n_steps,): 1, or how many substeps a split step
-    took (spec 8, "Fallback"); y_final, t_final: the last state; status: 'complete' or
+    took (docs/solver.md#when-a-step-fails-retry-then-split); y_final, t_final: the last state; status: 'complete' or
     the failure reason; solver: the SolverSettings used.
     """
 
@@ -212,7 +215,7 @@ class Result:
 
     @property
     def split_steps(self) -> int:
-        """How many steps were split into substeps (spec 8, "Fallback")."""
+        """How many steps were split into substeps (docs/solver.md#when-a-step-fails-retry-then-split)."""
         return int(np.count_nonzero(self.substeps > 1))
 
     def energy_warning(self) -> str | None:
@@ -246,64 +249,95 @@ def energy_warning(method: Method, h: float, H_values) -> str | None:
 
 
 def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) -> tuple[tuple[str, ...], np.ndarray]:
-    """Check the invariants to impose against the problem and the method; return (names, indices)."""
+    """Check the invariants to impose against the problem and the method; return (names, indices).
+
+    Raises ParameterError naming the parameter (``conserve`` and the entry at fault, or the
+    method's ``s`` when it is too small for the count) and the fix.
+    """
     if isinstance(conserve, str):
         conserve = (conserve,)
     names = tuple(conserve)
-    for name in names:
+    for index, name in enumerate(names):
         if not isinstance(name, str):
-            raise TypeError(f"conserve must be invariant names (strings), got {name!r}")
-    unknown = [n for n in names if n not in problem.invariant_names]
-    if unknown:
-        known = ", ".join(problem.invariant_names) or "none"
-        hint = " (H is always conserved by HBVM/ELIM/LIM: leave it out)" if "H" in unknown else ""
-        raise ValueError(f"problem {problem.name!r} has no invariant {', '.join(map(repr, unknown))}{hint}; "
-                         f"its invariants: {known}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"conserve lists an invariant twice: {list(names)}")
-    limit = method.max_conserved()
-    if names and not method.imposes_invariants:
-        raise ValueError(f"{method.name} cannot impose invariants (conserve={list(names)}); "
-                         "use elim/ehbvm or lim/ghbvm, or set conserve=()")
-    if limit is not None and len(names) > limit:
-        raise ValueError(
-            f"{method.name} can impose at most s-1 = {limit} invariant(s), got {len(names)}: each one takes "
-            f"one of the coefficients gamma_1..gamma_(s-1) (gamma_0 fixes y1, spec 3); raise s above "
-            f"{len(names)} or impose fewer")
-    if method.family in ("elim", "ehbvm"):
-        linear = [n for n in names if n in problem.linear_invariant_names]
-        if linear:
-            raise ValueError(
-                f"{', '.join(linear)} {'is' if len(linear) == 1 else 'are'} linear: every Runge-Kutta method, "
-                f"{method.name} included, keeps {'it' if len(linear) == 1 else 'them'} exactly, and ELIM cannot "
-                "impose a linear invariant (its Gamma column vanishes, spec 3); leave it out of conserve "
-                "(or impose it with lim/ghbvm)")
+            raise ParameterError("conserve", f"must be invariant names (strings), got {name!r}", index=index)
+        if name not in problem.invariant_names:
+            if name == "H":
+                fix = "H is always conserved by HBVM/ELIM/LIM: leave it out"
+            else:
+                fix = suggest(name, problem.invariant_names, "its invariants")
+            raise ParameterError("conserve", f"names {name!r}, but problem {problem.name!r} has no invariant "
+                                             f"{name!r}; {fix}", index=index)
+        if name in names[:index]:
+            raise ParameterError("conserve", f"lists {name!r} twice; list each invariant once", index=index)
+    method.require_imposable(len(names))
+    if not method.kind.imposes_linear:
+        for index, name in enumerate(names):
+            if name in problem.linear_invariant_names:
+                raise ParameterError("conserve", f"names {name!r}, which is linear: "
+                                     + method.kind.linear_refusal.format(method=method.name), index=index)
     indices = np.array([problem.invariant_names.index(n) for n in names], dtype=np.int64)
     return names, indices
 
 
+def suggest(word, options, label: str) -> str:
+    """'did you mean 'x'? (label: a, b, c)' or 'label: a, b, c' (for the fix of an unknown name)."""
+    options = [str(o) for o in options]
+    listed = ", ".join(options) or "none"
+    close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    return f"did you mean {close[0]!r}? ({label}: {listed})" if close else f"{label}: {listed}"
+
+
+# Why a run may take at most MAX_STEPS steps (said in the error).
+STEPS_REASON = ("that many steps take hours to days even at a microsecond each, and their per-step records "
+                "alone 40 GB; raise h or shorten the run")
+
+
 def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, int]:
-    """Validate h and exactly one of t_end / n_steps; return (h, n_steps)."""
+    """Validate h and t_end or n_steps (both: they must agree); return (h, n_steps).
+
+    Raises ParameterError naming h, t_end or n_steps and the fix.
+    """
+    if isinstance(h, bool):
+        raise ParameterError("h", f"must be a number, got {h!r}")
     try:
         h = float(h)
     except (TypeError, ValueError):
-        raise TypeError(f"h must be a number, got {h!r}") from None
+        raise ParameterError("h", f"must be a number, got {h!r}") from None
     if not (math.isfinite(h) and h > 0.0):
-        raise ValueError(f"h must be a positive finite step size, got {h!r} (use backward=True to integrate backwards)")
-    if (t_end is None) == (n_steps is None):
-        raise ValueError("give exactly one of t_end and n_steps")
+        raise ParameterError("h", f"must be > 0 and finite, got {h!r}")
+    if t_end is None and n_steps is None:
+        raise ParameterError("t_end", "is missing; give t_end (the final time) or n_steps")
     if n_steps is not None:
-        if isinstance(n_steps, bool) or not float(n_steps).is_integer() or n_steps < 1:
-            raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
-        return h, int(n_steps)
-    span = float(t_end) - float(t0)
+        n_steps = _whole_number("n_steps", n_steps, 1, MAX_STEPS, f": {STEPS_REASON}")
+    if t_end is None:
+        if not math.isfinite(float(t0) + n_steps * h):
+            raise ParameterError("h", f"gives t0 + n_steps h = {t0!r} + {n_steps} * {h!r}, not a finite number; "
+                                      "lower h or n_steps")
+        return h, n_steps
+    try:
+        span = float(t_end) - float(t0)
+    except (TypeError, ValueError):
+        raise ParameterError("t_end", f"must be a number, got {t_end!r}") from None
     if not (math.isfinite(span) and span > 0.0):
-        raise ValueError(f"t_end must be a finite time after t0 = {t0}, got {t_end!r}")
+        raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}")
+    if not span / h <= MAX_STEPS:
+        raise ParameterError("t_end", f"(t_end - t0)/h = {span / h:.3g} steps, more than "
+                                      f"{compact_number(MAX_STEPS)}: {STEPS_REASON}")
     steps = round(span / h)
     if steps < 1 or abs(steps * h - span) > T_END_RELATIVE_TOLERANCE * span:
-        raise ValueError(f"t_end - t0 = {span!r} is not a whole number of steps h = {h!r} "
-                         f"({span / h:.12g} steps); adjust h or t_end, or give n_steps")
+        raise ParameterError("t_end", f"gives t_end - t0 = {span!r}, not a whole number of steps of h = {h!r} "
+                                      f"({span / h:.12g} steps); adjust h or t_end, or give n_steps instead")
+    if n_steps is not None and n_steps != steps:
+        raise ParameterError("n_steps", f"= {n_steps} disagrees with t_end: (t_end - t0)/h = {steps}; give only "
+                                        "one of them")
     return h, int(steps)
+
+
+def resolve_store_every(store_every) -> int:
+    """Validate the sampling interval (keep every n-th state): a whole number from 1 to MAX_STEPS."""
+    return _whole_number("store_every", store_every, 1, MAX_STEPS,
+                         " (the most steps a run may take); to keep only the first and last states, set it to the "
+                         "number of steps")
 
 
 class Integration:
@@ -336,7 +370,7 @@ class Integration:
             solver = SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
                                     max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)
         self.solver = solver.resolved_for(method, len(self.conserve))
-        self.store_every = _whole_number("store_every", store_every, 1, np.iinfo(np.int64).max)
+        self.store_every = resolve_store_every(store_every)
 
         n = 2 * problem.degrees_of_freedom
         self.y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
@@ -347,15 +381,19 @@ class Integration:
         self.clock = np.array([float(t0), 0.0])
         self.t0 = float(t0)
         self.coef = np.zeros((method.s, n))
-        nu = len(self.conserve)
-        n_mult = nu + 1 if method.kernel_family == codes.FAMILY_LIM else nu
-        self.multipliers = np.zeros(n_mult)
+        self.multipliers = np.zeros(method.multiplier_count(len(self.conserve)))
         self.last_h = np.array([self.signed_h])
         self.newton_base = np.zeros(n + 3)   # where the Newton matrix was factorised (kernels/stepper.py)
         self.steps_done = 0
         self.status = codes.STATUS_OK
         self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
         self._progress = np.zeros(2, dtype=np.int64)
+
+    @classmethod
+    def from_spec(cls, spec) -> "Integration":
+        """A fresh run of a validated config (``elimfast.config.RunSpec``); store_every = output.every."""
+        return cls(spec.problem, spec.method, spec.h, spec.n_steps, conserve=spec.conserve, solver=spec.solver,
+                   store_every=spec.output_every, t0=spec.t0)
 
     # Settings kept as attributes for callers that read them (and old pickles of runs).
     tol = property(lambda self: self.solver.tol)
@@ -463,7 +501,7 @@ class Integration:
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
                     diagnostics) -> str:
-    """The one-line report of a step that failed at every level of splitting (spec 8)."""
+    """The one-line report of a step that failed at every level of splitting (docs/solver.md)."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -516,7 +554,7 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     polynomial carried over; warm_start: start from the previous step at all (else from
     y_n); max_halvings: a step that fails is retried from the unextrapolated guess, then
     split into two half-steps, recursively to this depth (0: no splitting); rhs: 'stable'
-    (spec 3b, default) or 'literal' (the paper's form).
+    (docs/methods.md#stable-right-hand-side, default) or 'literal' (the paper's form).
 
     Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
     every depth, Gamma is singular, or the solution stops being finite.
@@ -553,7 +591,6 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
     p, m = run.problem, run.method
     inv = np.concatenate([c.invariants for c in chunks])
     mult = np.concatenate([c.multipliers for c in chunks])
-    is_lim = m.kernel_family == codes.FAMILY_LIM
     invariants = {"H": inv[:, 0].copy()}
     for i, name in enumerate(p.invariant_names):
         invariants[name] = inv[:, 1 + i].copy()
@@ -561,8 +598,8 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
         problem=p, method=m, h=run.h, conserve=run.conserve,
         t=np.concatenate([c.t for c in chunks]), y=np.concatenate([c.y for c in chunks]),
         invariants=invariants,
-        alpha=mult if (m.imposes_invariants and not is_lim) else None,
-        lam=mult if is_lim else None,
+        alpha=mult if m.kind.multiplier == "alpha" else None,    # Result's fields for the family's multipliers
+        lam=mult if m.kind.multiplier == "lambda" else None,
         iterations=np.concatenate([c.iterations for c in chunks]),
         substeps=np.concatenate([c.substeps for c in chunks]),
         y_final=run.y.copy(), t_final=run.t, n_steps=run.n_steps, steps_done=run.steps_done,

@@ -1,4 +1,4 @@
-"""Reproduce every numerical result of Brugnano & Sun (2014) (spec section 6).
+"""Reproduce every numerical result of Brugnano & Sun (2014) (docs/methods.md#the-papers-numbers).
 
 ``reproduce(config_dir, out_dir)`` runs the sweeps ``table1.yaml`` (Tables 1-3 and
 Figure 1) and ``long_run.yaml`` (Figures 2-4) from ``configs/paper/`` and writes, in
@@ -17,7 +17,7 @@ from .sweep import RunOutcome, errors_of, load_sweep, orders_of, run_sweep
 COLUMNS = ("GAUSS3", "HBVM(12,3)", "EHBVM(12,3) L1", "GHBVM(12,3) L1", "EHBVM(12,3) L1,L2", "GHBVM(12,3) L1,L2")
 STEPS = ("pi/30", "pi/60", "pi/120", "pi/240", "pi/480")
 
-# The paper's printed values (Tables 1-3; spec section 6 lists the first four rows).
+# The paper's printed values (Tables 1-3; docs/methods.md#the-papers-numbers lists the first four rows).
 TABLE_1 = {
     "pi/30": (1.942e-03, 4.587e-05, 1.017e-05, 4.049e-05, 1.928e-05, 4.367e-05),
     "pi/60": (2.817e-05, 7.375e-07, 1.644e-07, 6.505e-07, 3.052e-07, 6.868e-07),
@@ -39,7 +39,7 @@ TABLE_3 = {  # max_n |alpha_n|_inf of EHBVM(12,3): (L1 imposed, L1 and L2 impose
     "pi/240": (7.265e-5, 2.013e-4),
     "pi/480": (1.837e-5, 5.055e-5),
 }
-# Where round-off, not truncation, sets the error (spec 6): compared, not held to 2e-3.
+# Where round-off, not truncation, sets the error (docs/methods.md#the-papers-numbers): compared, not held to 2e-3.
 ROUND_OFF_ROWS = ("pi/240", "pi/480")
 TOLERANCE = 2e-3
 
@@ -81,7 +81,7 @@ def table_3(outcomes):
 def _markdown_table_1(rows) -> str:
     lines = ["# Table 1: max-norm error of y(20 pi) - y0, Kepler e = 0.6", "",
              f"Relative difference to the paper; rows {', '.join(ROUND_OFF_ROWS)} are round-off "
-             "dominated (spec 6) and shown for comparison only.", "",
+             "dominated (docs/methods.md#the-papers-numbers) and shown for comparison only.", "",
              "| h | method | elimfast | paper | rel. diff | order |", "|---|---|---|---|---|---|"]
     for h, column, value, paper, rel, order in rows:
         flag = "" if h in ROUND_OFF_ROWS or abs(rel) < TOLERANCE else " **(!)**"
@@ -92,8 +92,9 @@ def _markdown_table_1(rows) -> str:
 
 def _markdown_table_2(rows) -> str:
     lines = ["# Table 2: total fixed-point iterations", "",
-             "They depend on the stopping rule (spec 3, 6): elimfast stops at round-off, starts each step from "
-             "the previous step's coefficients and uses the stable right-hand side of spec 3b, with which EHBVM "
+             "They depend on the stopping rule (docs/methods.md#the-papers-numbers): elimfast stops at round-off, "
+             "starts each step from the previous step's coefficients and uses the stable right-hand side "
+             "(docs/methods.md#stable-right-hand-side), with which EHBVM "
              "needs about as many iterations as HBVM.", "",
              "| h | method | elimfast | paper | ratio |", "|---|---|---|---|---|"]
     for h, column, value, paper in rows:

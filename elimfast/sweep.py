@@ -383,9 +383,10 @@ def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Ca
     ``on_start(n_trajectories)`` is called once the states are drawn, before the kernel."""
     from .config import load_run_from_dict
     from .ensemble import integrate_ensemble
+    from .integrate import Integration
 
     run = load_run_from_dict(copy.deepcopy(spec.base), source=spec.source, base_dir=Path(spec.source).parent)
-    y0 = run.integration().y
+    y0 = Integration.from_spec(run).y
     if "states" in spec.ensemble:
         try:
             states = np.array(spec.ensemble["states"], dtype=np.float64)
@@ -425,7 +426,7 @@ def ensemble_table(result) -> tuple[list[str], list[list[str]]]:
         rows.append(["iterations per trajectory", str(int(iterations.max())), str(int(np.median(iterations))),
                      f"{int(ok.sum())} ok"])
     multipliers = result.max_multiplier[ok]
-    has_multipliers = bool(result.conserve) or result.method.family in ("lim", "ghbvm")
+    has_multipliers = result.method.multiplier_count(len(result.conserve)) > 0
     if has_multipliers and multipliers.size and not np.all(np.isnan(multipliers)):
         rows.append(["max |alpha|/|lambda|", _fmt(float(np.nanmax(multipliers))),
                      _fmt(float(np.nanmedian(multipliers))), f"{int(ok.sum())} ok"])
@@ -449,6 +450,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     """Worker: load one run's config, integrate it, summarise. Never raises for a run's
     own failure: a bad config or a failed integration becomes the outcome's status."""
     from .config import load_run_from_dict  # in the worker: keeps the parent light
+    from .integrate import Integration
 
     outcome = RunOutcome(label=label, coordinates=coordinates, status="complete")
     try:
@@ -461,7 +463,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.resolved = spec.resolved
     outcome.h = spec.h
     outcome.n_steps = spec.n_steps
-    run = spec.integration()
+    run = Integration.from_spec(spec)
     needed = 2 * run_bytes(run)    # the chunks, then their concatenation
     available = memory_available()
     if available is not None and needed > MEMORY_FRACTION * available:
@@ -508,8 +510,8 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
         outcome.arrays = {
             "t": np.concatenate([c.t for c in chunks]), "y": np.concatenate([c.y for c in chunks]),
             "invariants": invariants, "invariant_names": names, "iterations": iterations,
-            "multipliers": multipliers, "multiplier_name": "lambda" if spec.method.family in ("lim", "ghbvm")
-            else "alpha", "coordinate_names": spec.problem.coordinate_names,
+            "multipliers": multipliers, "multiplier_name": spec.method.multiplier_name(len(spec.conserve)),
+            "coordinate_names": spec.problem.coordinate_names,
         }
     return outcome
 

@@ -1,6 +1,6 @@
 """Slow, plain NumPy reference implementation of HBVM, ELIM and LIM (test oracle).
 
-Written from the numerical specification (spec/methods.md, sections 1-5) only,
+Written from the numerical specification (docs/methods.md) only,
 independently of the fast implementation.  Clarity over speed: loops are fine.
 
 Conventions: y = (q, p) is a 1-D array of length 2m; grad_H(y) returns a 1-D
@@ -153,7 +153,7 @@ def hbvm_step(grad_H, y0, h, k, s, tol=1e-16, max_iter=500):
 # ---------------------------------------------------------------------------
 
 # Number of initial plain HBVM sweeps (alpha = 0) in ELIM.  Iteration 1: all stages
-# equal y0, so gamma_j = 0 for j >= 1 and Gamma = 0 (spec section 3).  Iteration 2:
+# equal y0, so gamma_j = 0 for j >= 1 and Gamma = 0 (docs/methods.md#elim).  Iteration 2:
 # the stages are still linear in c (u(ch) = y0 + c h J grad H(y0)); for a quadratic
 # invariant (e.g. Kepler angular momentum) grad L is then linear in c, so phi_j = 0
 # for j >= 2 and both Gamma's row and bvec vanish up to round-off whenever

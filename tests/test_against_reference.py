@@ -58,10 +58,10 @@ def test_kernel_matches_reference_at_every_step(kepler, method, conserve, rhs):
         y, multiplier = step(y)
         assert np.max(np.abs(result.y[n + 1] - y)) < 1e-13, (method.name, n + 1)
         if multiplier is not None and len(multiplier):
-            # The literal alpha is bvec / Gamma with Gamma = O(h^(2s-2)) (spec 3b): two
+            # The literal alpha is bvec / Gamma with Gamma = O(h^(2s-2)) (docs/methods.md#stable-right-hand-side): two
             # iterates 1e-12 apart (both "converged") move it by about 1e-12 h^-(2s-2).
             # Two such iterates give literal alphas that agree to about 3 digits only:
-            # that noise is what spec 3b is about.
+            # that noise is what docs/methods.md#stable-right-hand-side is about.
             if rhs == "literal":
                 np.testing.assert_allclose(multipliers[n], multiplier, rtol=1e-3,
                                            atol=1e-12 * method_h ** -(2 * method.s - 2))

@@ -72,7 +72,7 @@ def make_case(name, tmp: Path):
         "check a bad config": (["check", write(tmp, "key2.yaml", GOOD + "extra: 1\n")], "unknown key"),
         "unknown command": (["integrate"], "No such command"),
         "unknown option": (["run", KEPLER, "--fast"], "No such option"),
-        "tableau without k": (["tableau", "hbvm", "--s", "2"], "missing --k"),
+        "tableau without k": (["tableau", "hbvm", "--s", "2"], "--k is missing"),
         "tableau of lim": (["tableau", "ghbvm", "--k", "3", "--s", "2"], "no fixed Runge-Kutta form"),
         "tableau k < s": (["tableau", "hbvm", "--k", "2", "--s", "3"], "k must be >= s"),
         "tableau bad eta": (["tableau", "ehbvm", "--k", "3", "--s", "2", "--eta", "x"], "not a number"),

@@ -203,7 +203,7 @@ LOAD_AND_RUN = textwrap.dedent("""
         report = {}
         for name in sys.argv[1:]:
             spec = load_run(name)
-            run = spec.integration()
+            run = elimfast.Integration.from_spec(spec)
             run.advance(5)
             stats = [f.stats for f in (spec.problem.H, spec.problem.grad_H, spec.problem.hess_H,
                                        spec.problem.invariants, spec.problem.grad_invariants)]
@@ -245,7 +245,7 @@ def test_builtin_invariants_pass_the_check(name):
 
 
 def test_the_papers_misprinted_lrl_is_rejected_showing_the_residual(cache_root):
-    misprinted = "p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)"     # sign of p1 L1 dropped (spec 5)
+    misprinted = "p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)"     # sign of p1 L1 dropped (docs/methods.md)
     problem = problem_from_expressions(**{**KEPLER, "invariants": {**KEPLER["invariants"], "lrl_y": misprinted}})
     residuals = check_invariants(problem)
     assert residuals["lrl_y"] > 0.1 and residuals["angular_momentum"] < 1e-14 and residuals["lrl_x"] < 1e-14

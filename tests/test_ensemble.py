@@ -57,7 +57,7 @@ def test_lim_matches_integrate_bit_for_bit(kepler, conserve):
 
 
 def test_separate_invariant_nodes_match_integrate(central_quartic):
-    # r != k: the stages at the r nodes and spec 3b's tail at those nodes.
+    # r != k: the stages at the r nodes and the stable tail (docs/methods.md#stable-right-hand-side) at those nodes.
     rng = np.random.default_rng(2)
     states = central_quartic.y0 + 0.2 * rng.standard_normal((4, 4))
     assert_same_as_one_by_one(central_quartic, elim(4, 6, 3), 0.1, states, ("angular_momentum",))
@@ -217,7 +217,7 @@ def test_fewer_trajectories_than_threads(kepler):
     (dict(conserve=["angular_momentum"], method=hbvm(6, 3)), "cannot impose invariants"),
     (dict(max_iter=0), "max_iter"),
     (dict(rhs="fancy"), "stable"),
-    (dict(h=-0.1), "positive"),
+    (dict(h=-0.1), "h must be > 0"),
     (dict(method="gauss3"), "elimfast Method"),
 ])
 def test_bad_arguments_say_what_to_change(kepler, kwargs, match):

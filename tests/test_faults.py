@@ -23,6 +23,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
+from elimfast.integrate import Integration
 from elimfast.config import ConfigError, load_run, load_run_from_dict
 from elimfast.io import hdf5
 from elimfast.sweep import SweepError, load_sweep
@@ -153,7 +154,7 @@ def wait_for_steps(process: Process, path: Path, steps: int, timeout: float = 12
 def run_reference(overrides):
     """An uninterrupted run in this process (the same compiled kernel as the subprocesses)."""
     spec = load_run(KEPLER, overrides=overrides)
-    run = spec.integration()
+    run = Integration.from_spec(spec)
     chunks = [run.initial_chunk(), run.advance(spec.n_steps)]
     return {"y_final": run.y.copy(), "n_steps": spec.n_steps, "y": np.concatenate([c.y for c in chunks]),
             "alpha": chunks[1].multipliers, "iterations": chunks[1].iterations}

@@ -201,7 +201,7 @@ def test_a_failed_run_keeps_its_data(tmp_path):
     with hdf5.RunFile(tmp_path / "f.h5") as f:
         assert f.status == outcome.status and f.steps_done == done
         assert len(f.iterations()) == done and f.n_samples == done + 1
-        # two tries of max_iter = 10: from the predicted guess, then the unextrapolated one (spec 8)
+        # two tries of max_iter = 10: from the predicted guess, then the unextrapolated one (docs/solver.md)
         assert f.attrs["failed_step_iterations"] == 2 * 10
 
 

@@ -1,4 +1,5 @@
-"""The small dense solves of spec 3 (Gamma, partial pivoting) and 4 (LIM Gram matrix, SPD)."""
+"""The small dense solves of docs/methods.md#elim (Gamma, partial pivoting) and #lim (the
+Gram matrix, SPD)."""
 import numpy as np
 import pytest
 

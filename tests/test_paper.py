@@ -1,4 +1,5 @@
-"""The paper's published numbers (spec section 6) and the stable right-hand side (spec 3b)."""
+"""The paper's published numbers (docs/methods.md#the-papers-numbers) and the stable right-hand
+side (docs/methods.md#stable-right-hand-side)."""
 import math
 
 import numpy as np
@@ -16,7 +17,7 @@ COLUMNS = {
     "EHBVM(12,3) L1,L2": (lambda: ehbvm(12, 3), (L1, L2)),
     "GHBVM(12,3) L1,L2": (lambda: ghbvm(12, 3), (L1, L2)),
 }
-TABLE_1 = {  # spec section 6: max-norm error of y_N - y0 at T = 20 pi
+TABLE_1 = {  # docs/methods.md#the-papers-numbers: max-norm error of y_N - y0 at T = 20 pi
     30: (1.942e-03, 4.587e-05, 1.017e-05, 4.049e-05, 1.928e-05, 4.367e-05),
     60: (2.817e-05, 7.375e-07, 1.644e-07, 6.505e-07, 3.052e-07, 6.868e-07),
     120: (4.346e-07, 1.161e-08, 2.591e-09, 1.023e-08, 4.785e-09, 1.075e-08),
@@ -58,7 +59,7 @@ def test_table_2_iteration_totals(kepler, capsys):
             print(f"  {column:20s} elimfast {total:6d}   paper {paper:6d}   ratio {total / paper:.3f}")
     for column, total, paper in rows:
         assert abs(total / paper - 1.0) < 0.15, (column, total, paper)
-    # With the stable form EHBVM needs about as many iterations as HBVM (spec 3b).
+    # With the stable form EHBVM needs about as many iterations as HBVM (docs/methods.md#stable-right-hand-side).
     totals = dict((c, t) for c, t, _ in rows)
     assert totals["EHBVM(12,3) L1,L2"] < 1.05 * totals["HBVM(12,3)"]
 

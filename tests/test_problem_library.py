@@ -1,8 +1,8 @@
 """The built-in problem library (issue 3, item 5).
 
 For every built-in: its gradients against central differences, its declared invariants
-against the invariant identity grad L^T J grad H = 0 (spec section 1), and a short run in
-which EHBVM imposing the invariants keeps them to round-off (spec section 3) while HBVM
+against the invariant identity grad L^T J grad H = 0 (docs/methods.md#notation), and a short run in
+which EHBVM imposing the invariants keeps them to round-off (docs/methods.md#elim) while HBVM
 of the same (k, s) does not, where that is true. Linear invariants (total momenta,
 tr L of Toda) are kept by every Runge-Kutta method and cannot be imposed by ELIM/EHBVM
 (their phi_j, j >= 1, vanish, so Gamma is singular): they are checked as kept, and imposed
@@ -101,7 +101,7 @@ def check_gradient(f, grad, y, what):
 
 
 def invariant_identity_residuals(problem: Problem, y: np.ndarray) -> np.ndarray:
-    """|grad L_i^T J grad H| / (|grad L_i| |grad H|) for every declared invariant (spec 1)."""
+    """|grad L_i^T J grad H| / (|grad L_i| |grad H|) for every declared invariant (docs/methods.md#notation)."""
     m = problem.degrees_of_freedom
     g = problem.gradient(y)
     J_grad_H = np.concatenate((g[m:], -g[:m]))

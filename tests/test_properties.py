@@ -1,4 +1,4 @@
-"""Properties the theory predicts (spec sections 2-4, paper Theorems 1-6)."""
+"""Properties the theory predicts (docs/methods.md, paper Theorems 1-6)."""
 import math
 
 import numpy as np
@@ -51,7 +51,7 @@ def test_hbvm_keeps_a_quartic_energy_to_round_off_and_gauss_does_not(quartic, k,
 
 
 def test_hbvm_energy_error_with_too_few_nodes_is_not_round_off(quartic):
-    """Degree 4 > 2k/s = 3 for HBVM(3,2): only O(h^(2k+1)) per step (spec 2)."""
+    """Degree 4 > 2k/s = 3 for HBVM(3,2): only O(h^(2k+1)) per step (docs/methods.md#hbvm)."""
     n = 2000
     short = elimfast.integrate(quartic, hbvm(3, 2), 0.1, n_steps=n)
     enough = elimfast.integrate(quartic, hbvm(4, 2), 0.1, n_steps=n)
@@ -120,7 +120,7 @@ def test_alpha_is_order_h_squared(kepler):
 
 
 def test_lim_multiplier_is_small(kepler):
-    """lambda = O(h^(2s)) (spec 4)."""
+    """lambda = O(h^(2s)) (docs/methods.md#lim)."""
     maxima = []
     for n in (60, 120):
         result = elimfast.integrate(kepler, ghbvm(12, 3), TWO_PI / n, n_steps=n, conserve=["angular_momentum"])

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from elimfast.integrate import Integration
 from elimfast.config import load_run
 from elimfast_cli.main import cli
 
@@ -29,7 +30,7 @@ STEPS_BEFORE_SIGNAL = 1000    # the first chunk (64 steps) and the next are on d
 def reference():
     """The uninterrupted run, in this process (same compiled kernel as the subprocesses)."""
     spec = load_run(KEPLER, overrides=OVERRIDES)
-    run = spec.integration()
+    run = Integration.from_spec(spec)
     chunks = [run.initial_chunk(), run.advance(spec.n_steps)]
     return {"y_final": run.y.copy(), "clock": run.clock.copy(), "n_steps": spec.n_steps,
             "t": np.concatenate([c.t for c in chunks]), "y": np.concatenate([c.y for c in chunks]),

@@ -1,7 +1,7 @@
-"""The step engine (docs/solver.md; spec section 8): simplified Newton, the stopping rule,
+"""The step engine (docs/solver.md): simplified Newton, the stopping rule,
 the predictor, step splitting, and runs that used to abort.
 
-The hard steps are those of spec 8: almost time-symmetric about a pericentre, where
+The hard steps are those of docs/solver.md: almost time-symmetric about a pericentre, where
 Gamma is nearly singular and the plain fixed point needs hundreds of iterations. The
 kernel's accepted state is checked against the NumPy reference (tests/reference.py),
 which iterates to 1e-16 on its own, independently written map.
@@ -25,7 +25,7 @@ L1, AX, AY = "angular_momentum", "lrl_x", "lrl_y"
 
 
 def kepler_exact(e: float, tau: float) -> np.ndarray:
-    """The exact Kepler state tau time units after the pericentre (period 2 pi, spec 5)."""
+    """The exact Kepler state tau time units after the pericentre (period 2 pi, docs/methods.md#typos-in-the-paper)."""
     mean = math.remainder(tau, 2 * math.pi)
     E = mean + e * math.sin(mean) if e < 0.8 else math.pi * math.copysign(1.0, mean) * min(1.0, abs(mean))
     for _ in range(60):
@@ -138,7 +138,7 @@ def test_iterations_per_step_of_simplified_newton_match_spec_8():
     assert both.iterations.mean() <= 5.5 and both.iterations.max() <= 15
     plain = elimfast.integrate(p, hbvm(12, 3), 0.1, t_end=1000.0, store_every=1000)
     assert plain.iterations.mean() <= 5.0
-    # the fixed point needs about twice as many (spec 8: 10.96 without the predictor)
+    # the fixed point needs about twice as many (docs/solver.md: 10.96 without the predictor)
     fixed = elimfast.integrate(p, ehbvm(12, 3), 0.1, t_end=1000.0, conserve=[L1, AY], store_every=1000,
                                solver="fixed_point", predictor=False)
     assert fixed.iterations.mean() > 1.8 * both.iterations.mean()
@@ -159,7 +159,7 @@ def test_the_predictor_saves_iterations_and_changes_nothing_else(solver):
 # --- splitting, bookkeeping, settings ---------------------------------------------------------
 def test_split_steps_keep_the_output_grid_and_every_imposed_invariant():
     """Kepler e = 0.9 at h = 0.05 needs a few split steps near pericentre within 20 periods
-    (spec 8: 155 halvings in 4e5 steps): the samples stay on the grid t = n h and the
+    (docs/solver.md: 155 halvings in 4e5 steps): the samples stay on the grid t = n h and the
     imposed invariants at round-off."""
     p = kepler(0.9)
     result = elimfast.integrate(p, ehbvm(24, 3), 0.05, t_end=2500.0, conserve=[L1, AY], store_every=1)
@@ -201,7 +201,7 @@ def test_result_repr_is_a_short_summary():
     assert text.startswith("<Result HBVM(6,3) on kepler") and len(text) < 300 and "\n" not in text
 
 
-# --- long runs that used to abort (spec 8; the issue's acceptance) -----------------------------
+# --- long runs that used to abort (docs/solver.md; the issue's acceptance) -----------------------------
 @pytest.mark.slow
 def test_kepler_e06_million_steps_completes_at_round_off():
     """The README's run 100x longer aborted at step 836104: 10^6 steps of EHBVM(12,3)

@@ -9,7 +9,7 @@ extended as the run goes):
     /invariants/H           (samples,)           the Hamiltonian at each sample
     /invariants/<name>      (samples,)           every invariant of the problem; attribute ``imposed``
     /steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
-    /steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split (spec 8)
+    /steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split (docs/solver.md)
     /steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
     /steps/lambda           (steps_done, nu+1)   LIM/GHBVM (H first, then the imposed invariants)
     /method/A, b, c         the Runge-Kutta form (all but LIM/GHBVM; for ELIM/EHBVM the
@@ -705,11 +705,14 @@ def _write_record_row(dataset_id, slot: int, row: np.ndarray) -> None:
 
 
 def multiplier_name(integration) -> str | None:
-    """'alpha' (ELIM/EHBVM imposing invariants), 'lambda' (LIM/GHBVM) or None."""
-    from ..kernels.stepper import FAMILY_LIM
-    if integration.method.kernel_family == FAMILY_LIM:
-        return "lambda"
-    return "alpha" if integration.multipliers.size else None
+    """The name of the run's per-step multipliers ('alpha', 'lambda'), or None: the method's."""
+    return integration.method.multiplier_name(len(integration.conserve))
+
+
+def _multiplier_datasets(steps) -> list[str]:
+    """The per-step multipliers stored in /steps: every dataset but the per-step counts. The
+    file names them by the method's multiplier (alpha, lambda), so no reader lists families."""
+    return [name for name in steps if name not in ("iterations", "substeps")]
 
 
 def version_attributes() -> dict:
@@ -759,7 +762,7 @@ class RunWriter:
     @classmethod
     def _from_file(cls, path: Path, f: h5py.File, guard, sequence: int) -> "RunWriter":
         steps = f["steps"]
-        multipliers = next((steps[name] for name in ("alpha", "lambda") if name in steps), None)
+        multipliers = next((steps[name] for name in _multiplier_datasets(steps)), None)
         order = [str(name) for name in _plain(f["invariants"].attrs["order"])]
         state = {name: dataset.id for name, dataset in f["state"].items() if name != "record"}
         return cls(path, f, {
@@ -829,8 +832,8 @@ class RunWriter:
             datasets["substeps"] = _growing(steps, "substeps", None, "i4")
             if mult is not None:
                 datasets["multipliers"] = _growing(steps, mult, run.multipliers.size, "f8")
-                imposed = ("H",) + run.conserve if mult == "lambda" else run.conserve
-                _set_attributes(datasets["multipliers"], {"invariants": list(imposed)})
+                _set_attributes(datasets["multipliers"],
+                                {"invariants": list(method.multiplier_components(run.conserve))})
             _write_method(f.create_group("method"), method)
 
             state = f.create_group("state")
@@ -1186,7 +1189,7 @@ class SweepWriter:
             steps = group.create_group("steps")
             done = outcome.steps_done
             _small_dataset(steps, "iterations", arrays["iterations"][:done].astype("i4"))
-            if arrays["multipliers"].shape[1] or arrays["multiplier_name"] == "lambda":
+            if arrays["multiplier_name"] is not None:
                 _small_dataset(steps, arrays["multiplier_name"], arrays["multipliers"][:done])
         self._file.flush()
 
@@ -1265,13 +1268,13 @@ def _write_method(group, method) -> None:
         A, b, c = method.butcher()
         for name, table in (("A", A), ("b", b), ("c", c)):
             _small_dataset(group, name, table)
-        if method.family in ("elim", "ehbvm"):
+        if method.kind.scales_tableau:
             tableau = (f"the underlying HBVM({method.k},{method.s}) tableau (eta = 1); each ELIM step scales it "
-                       "with eta_j = 1 - h^(2(s-1-j)) alpha_j (spec 3)")
+                       "with eta_j = 1 - h^(2(s-1-j)) alpha_j (docs/methods.md#elim)")
         else:
             tableau = f"{method.name}: A, b, c of its Runge-Kutta form"
     else:
-        tableau = f"{method.name} has no fixed Runge-Kutta form (its correction acts through phi_0, spec 4)"
+        tableau = f"{method.name} has no fixed Runge-Kutta form (its correction acts through phi_0, docs/methods.md#lim)"
     _set_attributes(group, {"order": method.order, "tableau": tableau,
                             "quadrature": f"{method.k}-point Gauss-Legendre on [0, 1] for H"
                                           + (f", {method.r}-point for the invariants" if method.imposes_invariants
@@ -1427,8 +1430,7 @@ class RunFile:
             self.imposed = {name: bool(f["invariants"][name].attrs.get("imposed", False))
                             for name in self.invariant_names}
         with self._reading("/steps"):
-            self.multiplier_name = ("lambda" if "lambda" in f["steps"]
-                                    else "alpha" if "alpha" in f["steps"] else None)
+            self.multiplier_name = next(iter(_multiplier_datasets(f["steps"])), None)
 
     @contextlib.contextmanager
     def _reading(self, where: str):
@@ -1620,7 +1622,7 @@ class RunFile:
         return values
 
     def substep_stats(self) -> dict:
-        """{"split": steps split into substeps (spec 8, "Fallback"), "max": the most substeps of
+        """{"split": steps split into substeps (docs/solver.md), "max": the most substeps of
         one step}; zeros for a file written before the step engine (no /steps/substeps)."""
         with self._reading("/steps"):
             present = "substeps" in self._file["steps"]

@@ -1,4 +1,4 @@
-"""Adaptive steps, output at requested times and events (docs/adaptive.md; spec section 9).
+"""Adaptive steps, output at requested times and events (docs/adaptive.md).
 
 Numba only, like stepper.py, whose ``try_step`` takes every step here: the controllers
 only choose h. HBVM, ELIM and LIM keep H and the imposed invariants at every step
@@ -103,7 +103,7 @@ def _apply_jacobian(hessian, v, out):
 
 @internal
 def stage_at(tau, y, h, coef, integrals, out):
-    """u(tau h) = y + h sum_j coef_j int_0^tau P_j: the stage polynomial of a step (spec 1)."""
+    """u(tau h) = y + h sum_j coef_j int_0^tau P_j: the stage polynomial of a step (docs/methods.md)."""
     s = coef.shape[0]
     n = y.shape[0]
     point = np.empty(1)
@@ -118,7 +118,7 @@ def stage_at(tau, y, h, coef, integrals, out):
 
 @internal
 def error_estimate(hess_H, params, tables, work, y0, y1, h, coef, rtol, atol, scratch, hessian, integrals):
-    """E = C_s h || (h J(u(h/2)))^s gamma_s || (docs/adaptive.md, spec 9), the last step's
+    """E = C_s h || (h J(u(h/2)))^s gamma_s || (docs/adaptive.md), the last step's
     local error estimate in the weighted max norm. gamma_s = J sum_l b_l P_s(c_l) grad H(u_l)
     from the gradients of the last iteration (work.grads, no new evaluation); needs k > s.
     scratch (3, n); hessian (n, n); integrals (1, s)."""
@@ -151,7 +151,7 @@ def error_estimate(hess_H, params, tables, work, y0, y1, h, coef, rtol, atol, sc
 
 @internal
 def _time_scale_rate(grad_H, time_scale, params, y, scratch):
-    """(sigma(y), G(y)) with G = -grad sigma . f / sigma, f = J grad H (spec 9).
+    """(sigma(y), G(y)) with G = -grad sigma . f / sigma, f = J grad H (docs/adaptive.md).
     scratch (2, n + 1): time_scale writes [sigma, grad sigma] into row 0."""
     n = y.shape[0]
     m = n // 2
@@ -378,7 +378,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             continue
         if control == CONTROL_ERROR:
             if verify:
-                # Step doubling: two half steps from the same start (exact to 0.2%, spec 9).
+                # Step doubling: two half steps from the same start (exact to 0.2%, docs/adaptive.md).
                 _copy(y_back, y_half)
                 _copy(comp_back, half_comp)
                 _copy(clock_back, half_clock)

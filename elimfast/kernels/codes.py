@@ -21,6 +21,6 @@ STATUS_EXCEPTION = 4       # a problem function raised (ensembles only: a single
 FAMILY_ELIM = 0
 FAMILY_LIM = 1
 
-# Solvers of one step's nonlinear system (spec 8).
+# Solvers of one step's nonlinear system (docs/solver.md).
 SOLVER_FIXED_POINT = 0
 SOLVER_NEWTON = 1

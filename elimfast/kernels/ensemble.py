@@ -190,7 +190,8 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
 
     Each trajectory is the run ``stepper.time_loop`` makes from step 0 with
     store_every = 1 (same step protocol, ``stepper.try_step``): the first step cold, the
-    later ones predicted from the previous step (spec 8), compensated summation (spec 7).
+    later ones predicted from the previous step (docs/solver.md), compensated summation
+    (docs/methods.md#round-off-over-long-times).
 
     Inputs: the settings and tables as for time_loop; Y0 (n_traj, n) initial states, all
     at time t0; n_mult = nu (ELIM) or nu + 1 (LIM); n_workers: the number of Numba

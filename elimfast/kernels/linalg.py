@@ -1,5 +1,5 @@
-"""Dense solves of the kernels: the nu x nu systems of spec sections 3 and 4, and the
-simplified-Newton matrix of spec section 8.
+"""Dense solves of the kernels: the nu x nu systems of docs/methods.md#elim and #lim, and the
+simplified-Newton matrix of docs/solver.md.
 
 nu is 1 to a few and the Newton matrix is (s 2m) x (s 2m), so plain loops beat any BLAS
 call. Every function works in place and returns a status (0 ok, 1 singular or badly

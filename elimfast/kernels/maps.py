@@ -3,9 +3,9 @@
 Numba only. Each family supplies one map and the solver (solver.py) drives it, the
 way scipy's Radau separates ``solve_collocation_system`` from the method:
 
-    elim_map  ELIM(r,k,s) of spec 3 with the stable right-hand side of 3b (and HBVM,
-              GAUSS when no invariant is imposed, spec 2)
-    lim_map   LIM(r,k,s) of spec 4
+    elim_map  ELIM(r,k,s) of docs/methods.md#elim with the stable right-hand side (and HBVM,
+              GAUSS when no invariant is imposed, docs/methods.md#hbvm)
+    lim_map   LIM(r,k,s) of docs/methods.md#lim
 
 The unknowns are the *effective* coefficients ``coef[j]``: eta_j gamma_j (ELIM; eta_j = 1
 for HBVM) or coef[0] = gamma_0 - phi_0 lambda, coef[j>0] = gamma_j (LIM), so that every
@@ -15,7 +15,7 @@ there, the Legendre coefficients gamma_j and phi_j, the small system (Gamma or t
 Gram matrix) and its multipliers, and writes G(coef) into ``work.new_coef``.
 
 Each map also has its rounding estimate (``*_rounding``): how far round-off alone moves
-G through the multipliers, the second term of the rounding level omega of spec 8.
+G through the multipliers, the second term of the rounding level omega of docs/solver.md.
 """
 import math
 
@@ -29,7 +29,7 @@ EPS = 2.0 ** -52
 
 @njit(cache=True, inline="always", error_model="numpy")
 def stages(y, h, integrals, coef, n_coef, out):
-    """out[l] = y + h sum_{j<n_coef} integrals[l, j] coef[j]   (spec 2: u_l = u(c_l h))."""
+    """out[l] = y + h sum_{j<n_coef} integrals[l, j] coef[j]   (docs/methods.md#hbvm: u_l = u(c_l h))."""
     n = y.shape[0]
     for l in range(out.shape[0]):
         for i in range(n):
@@ -43,7 +43,7 @@ def stages(y, h, integrals, coef, n_coef, out):
 def project(projection, values, n_degrees, out):
     """out[j] = sum_l projection[j, l] values[l] = sum_l b_l P_j(c_l) values[l], j < n_degrees.
 
-    The discrete Legendre coefficients of spec 2 (gamma_j) and 3 (phi_j) of the rows of
+    The discrete Legendre coefficients of docs/methods.md#hbvm (gamma_j) and #elim (phi_j) of the rows of
     values (n_nodes, n); projection (>= n_degrees, n_nodes) holds b_l P_j(c_l).
     Scalar accumulators, four components at a time: accumulating into out[j, i]
     chains every update through memory (3x slower), and four independent sums let
@@ -77,7 +77,7 @@ def project(projection, values, n_degrees, out):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def apply_J(projected, n_degrees, out):
-    """out[j] = J projected[j], J = [[0, I], [-I, 0]] (spec 1)."""
+    """out[j] = J projected[j], J = [[0, I], [-I, 0]] (docs/methods.md#notation)."""
     m = projected.shape[1] // 2
     for j in range(n_degrees):
         for i in range(m):
@@ -87,8 +87,9 @@ def apply_J(projected, n_degrees, out):
 
 @njit(cache=True, inline="always")
 def elim_rhs_terms(stable_rhs, k, r, s):
-    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec (spec 3, 3b),
-    and whether gamma_j comes from the r nodes (spec 3b with r != k)."""
+    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec
+    (docs/methods.md#elim, #stable-right-hand-side),
+    and whether gamma_j comes from the r nodes (docs/methods.md#stable-right-hand-side with r != k)."""
     if not stable_rhs:
         return 0, s, False
     if r == k:
@@ -99,15 +100,15 @@ def elim_rhs_terms(stable_rhs, k, r, s):
 @njit(cache=True, inline="always", error_model="numpy")
 def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, stable_rhs, tables,
              conserve_idx, work):
-    """G(coef) of ELIM(r,k,s), spec section 3 (HBVM when nu = 0, spec 2), into work.new_coef.
+    """G(coef) of ELIM(r,k,s), docs/methods.md#elim (HBVM when nu = 0, docs/methods.md#hbvm), into work.new_coef.
 
         u_l     = y + h sum_j Is[l,j] coef_j,     gamma_j = sum_l b_l P_j(c_l) J grad H(u_l)
         phi_j   = sum_i bhat_i P_j(chat_i) grad L(uhat_i)          (nu imposed invariants)
         Gamma alpha = bvec,  Gamma[:, c] = w_c phi_{s-nu+c}^T gamma_{s-nu+c},  w_c = h^(2(nu-1-c))
         G_j     = eta_j gamma_j,   eta_j = 1 - w_{j-s+nu} alpha_{j-s+nu} for the last nu j
-    bvec is the stable tail -sum_{j=s}^{k-1} phi_j^T gamma_j (spec 3b) when stable_rhs, the
+    bvec is the stable tail -sum_{j=s}^{k-1} phi_j^T gamma_j (docs/methods.md#stable-right-hand-side) when stable_rhs, the
     paper's sum_{j<s} phi_j^T gamma_j otherwise. plain_sweep: alpha = 0 (the first sweeps
-    of a cold start, when Gamma is singular or noise: spec 3, "practical points").
+    of a cold start, when Gamma is singular or noise: docs/methods.md#practical-points).
 
     Shapes: y (n,), coef (s, n), alpha (nu,) in/out, conserve_idx (nu,); work.h_powers holds
     w_c for this h. Leaves Gamma unfactored in work.small_copy and factored in
@@ -199,7 +200,7 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
 
 @njit(cache=True, inline="always", error_model="numpy")
 def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_idx, work):
-    """G(coef) of LIM(r,k,s), spec section 4, into work.new_coef.
+    """G(coef) of LIM(r,k,s), docs/methods.md#lim, into work.new_coef.
 
     Ltilde = (H, L_conserve...) has nu + 1 components:
         gamma_j = sum_l b_l Ps[l,j] J grad H(u_l)                 (k nodes)
@@ -272,7 +273,7 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
 
 @njit(cache=True, inline="always", error_model="numpy")
 def gradient_sizes(work, n_rows, n_nodes):
-    """Component-wise sizes for the rounding estimate of spec 8, into work.sizes:
+    """Component-wise sizes for the rounding estimate of docs/solver.md, into work.sizes:
     row 0: F_p = max_l |f_{l,p}| over the k nodes (f = J grad H: |f_p| is |grad H| at p's
     partner), rows 1 + a: A_{a,p} = max_i |grad L_a(uhat_i)_p| at the r nodes."""
     grads, grads_hat, sizes = work.grads, work.grads_hat, work.sizes
@@ -294,9 +295,9 @@ def gradient_sizes(work, n_rows, n_nodes):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _dot_rounding(S, phi_a, gamma, j, sizes, a):
-    """Rounding of phi_j^a . gamma_j (spec 8's db term, taken component by component):
+    """Rounding of phi_j^a . gamma_j (docs/solver.md's db term, taken component by component):
     eps sum_p [S_j (A_{a,p} |gamma_{j,p}| + F_p |phi^a_{j,p}|) + |phi^a_{j,p}| |gamma_{j,p}|].
-    The spec's form uses max_p A_{a,p} and max_p F_p; summing per component is a tighter
+    docs/solver.md's form uses max_p A_{a,p} and max_p F_p; summing per component is a tighter
     bound of the same rounding, and it matters where components differ in size by orders
     (the solar system's momenta are 1e-11 to 1e-5 of its positions)."""
     acc = 0.0

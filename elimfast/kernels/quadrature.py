@@ -1,4 +1,4 @@
-"""Gauss-Legendre quadrature on [0, 1] and the Legendre tables of spec section 1.
+"""Gauss-Legendre quadrature on [0, 1] and the Legendre tables of docs/methods.md#notation.
 
 Only floats and arrays here; the Method objects call these once, outside the time loop.
 
@@ -96,7 +96,7 @@ def _legendre_dd(n, ch, cl):
 
 @njit(cache=True)
 def gauss_legendre(n, nodes, weights):
-    """n-point Gauss-Legendre nodes and weights on [0, 1] (spec section 1).
+    """n-point Gauss-Legendre nodes and weights on [0, 1] (docs/methods.md#notation).
 
     Writes the nodes in increasing order into ``nodes`` (n,) and the weights into
     ``weights`` (n,). Returns 0 on success, 1 if n < 1.
@@ -155,7 +155,7 @@ def gauss_legendre(n, nodes, weights):
 
 @njit(cache=True)
 def legendre_table(x, n_degrees, out):
-    """Ps[i, j] = P_j(x_i) = sqrt(2j+1) Legendre_j(2 x_i - 1), j < n_degrees (spec section 1).
+    """Ps[i, j] = P_j(x_i) = sqrt(2j+1) Legendre_j(2 x_i - 1), j < n_degrees (docs/methods.md#notation).
 
     x: (n,), out: (n, n_degrees). Shifted and normalised so that the P_j are
     orthonormal on [0, 1].
@@ -179,7 +179,7 @@ def legendre_table(x, n_degrees, out):
 
 @njit(cache=True)
 def legendre_integral_table(x, n_degrees, out):
-    """Is[i, j] = int_0^{x_i} P_j (spec section 1, closed form).
+    """Is[i, j] = int_0^{x_i} P_j (docs/methods.md#notation, closed form).
 
     int_0^c P_0 = c; for j >= 1,
     int_0^c P_j = (P_{j+1}(c)/sqrt(2j+3) - P_{j-1}(c)/sqrt(2j-1)) / (2 sqrt(2j+1)).

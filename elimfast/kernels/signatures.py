@@ -15,7 +15,7 @@ All arrays are C-contiguous float64; ``params`` is the problem's parameter vecto
 - ``grad_invariants(y, params, out)``: out (n_inv, 2m), row i = grad L_i(y)
 - ``hess_H(y, params, out)``: out (2m, 2m) = the symmetric matrix d^2 H / dy^2, rows and
   columns in the order q then p (so out[i, j] = d^2 H / dy_i dy_j); every entry is written.
-  The simplified Newton solver of spec section 8 factorises I - h X_s (x) J Hess(H)(y0)
+  The simplified Newton solver of docs/solver.md factorises I - h X_s (x) J Hess(H)(y0)
   once per step with it. Built-ins compute it analytically, expression problems by sympy,
   ``python:`` files with their own ``hess_H`` or by central differences of ``grad_H``
   (``Problem.hessian_source`` says which).

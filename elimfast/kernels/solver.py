@@ -1,11 +1,11 @@
 """Solving one step's nonlinear system: simplified Newton or the fixed point, with the
-stopping rule of spec section 8.
+stopping rule of docs/solver.md.
 
 Numba only. ``solve`` drives a family's residual map (maps.py) from an initial guess of
 the coefficients to a converged iterate or a failure status; it knows nothing of the
 time loop, predictors or step splitting (stepper.py).
 
-Simplified Newton (spec 8, the default): with X_s = Ps^T Omega Is (tridiagonal) and
+Simplified Newton (docs/solver.md, the default): with X_s = Ps^T Omega Is (tridiagonal) and
 J0 = J Hess(H)(y0), M = I_{s n} - h X_s (x) J0 is factorised once per step, and each
 iteration applies  coef <- coef + M^-1 vec(G(coef) - coef).  The fixed point applies
 coef <- G(coef) (the paper's iteration, whose counts Table 2 reports).
@@ -20,7 +20,7 @@ from .codes import (internal, FAMILY_LIM, SOLVER_NEWTON, STATUS_NONFINITE, STATU
 from .linalg import lu_factor, lu_solve_factored
 from .maps import EPS, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
 
-# The stopping rule's constants (spec 8; measured there, not tunables).
+# The stopping rule's constants (docs/solver.md; measured there, not tunables).
 BAND_FACTOR = 4.0          # the rounding band is B = 4 omega ...
 BAND_CAP = 1e-12           # ... and never wider than this (relative increment)
 IN_BAND_STALLS = 2         # accept after this many in-band iterations that fail to improve the best in-band d
@@ -32,7 +32,7 @@ MAX_ETA_CORRECTION = 0.5   # ... and so is one with |h^(2(s-1-j)) alpha_j| above
 
 @internal
 def newton_factor(grad_H, hess_H, params, y, h, tables, work):
-    """Factorise the simplified Newton matrix M = I - h X (x) J0, J0 = J Hess(H)(y) (spec 8).
+    """Factorise the simplified Newton matrix M = I - h X (x) J0, J0 = J Hess(H)(y) (docs/solver.md).
 
     Equilibrated: the unknowns are measured in units of the state, D = diag(d_p) with
     d_p = max(|y_p|, |h f_p(y)|) (the scale of the stopping rule; the largest of them where
@@ -144,12 +144,12 @@ def newton_solve(tables, work, delta):
 
 @internal
 def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
-    """omega of spec 8, component by component, into work.rounding_level; returns max_p omega_p.
+    """omega of docs/solver.md, component by component, into work.rounding_level; returns max_p omega_p.
 
     omega_p = 4 eps h F_p / sc_p  +  the multipliers' share:
       ELIM  max_c h w_c dalpha_c |gamma_{j_c,p}| / sc_p
       LIM   h sum_a dlambda_a |phi_0^a_p| / sc_p
-    with F_p = max_l |f_{l,p}| (spec 8 takes max_p F_p in the second term; per component is
+    with F_p = max_l |f_{l,p}| (docs/solver.md takes max_p F_p in the second term; per component is
     a tighter bound, see maps._dot_rounding). solved: the last map solved its small system
     (else only the first term).
     """
@@ -208,7 +208,7 @@ def _carried_level(h, work):
 
 @internal
 def _band(h, mult, solved, newton, settings, tables, nu, s, work):
-    """The rounding band B = min(4 max(omega, eps), 1e-12) of spec 8 (omega from _rounding_level,
+    """The rounding band B = min(4 max(omega, eps), 1e-12) of docs/solver.md (omega from _rounding_level,
     and for Newton with the rounding the Jacobian carries, _carried_level)."""
     omega = _rounding_level(h, mult, solved, settings, tables, nu, s, work)
     if newton:
@@ -231,13 +231,13 @@ def _within_rounding(h, mult, solved, settings, tables, nu, s, work):
 
 @internal
 def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work, y, h, coef, mult, cold):
-    """Iterate a family's map from the guess coef to a converged iterate (spec 8).
+    """Iterate a family's map from the guess coef to a converged iterate (docs/solver.md).
 
     settings.solver: SOLVER_NEWTON (needs work.newton_matrix factorised for this y and h
     by newton_factor) or the fixed point. coef (s, n) and mult (alpha or lambda) in/out.
     cold: the stages start at y (coef = 0): ELIM keeps alpha = 0 for two sweeps.
 
-    Stopping rule (spec 8), on d = max_{j,i} |h Delta_{j,i}| / sc_i, sc_i = max(|y_i|, |h G_0,i|):
+    Stopping rule (docs/solver.md), on d = max_{j,i} |h Delta_{j,i}| / sc_i, sc_i = max(|y_i|, |h G_0,i|):
       accept when d <= settings.tol (round-off);
       inside the rounding band d <= B = min(4 max(omega, eps), 1e-12), accept after 2
       iterations in a row that fail to improve the best d below 1e-12, when that best is
@@ -246,11 +246,11 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
       after 6 iterations without a new best d (stalled), Newton on LIM (or on ELIM with the
       literal right-hand side) accepts if every component is within its own band
       (_within_rounding), else fails; fail at max_iter or on NaN.
-    The stalled LIM case is beyond the spec: with LIM imposing momenta of the solar system,
+    The stalled LIM case is beyond docs/solver.md: with LIM imposing momenta of the solar system,
     the rounding of lambda (eps times the largest momenta) reaches every momentum, and
     Pluto's, 1e-6 of Jupiter's, cannot settle below ~1e-11 relative; the iteration then
     cycles at that level (measured: a period-2 cycle, d = 9.1e-12) and only halving h
-    would get it under the spec's 1e-12 cap.
+    would get it under docs/solver.md's 1e-12 cap.
     An accepted ELIM iterate is rejected as spurious when cond(Gamma) > 1e13 or some
     |w_c alpha_c| > 0.5, and as singular when its Gamma could not be solved.
 
@@ -335,7 +335,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 stalls = 0
             else:
                 # Not improving: is it the rounding level? Estimated at most twice per solve,
-                # first without the multipliers' share (a lower bound, spec 8's first term
+                # first without the multipliers' share (a lower bound, docs/solver.md's first term
                 # and, for Newton, what the Jacobian carries), then with it if that does not
                 # explain d. Never narrower than 4 eps: the stage sums y + h sum_j Is c_j
                 # round at eps relative to sc (>= |y|), so d does not settle below ~eps
@@ -358,9 +358,9 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
             without_progress += 1
             if without_progress >= MAX_WITHOUT_PROGRESS:
                 # LIM, and ELIM with the paper's literal right-hand side: there the rounding of
-                # the multipliers is what stalls an iterate (spec 3b). ELIM with the stable
+                # the multipliers is what stalls an iterate (docs/methods.md#stable-right-hand-side). ELIM with the stable
                 # form stalls near steps symmetric about a pericentre, where Gamma is nearly
-                # singular and an in-band test would accept unconverged iterates (spec 8):
+                # singular and an in-band test would accept unconverged iterates (docs/solver.md):
                 # those are split, and their halves are well-conditioned.
                 if d <= RESCUE_BAND_CAP and newton and (is_lim or settings.stable_rhs == 0):
                     accepted = _within_rounding(h, mult, singular == 0 and not plain_sweep, settings, tables,
@@ -375,7 +375,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     if singular != 0:
         info[1] = np.inf
         return STATUS_SINGULAR, iteration
-    # Spurious solutions (spec 8): a nearly singular Gamma, or a correction as large as the term.
+    # Spurious solutions (docs/solver.md): a nearly singular Gamma, or a correction as large as the term.
     cond = condition_number(work, nu, False)
     info[1] = cond
     if not (cond <= MAX_CONDITION):

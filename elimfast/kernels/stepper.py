@@ -4,7 +4,7 @@ Numba only: plain floats and C-contiguous float64 arrays in, status codes out. T
 problem's functions arrive as ``types.FunctionType`` arguments (see signatures.py),
 so this module is compiled once and cached for every problem.
 
-One step of any family goes through ``try_step`` (spec sections 7 and 8):
+One step of any family goes through ``try_step`` (docs/methods.md#round-off-over-long-times and docs/solver.md):
   1. predict: the previous step's polynomial carried over, E(theta) c_prev;
   2. solve (solver.py) with the family's map (maps.py);
   3. fall back: once more from the unextrapolated c_prev, then split the step into two
@@ -44,7 +44,7 @@ N_DIAGNOSTICS = 6
 
 @njit(cache=True, inline="always", error_model="numpy")
 def kahan_add(value, compensation, increment):
-    """Compensated summation (spec 7): returns the new (value, compensation)."""
+    """Compensated summation (docs/methods.md#round-off-over-long-times): returns the new (value, compensation)."""
     corrected = increment + compensation
     new_value = value + corrected
     return new_value, (value - new_value) + corrected
@@ -52,14 +52,14 @@ def kahan_add(value, compensation, increment):
 
 @internal
 def extrapolate(tables, work, offset, theta, base, out):
-    """The predictor of spec 8: out_i = sum_j E_ij base_j,
+    """The predictor of docs/solver.md: out_i = sum_j E_ij base_j,
     E_ij = int_0^1 P_i(tau) P_j(offset + theta tau) dtau by (s+1)-point Gauss (exact:
     degree <= 2s-2).
 
     base are a step's coefficients (its polynomial u' = sum_j base_j P_j on [0, 1] in
     units of that step). offset = 1, theta = h_new / h_prev: the previous step carried
     over to the next one; offset = 0, theta = h_side / h: the same step restricted to
-    its first h_side (the side steps of dense output, spec 9).
+    its first h_side (the side steps of dense output, docs/adaptive.md).
     """
     s = base.shape[0]
     n = base.shape[1]
@@ -127,7 +127,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
                              y, h, coef, mult, cold)
         iterations += used
         if status != STATUS_OK and not cold and settings.predictor != 0:
-            # Retry once from the unextrapolated coefficients (spec 8, "Fallback").
+            # Retry once from the unextrapolated coefficients (docs/solver.md#when-a-step-fails-retry-then-split).
             _copy(work.coef_base, coef)
             _copy(work.mult_base, mult)
             status, used = solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
@@ -150,7 +150,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
 def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, force):
     """Keep or refactorise the simplified Newton matrix for a solve from y with step h.
 
-    Simplified Newton needs only an approximation of the Jacobian (spec 8): like
+    Simplified Newton needs only an approximation of the Jacobian (docs/solver.md): like
     Hairer & Wanner's RADAU5, for large systems (the block form) the matrix of an earlier
     step is kept while the step size is the same and the last solve needed at most
     REUSE_ITERATIONS iterations; otherwise (or when force) it is factorised at (y, h), and
@@ -176,7 +176,8 @@ def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, forc
 @internal
 def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
              y, y_comp, clock, coef, mult, h, last_h, newton_base, have_prev, diagnostics):
-    """One step of size h from (y, clock): predict, solve, fall back, commit (spec 7, 8).
+    """One step of size h from (y, clock): predict, solve, fall back, commit (docs/solver.md;
+    compensated sums: docs/methods.md#round-off-over-long-times).
 
     In/out: y (n,) and y_comp (n,) the state and its Kahan compensation; clock (2,) =
     [t, its compensation]; coef (s, n), mult: the last (sub)step's coefficients and
@@ -296,7 +297,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
               y, y_comp, clock, coef, multipliers, last_h, newton_base,
               step_start, n_steps, n_total, store_every,
               t_out, y_out, inv_out, mult_out, iter_out, substeps_out, progress, diagnostics):
-    """Run n_steps steps of one method in one call (spec sections 2-4, 7 and 8).
+    """Run n_steps steps of one method in one call (docs/methods.md and docs/solver.md).
 
     Settings (see workspace.Settings): family, solver (codes.py), stable_rhs, warm_start,
     predictor, tol, max_iter, max_halvings. Tables (see workspace.Tables): the method's.

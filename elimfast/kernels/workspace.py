@@ -22,7 +22,7 @@ from numba.extending import intrinsic, overload
 
 from .codes import FAMILY_LIM
 
-# The tables of a method (spec sections 1-4 and 8), built once by elimfast.methods:
+# The tables of a method (docs/methods.md and docs/solver.md), built once by elimfast.methods:
 #   projection (k, k): b_l P_j(c_l) indexed [j, l];  Is (k, s): int_0^{c_l} P_j;
 #   projection_hat (r, r), Ihat (r, s): the same at the r nodes of the invariants;
 #   X (s, s): Ps^T Omega Is, the tridiagonal matrix of the simplified Newton iteration;
@@ -37,8 +37,8 @@ Tables = namedtuple("Tables", ["projection", "Is", "projection_hat", "Ihat", "X"
                                "predictor_nodes", "predictor_basis", "newton_values", "newton_vectors",
                                "newton_inverse", "newton_weights"])
 
-# The solver's settings (spec 8): family and solver codes (codes.py), whether the
-# ELIM right-hand side is the stable tail (spec 3b), whether each step starts from the
+# The solver's settings (docs/solver.md): family and solver codes (codes.py), whether the
+# ELIM right-hand side is the stable tail (docs/methods.md#stable-right-hand-side), whether each step starts from the
 # previous one (warm_start) extrapolated by the predictor, the round-off acceptance
 # tol, and the caps max_iter (per solve) and max_halvings (depth of step splitting).
 Settings = namedtuple("Settings", ["family", "solver", "stable_rhs", "warm_start", "predictor", "tol",
@@ -53,7 +53,7 @@ Workspace = namedtuple("Workspace", [
     "grads_hat",         # (n_tilde + 1, r, n) imposed invariants' gradients at the r nodes (LIM: H first)
     "inv_grads",         # (n_inv, n) one call of grad_invariants
     "phi",               # (max(n_tilde, 1), n_big, n) phi_j per imposed invariant
-    "gamma_hat",         # (n_big, n) gamma_j from the r nodes (spec 3b, r != k)
+    "gamma_hat",         # (n_big, n) gamma_j from the r nodes (docs/methods.md#stable-right-hand-side, r != k)
     "small_matrix",      # (n_t, n_t) Gamma (ELIM) or the Gram matrix (LIM), factored in place
     "small_copy",        # (n_t, n_t) the same matrix unfactored
     "small_inverse",     # (n_t, n_t) its inverse (rounding level and condition number)

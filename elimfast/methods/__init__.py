@@ -1,37 +1,47 @@
 """Methods as data: ``gauss(s)``, ``hbvm(k, s)``, ``elim(r, k, s)``, ``ehbvm(k, s)``,
-``lim(r, k, s)``, ``ghbvm(k, s)``, and the registry ``METHODS`` mapping names to them."""
-import inspect
+``lim(r, k, s)``, ``ghbvm(k, s)``; ``FAMILIES`` maps each name to what the family does
+(``Family``), ``METHODS`` to its constructor. A new family is one module here that
+declares its ``Family`` (and its kernel map)."""
+import difflib
 
-from .base import MAX_NODES, Method, legendre_tables, quadrature
+from ..errors import ParameterError
+from .base import (FAMILIES, IMPOSES_ANY, IMPOSES_FEWER_THAN_S, IMPOSES_NONE, MAX_NODES, Family, Method,
+                   legendre_tables, quadrature)
+# Imported in the order the registry lists the families (listings, `elimfast methods`).
+from .hbvm import gauss, hbvm  # noqa: I001
 from .elim import ehbvm, elim
-from .hbvm import gauss, hbvm
 from .lim import ghbvm, lim
 
-METHODS = {
-    "gauss": gauss,
-    "hbvm": hbvm,
-    "elim": elim,
-    "ehbvm": ehbvm,
-    "lim": lim,
-    "ghbvm": ghbvm,
-}
+METHODS = {name: family.constructor for name, family in FAMILIES.items()}
+
+
+def family(name: str) -> Family:
+    """The family registered under name (any case); ParameterError('name', ...) naming the known ones."""
+    key = name.strip().lower() if isinstance(name, str) else name
+    if key not in FAMILIES:
+        known = ", ".join(FAMILIES)
+        close = difflib.get_close_matches(str(key), list(FAMILIES), n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]!r}? (known: {known})" if close else f"known: {known}"
+        raise ParameterError("name", f"is not a known method: {name!r}; {hint}")
+    return FAMILIES[key]
 
 
 def get(name: str, **parameters) -> Method:
-    """Build a method by registry name, e.g. ``get("ehbvm", k=12, s=3)``."""
-    try:
-        constructor = METHODS[name.lower()]
-    except (KeyError, AttributeError):
-        raise ValueError(f"unknown method {name!r}; known: {', '.join(METHODS)}") from None
-    expected = list(inspect.signature(constructor).parameters)
-    missing = [p for p in expected if p not in parameters]
-    extra = [p for p in parameters if p not in expected]
-    if missing or extra:
-        raise ValueError(f"{name}({', '.join(expected)}) takes exactly {', '.join(expected)}"
-                         + (f"; missing {', '.join(missing)}" if missing else "")
-                         + (f"; unexpected {', '.join(extra)}" if extra else ""))
-    return constructor(**parameters)
+    """Build a method by registry name, e.g. ``get("ehbvm", k=12, s=3)``.
+
+    Every fault is a ParameterError naming the parameter (name, r, k or s) and the fix.
+    """
+    kind = family(name)
+    signature = kind.signature()
+    for parameter in parameters:
+        if parameter not in kind.parameters:
+            raise ParameterError(parameter, f"does not apply: {signature} takes no {parameter}; remove it")
+    for parameter in kind.parameters:
+        if parameter not in parameters:
+            raise ParameterError(parameter, f"is missing; {signature} needs {', '.join(kind.parameters)}")
+    return kind.constructor(**parameters)
 
 
-__all__ = ["METHODS", "MAX_NODES", "Method", "get", "gauss", "hbvm", "elim", "ehbvm", "lim",
-           "ghbvm", "quadrature", "legendre_tables"]
+__all__ = ["FAMILIES", "METHODS", "MAX_NODES", "Family", "Method", "family", "get", "gauss", "hbvm", "elim",
+           "ehbvm", "lim", "ghbvm", "quadrature", "legendre_tables", "IMPOSES_NONE", "IMPOSES_FEWER_THAN_S",
+           "IMPOSES_ANY"]

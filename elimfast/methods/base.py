@@ -1,22 +1,30 @@
-"""Method objects: a family, (r, k, s), and the tables of spec section 1 built once."""
+"""Method objects: a family, (r, k, s), and the tables of docs/methods.md#notation built once.
+
+A ``Family`` says what a family of methods does: its parameters, its multipliers (their
+name and count), how many invariants it may impose and whether linear ones, whether it
+has a Runge-Kutta form, and how to describe it. Each family module (hbvm.py, elim.py,
+lim.py) declares its families; nothing outside ``elimfast.methods`` spells these out.
+"""
 from __future__ import annotations
 
 import operator
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from ..kernels.quadrature import gauss_legendre, legendre_integral_table, legendre_table
+from ..errors import ParameterError
 from ..kernels.codes import FAMILY_ELIM, FAMILY_LIM
 
 MAX_NODES = 64  # the quadrature is verified to a few ulp up to here
 
 
 def quadrature(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """n-point Gauss-Legendre nodes and weights on [0, 1] (spec section 1)."""
+    """n-point Gauss-Legendre nodes and weights on [0, 1] (docs/methods.md#notation)."""
     n = _positive_int("n", n)
     if n > MAX_NODES:
-        raise ValueError(f"n = {n}: Gauss-Legendre nodes are provided for n <= {MAX_NODES}")
+        raise ParameterError("n", f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified up to there), got {n}")
     nodes = np.empty(n)
     weights = np.empty(n)
     gauss_legendre(n, nodes, weights)
@@ -24,7 +32,7 @@ def quadrature(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
-    """(Ps, Is) of spec section 1: Ps[i, j] = P_j(c_i), j < n_values; Is[i, j] = int_0^{c_i} P_j, j < n_integrals."""
+    """(Ps, Is) of docs/methods.md#notation: Ps[i, j] = P_j(c_i), j < n_values; Is[i, j] = int_0^{c_i} P_j, j < n_integrals."""
     nodes = np.ascontiguousarray(nodes, dtype=np.float64)
     values = np.empty((nodes.size, n_values))
     integrals = np.empty((nodes.size, n_integrals))
@@ -35,30 +43,82 @@ def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple
 
 def _positive_int(name: str, value) -> int:
     if isinstance(value, bool):
-        raise TypeError(f"{name} must be an integer, not {value!r}")
+        raise ParameterError(name, f"must be a whole number (an integer), not {value!r}")
     try:
         as_int = operator.index(value)
     except TypeError:
         if isinstance(value, float) and value.is_integer():
             as_int = int(value)
         else:
-            raise TypeError(f"{name} must be an integer, got {value!r}") from None
+            raise ParameterError(name, f"must be a whole number (an integer), got {value!r}") from None
     if as_int < 1:
-        raise ValueError(f"{name} must be >= 1, got {as_int}")
+        raise ParameterError(name, f"must be >= 1, got {as_int}")
     return as_int
+
+
+# How many invariants (besides H) a family may impose: none, fewer than s, or any number.
+IMPOSES_NONE, IMPOSES_FEWER_THAN_S, IMPOSES_ANY = "none", "fewer than s", "any"
+
+
+@dataclass(frozen=True)
+class Family:
+    """What a family of methods does, declared once by its module.
+
+    name: the registry name ('ehbvm'); parameters: the constructor's, in order (('k', 's'));
+    constructor: the function that builds one (``ehbvm(k, s)``);
+    kernel_family: the kernels' code of its map (FAMILY_ELIM or FAMILY_LIM); imposes:
+    IMPOSES_NONE, IMPOSES_FEWER_THAN_S or IMPOSES_ANY; multiplier: the name of the
+    per-step multipliers ('alpha', 'lambda') or None; multiplier_counts_H: the
+    multipliers include one for H (LIM's lambda: nu + 1 of them, H first);
+    imposes_linear: whether a linear invariant may be imposed; linear_refusal: why not,
+    when it may not; scales_tableau: a step's Runge-Kutta form is the base tableau with
+    eta_j = 1 - h^(2(s-1-j)) alpha_j (ELIM), else fixed; has_runge_kutta_form: LIM has
+    none; description: one line for listings; notes: what a user should know; docs:
+    where docs/methods.md explains it.
+    """
+
+    name: str
+    parameters: tuple[str, ...]
+    constructor: Callable[..., "Method"]
+    kernel_family: int
+    imposes: str
+    multiplier: str | None
+    multiplier_counts_H: bool
+    imposes_linear: bool
+    linear_refusal: str
+    scales_tableau: bool
+    has_runge_kutta_form: bool
+    description: str
+    notes: str
+    docs: str
+
+    def signature(self) -> str:
+        """'ehbvm(k, s)'."""
+        return f"{self.name}({', '.join(self.parameters)})"
+
+
+FAMILIES: dict[str, Family] = {}
+
+
+def register(family: Family) -> Family:
+    """Declare a family (its module does this at import); the registry keeps declaration order."""
+    if family.name in FAMILIES:
+        raise ValueError(f"method family {family.name!r} is declared twice")
+    FAMILIES[family.name] = family
+    return family
 
 
 @dataclass(frozen=True, eq=False)
 class Method:
-    """A method of spec sections 2-4 with its tables, built once.
+    """A method of docs/methods.md (HBVM, ELIM, LIM) with its tables, built once.
 
-    family: 'gauss', 'hbvm', 'elim', 'ehbvm', 'lim' or 'ghbvm'. k nodes for H, r nodes
+    family: a registered family's name (``FAMILIES``; ``kind`` is its record). k nodes for H, r nodes
     for the invariants (r = k where the family has no separate r), s coefficients.
     Tables: c, b (k nodes and weights), Ps (k x k: P_j(c_l), j < k, enough for the
-    stable right-hand side of spec 3b), Is (k x s); chat, bhat, Ps_hat (r x r),
+    stable right-hand side, docs/methods.md#stable-right-hand-side), Is (k x s); chat, bhat, Ps_hat (r x r),
     Is_hat (r x s) at the r nodes; projection[j, l] = b_l P_j(c_l) and
     projection_hat[j, i] = bhat_i P_j(chat_i), the kernels' form of Ps^T Omega.
-    Solver tables (spec 8): X (s x s) = Ps^T Omega Is, tridiagonal (X[0,0] = 1/2,
+    Solver tables (docs/solver.md): X (s x s) = Ps^T Omega Is, tridiagonal (X[0,0] = 1/2,
     X[j,j-1] = -X[j-1,j] = 1/(2 sqrt(4j^2 - 1))), the simplified Newton matrix's;
     abs_projection_hat (r,) = sum_i |bhat_i P_j(chat_i)| (the rounding estimate's S_j);
     predictor_nodes (s+1,) and predictor_basis (s+1, s) = w_q P_i(x_q): the (s+1)-point
@@ -93,41 +153,78 @@ class Method:
 
     @property
     def order(self) -> int:
-        """Classical order 2s (spec 2-4)."""
+        """Classical order 2s (docs/methods.md)."""
         return 2 * self.s
 
     @property
+    def kind(self) -> Family:
+        """The family's record: what this method does (multipliers, invariants, description)."""
+        return FAMILIES[self.family]
+
+    @property
     def kernel_family(self) -> int:
-        return FAMILY_LIM if self.family in ("lim", "ghbvm") else FAMILY_ELIM
+        return self.kind.kernel_family
 
     @property
     def imposes_invariants(self) -> bool:
         """True for ELIM/EHBVM/LIM/GHBVM: they accept invariants to conserve."""
-        return self.family in ("elim", "ehbvm", "lim", "ghbvm")
+        return self.kind.imposes != IMPOSES_NONE
 
     @property
     def has_runge_kutta_form(self) -> bool:
-        """ELIM has one for given eta (spec 3); LIM's correction acts through phi_0, so it has none."""
-        return self.kernel_family == FAMILY_ELIM
+        """ELIM has one for given eta; LIM's correction acts through phi_0, so it has none."""
+        return self.kind.has_runge_kutta_form
 
     @property
     def name(self) -> str:
-        if self.family == "gauss":
-            return f"GAUSS({self.s})"
-        if self.family in ("hbvm", "ehbvm", "ghbvm"):
-            return f"{self.family.upper()}({self.k},{self.s})"
-        return f"{self.family.upper()}({self.r},{self.k},{self.s})"
+        """'GAUSS(3)', 'EHBVM(12,3)', 'ELIM(8,12,3)': the family and its parameters."""
+        return f"{self.family.upper()}({','.join(str(getattr(self, p)) for p in self.kind.parameters)})"
+
+    @property
+    def parameters(self) -> dict[str, int]:
+        """The constructor's parameters and their values, e.g. {'k': 12, 's': 3}."""
+        return {p: getattr(self, p) for p in self.kind.parameters}
 
     def __repr__(self) -> str:
         return f"<Method {self.name}, order {self.order}>"
 
     def max_conserved(self) -> int | None:
         """How many invariants (besides H) the method can impose; None: no limit."""
-        if self.family in ("elim", "ehbvm"):
+        imposes = self.kind.imposes
+        if imposes == IMPOSES_FEWER_THAN_S:
             return self.s - 1
-        if self.family in ("lim", "ghbvm"):
+        if imposes == IMPOSES_ANY:
             return None
         return 0
+
+    def multiplier_name(self, n_imposed: int) -> str | None:
+        """'alpha', 'lambda' or None: the per-step multipliers of a run imposing n_imposed invariants."""
+        return self.kind.multiplier if self.multiplier_count(n_imposed) else None
+
+    def multiplier_count(self, n_imposed: int) -> int:
+        """How many multipliers each step has: alpha: nu, lambda: nu + 1 (H too), none: 0."""
+        if self.kind.multiplier is None:
+            return 0
+        return n_imposed + (1 if self.kind.multiplier_counts_H else 0)
+
+    def multiplier_components(self, conserve) -> tuple[str, ...]:
+        """The invariant behind each multiplier, in order: ('H', *conserve) for lambda, conserve for alpha."""
+        if self.kind.multiplier is None:
+            return ()
+        return (("H",) if self.kind.multiplier_counts_H else ()) + tuple(conserve)
+
+    def require_imposable(self, n_imposed: int) -> None:
+        """ParameterError unless this method can impose n_imposed invariants besides H."""
+        if n_imposed and not self.imposes_invariants:
+            able = "/".join(name for name, kind in FAMILIES.items() if kind.imposes != IMPOSES_NONE)
+            raise ParameterError("conserve", f"must be empty for {self.name}: it cannot impose invariants besides H; use "
+                                             f"one of {able}, or remove conserve (docs/methods.md#methods)")
+        limit = self.max_conserved()
+        if limit is not None and n_imposed > limit:
+            raise ParameterError("s", f"must be >= {n_imposed + 1} to impose {n_imposed} invariant(s): {self.name} "
+                                      f"imposes at most s - 1 = {limit}, one for each of the coefficients "
+                                      "gamma_1..gamma_(s-1) (gamma_0 fixes y1; docs/methods.md#elim); raise s to "
+                                      f"{n_imposed + 1} or conserve fewer")
 
     def butcher(self, eta=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A, b, c) of the Runge-Kutta form: A = Is diag(1, eta_1..eta_{s-1}) Ps^T Omega.
@@ -138,7 +235,8 @@ class Method:
         if not self.has_runge_kutta_form:
             raise ValueError(
                 f"{self.name} has no fixed Runge-Kutta form: its correction -c h phi_0 lambda "
-                "depends on the invariants' gradients (spec 4); use the HBVM of the same k, s for its base tableau")
+                "depends on the invariants' gradients (docs/methods.md#lim); use the HBVM of the same k, s for its "
+                "base tableau")
         s = self.s
         if eta is None:
             eta_full = np.ones(s)
@@ -148,7 +246,7 @@ class Method:
                 eta_full = np.concatenate(([1.0], eta))
             elif eta.size == s:
                 if eta[0] != 1.0:
-                    raise ValueError(f"eta_0 must be 1 (spec 3), got {eta[0]}")
+                    raise ValueError(f"eta_0 must be 1 (docs/methods.md#elim), got {eta[0]}")
                 eta_full = eta
             else:
                 raise ValueError(f"eta must have {s - 1} or {s} entries for {self.name}, got {eta.size}")
@@ -157,16 +255,30 @@ class Method:
 
 
 def build(family: str, r: int, k: int, s: int) -> Method:
-    """Validate (k >= s >= 1, r >= s, k, r <= 64) and build the tables once."""
-    k = _positive_int("k", k)
-    s = _positive_int("s", s)
-    r = _positive_int("r", r)
+    """Validate (k >= s >= 1, r >= s, k, r <= 64) and build the tables once.
+
+    Errors are ParameterErrors naming the family's own parameter (GAUSS(s) has only s:
+    a bad value is reported as s, not as the k = s it implies) and what to change.
+    """
+    kind = FAMILIES[family]
+    values = {"r": r, "k": k, "s": s}
+    for name in kind.parameters:
+        values[name] = _positive_int(name, values[name])
+    r, k, s = (_positive_int(name, values[name]) for name in ("r", "k", "s"))
+
+    def own(name: str) -> str:   # the parameter the user gave that sets this one
+        return name if name in kind.parameters else ("k" if "k" in kind.parameters else "s")
+
     if k < s:
-        raise ValueError(f"k must be >= s (the quadrature needs at least s nodes), got k={k}, s={s}")
+        raise ParameterError(own("k"), f"must be >= s = {s} (the quadrature needs at least s nodes), got {k}; "
+                                       "raise k or lower s")
     if r < s:
-        raise ValueError(f"r must be >= s (the invariants' quadrature needs at least s nodes), got r={r}, s={s}")
-    if k > MAX_NODES or r > MAX_NODES:
-        raise ValueError(f"k and r must be <= {MAX_NODES}, got k={k}, r={r}")
+        raise ParameterError(own("r"), f"must be >= s = {s} (the invariants' quadrature needs at least s nodes), "
+                                       f"got {r}; raise r or lower s")
+    for name, value in (("k", k), ("r", r)):
+        if value > MAX_NODES:
+            raise ParameterError(own(name), f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified up to "
+                                            f"there), got {value}")
     c, b = quadrature(k)
     Ps, Is = legendre_tables(c, k, s)
     chat, bhat = (c, b) if r == k else quadrature(r)
@@ -181,7 +293,7 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat,
                                                  X, abs_projection_hat, predictor_nodes, predictor_basis,
                                                  *newton_eigenbasis(X))]
-    return Method(family, r, k, s, *arrays)
+    return Method(kind.name, r, k, s, *arrays)
 
 
 # Above this condition number of X's eigenvectors the block form of the Newton solve
@@ -192,7 +304,7 @@ MAX_EIGENBASIS_CONDITION = 1e5
 
 
 def newton_eigenbasis(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(values, vectors, inverse, weights) of X = V Lambda V^-1 for the block Newton solve (spec 8).
+    """(values, vectors, inverse, weights) of X = V Lambda V^-1 for the block Newton solve (docs/solver.md).
 
     One eigenvalue per conjugate pair (Im > 0, weight 2) and each real one (weight 1); V's
     columns of a pair are exact conjugates, so that V^-1 r of a real r has conjugate

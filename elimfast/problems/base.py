@@ -35,7 +35,7 @@ class Problem:
     name: short identifier; q_names, p_names: coordinate names (m each);
     H, grad_H, hess_H, invariants, grad_invariants: compiled functions (see
     kernels.signatures; hess_H is d^2 H/dy^2, needed by the simplified Newton solver of
-    spec section 8); invariant_names: names of the invariants, in the order ``invariants``
+    docs/solver.md); invariant_names: names of the invariants, in the order ``invariants``
     writes them; y0: default initial state (2m,);
     hessian_source: where hess_H comes from, a key of ``HESSIAN_SOURCES``;
     params: parameter vector passed to every function;

@@ -35,10 +35,10 @@ of them, chosen by the seeded generator: fpu_beta with 1000 masses (n = 2000) is
 in 0.47 s instead of 2.3 s for every component at all 9 points.
 
 **Invariants** (``check_invariants``, ``require_invariants``). For an invariant L of
-y' = J grad H(y), dL/dt = grad L(y)^T J grad H(y) = 0 everywhere (spec section 1). The
+y' = J grad H(y), dL/dt = grad L(y)^T J grad H(y) = 0 everywhere (docs/methods.md#notation). The
 residual is that product relative to |grad L| |grad H| (a cosine: 0 for a true invariant,
 O(1) for a wrong one such as the paper's misprinted LRL component ``p1*L1 - q2/r`` of the
-attractive Kepler problem, spec section 5). For a true invariant the computed product is
+attractive Kepler problem, docs/methods.md#typos-in-the-paper). For a true invariant the computed product is
 round-off: each computed component of grad L and grad H is off by about eps times the
 size of the terms it is computed from, which for well-scaled code is |grad L| or |grad H|,
 so the residual is a few eps. It is rejected above INVARIANT_TOLERANCE = 1000 eps

@@ -7,7 +7,7 @@ with r the stretch q_{i+1} - q_i of each spring (indices 1..n below, 0-based in 
   on differences only, so the total momentum P = sum p_i is an invariant ("momentum",
   linear, grad P = (0, 1)). Every Runge-Kutta method keeps a linear invariant exactly
   (up to round-off), so there is nothing for ELIM/EHBVM to impose: imposing it makes
-  Gamma singular (its phi_j, j >= 1, vanish; spec section 3).
+  Gamma singular (its phi_j, j >= 1, vanish; docs/methods.md#elim).
 - boundary="fixed": n + 1 springs, q_0 = q_{n+1} = 0 (both ends clamped). No invariant
   besides H.
 grad_q H_i = V'(r_{i-1}) - V'(r_i), V'(r) = r + beta r^3 (r_i: the spring right of mass i).

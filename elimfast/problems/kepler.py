@@ -1,6 +1,6 @@
 """Planar Kepler problem with angular momentum and the Laplace-Runge-Lenz vector.
 
-H = |p|^2/2 - 1/|q| (spec section 5: the paper prints +1/|q| by mistake),
+H = |p|^2/2 - 1/|q| (docs/methods.md#typos-in-the-paper: the paper prints +1/|q| by mistake),
 grad_q H = q/|q|^3, grad_p H = p; Hessian: d^2 H/dq_i dq_j = delta_ij/|q|^3 - 3 q_i q_j/|q|^5,
 d^2 H/dp_i dp_j = delta_ij, no q-p coupling.
 L1 = q1 p2 - q2 p1 (angular momentum), A = (p2 L1 - q1/|q|, -p1 L1 - q2/|q|) (LRL vector;

@@ -12,7 +12,7 @@ Hessian: d^2 H/dp_i^2 = I/m_i; each pair adds B_ij = G m_i m_j (I/d^3 - 3 d d^T/
 d = q_i - q_j, to the (q_i, q_i) and (q_j, q_j) blocks and -B_ij to (q_i, q_j) and (q_j, q_i).
 Invariants (the potential depends on differences only and is rotation invariant):
   linear_momentum_{x,y,z} = sum_i p_i  (linear: every Runge-Kutta method keeps them, and
-  ELIM/EHBVM cannot impose them: their phi_j, j >= 1, vanish and Gamma is singular, spec 3),
+  ELIM/EHBVM cannot impose them: their phi_j, j >= 1, vanish and Gamma is singular, docs/methods.md#elim),
   angular_momentum_{x,y,z} = sum_i q_i x p_i  (quadratic; HBVM(k,s), k > s, does not keep
   them exactly). For nearly coplanar orbits (the default data) the three rows of Gamma
   are nearly parallel (all along the orbits' normal) and EHBVM imposing all three fails

@@ -1,4 +1,4 @@
-"""Polynomial Hamiltonians, for the exact-conservation tests of spec sections 2 and 3.
+"""Polynomial Hamiltonians, for the exact-conservation tests of docs/methods.md#hbvm and #elim.
 
 - ``harmonic_oscillator(omega)``: H = p^2/2 + omega^2 q^2/2 (degree 2), one degree of freedom;
   Hessian diag(omega^2, 1).

@@ -29,7 +29,7 @@ derivatives would exceed ``MAX_DERIVATIVE_NODES`` nodes in all: a product of 900
 is refused in about a second instead of after 30 s of differentiation.
 
 The Hessian of abs(f) contains sympy's DiracDelta(f): it is replaced by 0, the derivative
-almost everywhere (hess_H only builds the Newton iteration matrix, spec section 8).
+almost everywhere (hess_H only builds the Newton iteration matrix, docs/solver.md).
 
 The functions are compiled with ``error_model="numpy"``: a division by zero gives inf or
 NaN (which the kernel reports as a non-finite failure at that step) instead of raising a

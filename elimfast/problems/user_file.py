@@ -31,7 +31,7 @@ so an out-of-range index or an output left unwritten is reported instead of corr
 memory in compiled code. The checks at load (``check.py``) then compare grad_H, the
 invariants' gradients and hess_H with central differences, and test the invariants.
 
-The Hessian (needed by the simplified Newton solver, spec section 8): the file's own
+The Hessian (needed by the simplified Newton solver, docs/solver.md): the file's own
 ``hess_H`` when it defines one (``Problem.hessian_source == "user"``); otherwise central
 differences of the compiled grad_H, symmetrised (``"finite differences"``): column j is
 (grad_H(y + h_j e_j) - grad_H(y - h_j e_j)) / 2h_j with h_j = eps^(1/3) max(|y_j|, 1)

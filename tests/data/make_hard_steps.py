@@ -1,4 +1,4 @@
-"""Regenerate hard_steps.npz: states from which one step of EHBVM(12,3) is hard (spec 8).
+"""Regenerate hard_steps.npz: states from which one step of EHBVM(12,3) is hard (docs/solver.md).
 
 The README's run 100x longer (Kepler e = 0.6, EHBVM(12,3) imposing angular_momentum and
 lrl_y, h = 0.1) aborted at step 836104, the step from t = 83610.3, whose midpoint is
