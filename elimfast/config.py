@@ -19,12 +19,18 @@ Format (every section but ``problem``, ``method`` and ``integration`` is optiona
       initial: {q1: 0.4, p2: 2.0}      # builtin/python: overrides of the default state;
                                        # expressions: every coordinate (may use parameters)
       check: true                      # check the derivatives and invariants at load (false: skip)
+      time_scale: "(q1**2 + q2**2)**0.75"  # optional: sigma(y) for step_control: time_scale
     conserve: [angular_momentum, lrl_y]  # invariants to impose (ELIM/EHBVM: < s; LIM/GHBVM: any)
     method: {name: ehbvm, k: 12, s: 3}   # gauss(s) hbvm(k,s) elim(r,k,s) ehbvm(k,s) lim(r,k,s) ghbvm(k,s)
     integration: {h: pi/30, t_end: 20*pi, t0: 0}   # or n_steps instead of t_end (both: must agree)
+    # integration: {rtol: 1e-12, t_end: 2000*pi}   # adaptive steps (docs/adaptive.md): rtol [atol, h (first
+    #   step), h_max, verify], or step_control: time_scale with epsilon; method k defaults to 2s
     solver: {method: newton, max_halvings: 4}   # optional; see docs/solver.md (method: fixed_point,
                                                 #   tol, max_iter, predictor, warm_start, rhs)
     output: {path: out/kepler.h5, every: 10}        # path as given (the CLI resolves it)
+    #   times: {start: 0, stop: 100, step: 0.5}     # or a list: samples at these times (side steps)
+    events:                                         # optional: g(y) = 0, located to the integrator's accuracy
+      pericentre: {expression: "q1*p1 + q2*p2", direction: 1, terminal: false}
 
 Numbers may be arithmetic on numbers, ``pi`` and ``e`` (``pi/30``, ``2*pi*10``, ``1e-15``),
 evaluated in double precision exactly as Python would (``pi/30 == math.pi/30``); initial
@@ -52,6 +58,7 @@ from .errors import ElimfastError, ParameterError
 from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, SolverSettings, resolve_conserve, resolve_steps,
                         resolve_store_every, suggest)
 from .integrate import compact_number as _count
+from .integrate import compact_number
 from .methods import Method
 from .problems.base import Problem
 from .problems.expressions import ExpressionError, ProblemDefinitionError, evaluate_number
@@ -131,6 +138,7 @@ class ProblemSection(_Section):
     parameters: dict[str, Any] | None = None
     initial: dict[str, Any] | None = None
     check: StrictBool = True
+    time_scale: str | None = None
 
 
 class MethodSection(_Section):
@@ -141,10 +149,30 @@ class MethodSection(_Section):
 
 
 class IntegrationSection(_Section):
-    h: Number
+    h: Number | None = None
     t_end: Number | None = None
     n_steps: Integer | None = None
     t0: Number = 0.0
+    # Adaptive steps (docs/adaptive.md): rtol (error control) or step_control: time_scale.
+    rtol: Number | None = None
+    atol: Number | None = None
+    step_control: Literal["error", "time_scale"] | None = None
+    epsilon: Number | None = None
+    verify: StrictBool = False
+    h_max: Number | None = None
+
+
+class TimesSection(_Section):
+    start: Number
+    stop: Number
+    step: Number | None = None
+    n: Integer | None = None
+
+
+class EventSection(_Section):
+    expression: str
+    direction: Integer = 0
+    terminal: StrictBool = False
 
 
 class SolverSection(_Section):
@@ -160,6 +188,7 @@ class SolverSection(_Section):
 class OutputSection(_Section):
     path: str | None = None
     every: Integer = 1
+    times: TimesSection | list[Number] | None = None
 
 
 class RunConfig(_Section):
@@ -169,16 +198,17 @@ class RunConfig(_Section):
     integration: IntegrationSection
     solver: SolverSection = SolverSection()
     output: OutputSection = OutputSection()
+    events: dict[str, EventSection] | None = None
 
 
 _SECTIONS = {(): RunConfig, ("problem",): ProblemSection, ("problem", "coordinates"): CoordinatesSection,
              ("method",): MethodSection, ("integration",): IntegrationSection, ("solver",): SolverSection,
-             ("output",): OutputSection}
+             ("output",): OutputSection, ("output", "times"): TimesSection}
 _EXAMPLES = {
     "problem": "add e.g. problem: {builtin: kepler}",
     "method": "add e.g. method: {name: ehbvm, k: 12, s: 3}",
-    "integration": "add e.g. integration: {h: 0.1, t_end: 1000}",
-    "integration.h": "give the step size, e.g. h: pi/30",
+    "integration": "add e.g. integration: {h: 0.1, t_end: 1000} (or {rtol: 1e-12, t_end: 1000}, adaptive)",
+    "integration.h": "give the step size, e.g. h: pi/30, or rtol: 1e-12 for adaptive steps",
     "method.name": f"name one of {', '.join(methods.FAMILIES)}",
 }
 
@@ -188,7 +218,11 @@ PARAMETER_KEYS = {
     "name": ("method", "name"), "r": ("method", "r"), "k": ("method", "k"), "s": ("method", "s"),
     "h": ("integration", "h"), "t_end": ("integration", "t_end"), "n_steps": ("integration", "n_steps"),
     "t0": ("integration", "t0"), "store_every": ("output", "every"), "conserve": ("conserve",),
+    "rtol": ("integration", "rtol"), "atol": ("integration", "atol"), "step_control": ("integration", "step_control"),
+    "epsilon": ("integration", "epsilon"), "verify": ("integration", "verify"), "h_max": ("integration", "h_max"),
+    "method": ("method",), "t_eval": ("output", "times"), "events": ("events",),
 }
+MAX_OUTPUT_TIMES = 10_000_000   # samples at requested times (output.times)
 
 
 # --- the result -------------------------------------------------------------------------
@@ -209,6 +243,15 @@ class RunSpec:
     output_path: str | None
     output_every: int
     resolved: dict
+    # Adaptive steps (docs/adaptive.md): the step control (None: fixed steps h), the
+    # requested output times (None: every output_every steps) and the events.
+    step_control: Any = None
+    t_eval: Any = None
+    events: dict | None = None
+
+    @property
+    def uses_adaptive_kernel(self) -> bool:
+        return self.step_control is not None or self.t_eval is not None or bool(self.events)
 
 
 
@@ -392,18 +435,42 @@ class _Builder:
             raise ConfigError(messages[0], messages=messages, key=_join(err.errors()[0]["loc"])) from None
 
         # Everything that needs no problem first: building the problem may compile code.
+        integration = config.integration
+        adaptive = any(getattr(integration, key) is not None for key in ("rtol", "atol", "step_control", "epsilon"))
         try:
-            method = methods.get(config.method.name, **{p: getattr(config.method, p) for p in ("r", "k", "s")
-                                                         if getattr(config.method, p) is not None})
-            integration = config.integration
-            h, n_steps = resolve_steps(integration.h, t_end=integration.t_end, n_steps=integration.n_steps,
-                                       t0=integration.t0)
+            method_parameters = {p: getattr(config.method, p) for p in ("r", "k", "s")
+                                 if getattr(config.method, p) is not None}
+            kind = methods.family(config.method.name)
+            if adaptive and "k" in kind.parameters and "k" not in method_parameters and "s" in method_parameters:
+                # docs/adaptive.md: k = 2s keeps H at round-off with the small steps of an adaptive run
+                method_parameters["k"] = 2 * method_parameters["s"]
+                if "r" in kind.parameters and "r" not in method_parameters:
+                    method_parameters["r"] = method_parameters["k"]
+            method = methods.get(config.method.name, **method_parameters)
+            if adaptive:
+                step_control = self.step_control(integration)
+                step_control.check_method(method)
+                if integration.t_end is None or integration.n_steps is not None:
+                    raise ParameterError("t_end", "is needed for adaptive steps (and n_steps does not apply: the "
+                                                  "number of steps is what the controller decides)")
+                t0, t_end = integration.t0, integration.t_end
+                if not t_end > t0:
+                    raise ParameterError("t_end", f"must be after t0 = {compact_number(t0)}")
+                h, n_steps = step_control.h, None
+            else:
+                step_control = None
+                if integration.verify or integration.h_max is not None:
+                    raise ParameterError("verify" if integration.verify else "h_max",
+                                         "applies to adaptive steps only; give rtol (or step_control: time_scale)")
+                h, n_steps = resolve_steps(integration.h, t_end=integration.t_end, n_steps=integration.n_steps,
+                                           t0=integration.t0)
+                t0 = integration.t0
+                t_end = integration.t_end if integration.t_end is not None else t0 + n_steps * h
             every = resolve_store_every(config.output.every)
             method.require_imposable(len(config.conserve))
+            t_eval = self.output_times(config.output.times, t0, t_end)
         except ParameterError as err:
             raise self.parameter_error(err) from None
-        t0 = integration.t0
-        t_end = integration.t_end if integration.t_end is not None else t0 + n_steps * h
         solver = self.solver(config.solver)
         if config.output.path is not None and not config.output.path.strip():
             raise self.error(("output", "path"), "is empty; give a file name such as out/run.h5, or leave it out")
@@ -411,20 +478,85 @@ class _Builder:
         problem, resolved_problem = self.problem(config.problem)
         try:
             conserve = resolve_conserve(problem, method, config.conserve)[0]
+            if step_control is not None:
+                step_control.check_problem(problem)
         except ParameterError as err:
             raise self.parameter_error(err) from None
+        events = self.events(problem, config.events)
         solver = solver.resolved_for(method, len(conserve))
+        integration_record = {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps}
+        if step_control is not None:
+            integration_record.update({k: v for k, v in step_control.as_dict().items() if v is not None
+                                       and k != "h"})
+            integration_record["step_control"] = integration_record.pop("controller")
+        output_record = {"path": config.output.path, "every": every}
+        if t_eval is not None:
+            output_record["times"] = t_eval.tolist()
         resolved = {
             "problem": resolved_problem,
             "conserve": list(conserve),
             "method": {"name": method.family, **method.parameters},
-            "integration": {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps},
+            "integration": integration_record,
             "solver": solver.as_dict(),
-            "output": {"path": config.output.path, "every": every},
+            "output": output_record,
         }
+        if config.events:
+            resolved["events"] = {name: event.model_dump() for name, event in config.events.items()}
         return RunSpec(source=self.source, problem=problem, method=method, conserve=conserve, h=h, n_steps=n_steps,
                        t0=t0, t_end=t_end, solver=solver, output_path=config.output.path,
-                       output_every=every, resolved=resolved)
+                       output_every=every, resolved=resolved, step_control=step_control, t_eval=t_eval,
+                       events=resolved.get("events"))
+
+    def step_control(self, integration: IntegrationSection):
+        """The integration section's adaptive keys, validated by StepControl (their one owner)."""
+        from .adaptive import StepControl
+        return StepControl(controller=integration.step_control or "error", rtol=integration.rtol,
+                           atol=integration.atol, epsilon=integration.epsilon, verify=integration.verify,
+                           h=integration.h, h_max=integration.h_max)
+
+    def output_times(self, times, t0: float, t_end: float):
+        """output.times: a list, or {start, stop, step} / {start, stop, n}; None when absent."""
+        import numpy as np
+
+        if times is None:
+            return None
+        if isinstance(times, list):
+            values = np.array(times, dtype=float)
+        else:
+            if (times.step is None) == (times.n is None):
+                raise ParameterError("t_eval", "give exactly one of step and n, e.g. times: {start: 0, stop: 100, "
+                                               "step: 0.5}")
+            if times.n is not None:
+                if not 1 <= times.n <= MAX_OUTPUT_TIMES:
+                    raise ParameterError("t_eval", f"n must be from 1 to {MAX_OUTPUT_TIMES}, got {times.n}")
+                values = np.linspace(times.start, times.stop, times.n)
+            else:
+                if not times.step > 0:
+                    raise ParameterError("t_eval", f"step must be > 0, got {compact_number(times.step)}")
+                count = int(np.floor((times.stop - times.start) / times.step * (1 + 1e-12))) + 1
+                if not 1 <= count <= MAX_OUTPUT_TIMES:
+                    raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")
+                values = times.start + times.step * np.arange(count)
+        if values.size == 0 or values.size > MAX_OUTPUT_TIMES:
+            raise ParameterError("t_eval", f"must list 1 to {MAX_OUTPUT_TIMES} times")
+        if not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
+            raise ParameterError("t_eval", "must be finite and strictly increasing")
+        if values[0] < t0 or values[-1] > t_end * (1 + 1e-15) + 1e-300:
+            raise ParameterError("t_eval", f"must lie within the run, [{compact_number(t0)}, {compact_number(t_end)}], "
+                                           f"got [{values[0]:.17g}, {values[-1]:.17g}]")
+        return values
+
+    def events(self, problem: Problem, events):
+        """The events section compiled for the problem (EventSpec owns the rules); None when absent."""
+        if not events:
+            return None
+        from .adaptive import EventSpec
+        try:
+            return EventSpec.build(problem, {name: event.model_dump() for name, event in events.items()})
+        except ParameterError as err:
+            raise self.error(("events",) + tuple(err.parameter.split(".")[1:]), err.detail) from None
+        except ProblemDefinitionError as err:
+            raise self.error(tuple((err.key or "events").split(".")), str(err)) from None
 
     def solver(self, section: SolverSection) -> SolverSettings:
         """The solver section, validated by SolverSettings (the one owner of its rules)."""
@@ -508,6 +640,14 @@ class _Builder:
                 problem, resolved = self.python_file(section)
             else:
                 problem, resolved = self.expressions(section)
+            if section.time_scale is not None:
+                import dataclasses
+
+                from .problems.symbolic import compile_state_functions
+                function = compile_state_functions(problem, {"time_scale": section.time_scale}, gradient=True,
+                                                   what="time scale", key_prefix="time_scale")
+                problem = dataclasses.replace(problem, time_scale=function)
+                resolved["time_scale"] = section.time_scale
             if section.check:
                 from .problems.check import require_derivatives, require_invariants
                 require_derivatives(problem)   # first: the invariant check trusts the gradients
@@ -515,7 +655,7 @@ class _Builder:
         except CacheError as err:
             raise self.error(("problem",), str(err)) from None
         except ProblemDefinitionError as err:
-            if mode == "expressions" and err.key:
+            if (mode == "expressions" and err.key) or err.key == "time_scale":
                 path = ("problem", *err.key.split("."))
             elif err.key and err.key.split(".")[0] in ("parameters", "initial"):
                 path = ("problem", *err.key.split("."))
