@@ -652,8 +652,9 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
     """The sweep's summary table: one row per run, formatted for ``fmt``.
 
     markdown: numbers to 4 digits, an axis by its label (pi/30). csv: numbers at full
-    precision (repr: they read back exactly), a plain axis by its value, with its label
-    in a column ``<axis>_expression`` beside it. Each invariant's max |I - I0| comes
+    precision (repr: they read back exactly), a plain axis by its value, with the value
+    as the sweep file writes it in a column ``<axis>_expression`` beside it (and the
+    label in ``<axis>_label`` where the axis names its values otherwise). Each invariant's max |I - I0| comes
     with its relative error max |I - I0| / |I0| (absolute where I0 = 0).
     """
     errors = errors_of(spec, outcomes, reference)
@@ -665,9 +666,14 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
             if name not in invariant_names:
                 invariant_names.append(name)
     expanded = [a for a in spec.axes if csv and a in spec.axis_keys]
+    written = {run.label: {axis: _axis_value(run.config, spec.axis_keys[axis]) for axis in expanded}
+               for run in spec.runs}   # each plain axis's value as the sweep file writes it (pi/30)
+    labelled = [a for a in expanded if any(o.coordinates.get(a) != str(written.get(o.label, {}).get(a))
+                                           for o in outcomes)]
     header = []
     for axis in spec.axes:
-        header += [axis, f"{axis}_expression"] if axis in expanded else [axis]
+        header += [axis, f"{axis}_expression"] + ([f"{axis}_label"] if axis in labelled else []) \
+            if axis in expanded else [axis]
     header += (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
         + ["iterations", "max |alpha|/|lambda|"]
     for name in invariant_names:
@@ -680,7 +686,9 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
             label = outcome.coordinates.get(axis, "")
             if axis in expanded:
                 value = _axis_value(outcome.resolved, spec.axis_keys[axis])
-                row += [_number(value, csv) if isinstance(value, (int, float)) else label, label]
+                as_written = str(written.get(outcome.label, {}).get(axis, label))
+                row += [_number(value, csv) if isinstance(value, (int, float)) else as_written, as_written]
+                row += [label] if axis in labelled else []
             else:
                 row.append(label)
         if spec.error_mode:

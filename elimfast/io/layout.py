@@ -209,7 +209,10 @@ def _small_dataset(group, name: str, value):
 
 # --- dimension scales (netCDF-4 / xarray) ------------------------------------------------------
 def _dataset(obj) -> h5py.Dataset:
-    return obj if isinstance(obj, h5py.Dataset) else h5py.Dataset(getattr(obj, "id", obj))
+    """A high-level dataset of a Dataset, a low-level DatasetID or a _Growing."""
+    if isinstance(obj, h5py.Dataset):
+        return obj
+    return h5py.Dataset(obj if isinstance(obj, h5py.h5d.DatasetID) else obj.id)
 
 
 def dimension(group, name: str, length: int | None = None) -> h5py.Dataset:
