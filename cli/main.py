@@ -142,6 +142,7 @@ def cli(ctx):
       elimfast run configs/kepler.yaml -o out/kepler.h5
       elimfast inspect out/kepler.h5
       elimfast plot out/kepler.h5 --kind invariants -o errors.png
+      elimfast repair out/kepler.h5   (after kill -9: for h5py, xarray and other HDF5 programs)
 
     Exit codes: 0 done, 1 the integration failed, 2 usage/config/file error, 130 interrupted.
     Set ELIMFAST_DEBUG=1 for the traceback of an unexpected error.
@@ -336,11 +337,12 @@ def inspect(file):
     Reads files of finished, interrupted, failed, killed and still running runs (the last
     two through HDF5's SWMR mode); memory stays bounded for any length. Every stored row
     is read back, so HDF5 checks every checksum: a damaged file is reported (exit 2)
-    with the place of the damage.
+    with the place of the damage. One run of a sweep file: SWEEP.h5:/runs/<label>.
 
     \b
-    Example:
+    Examples:
       elimfast inspect out/kepler.h5
+      elimfast inspect out/table1.h5:/runs/GAUSS3/pi/30
     """
     from elimfast.io.hdf5 import RunFile
 
@@ -361,11 +363,12 @@ def inspect(file):
                                                         "the suffix picks the format (png, pdf, svg).")
 @click.option("--overwrite", is_flag=True, help="Replace FIG if it exists.")
 def plot(file, kind, output, overwrite):
-    """Plot a run file with matplotlib (headless).
+    """Plot a run file (or one run of a sweep file, SWEEP.h5:/runs/<label>) with matplotlib (headless).
 
     \b
     Examples:
       elimfast plot out/kepler.h5
+      elimfast plot out/table1.h5:/runs/GAUSS3/pi/30 --kind invariants -o gauss3.png
       elimfast plot out/kepler.h5 --kind orbit -o orbit.png
       elimfast plot out/kepler.h5 --kind alpha -o alpha.pdf
     """
@@ -373,7 +376,11 @@ def plot(file, kind, output, overwrite):
 
     from .plots import check_image_path, plot_run
 
-    path = Path(output) if output else Path(file).with_name(f"{Path(file).stem}_{kind}.png")
+    from elimfast.io.runfile import split_run_path
+
+    run_path, run = split_run_path(file)
+    default_name = f"{run_path.stem}_{run.replace('/', '_')}_{kind}.png" if run else f"{run_path.stem}_{kind}.png"
+    path = Path(output) if output else run_path.with_name(default_name)
     check_image_path(path)   # before reading the run: a usage error, exit 2
     if path.exists() and not overwrite:
         raise OutputError(f"{path}: already exists; pass --overwrite to replace it or -o another name")
@@ -382,6 +389,27 @@ def plot(file, kind, output, overwrite):
     with RunFile(file) as run_file:
         plot_run(run_file, kind, path)
     click.echo(str(path))
+    return EXIT_OK
+
+
+@cli.command(context_settings=CONTEXT)
+@click.argument("file", metavar="FILE.h5")
+def repair(file):
+    """Make the file of a killed run readable by every HDF5 program (h5py, xarray, h5dump).
+
+    A run killed with kill -9 (or a crash) leaves its file consistent but marked "open for
+    writing", so programs other than elimfast refuse it ("file is already open for write
+    ... h5clear"). repair clears that mark, as h5clear -s does, once no process writes the
+    file any more, and cuts the file back to the last saved chunk. The run can still be
+    continued with --resume afterwards.
+
+    \b
+    Example:
+      elimfast repair out/kepler.h5
+    """
+    from elimfast.io.runfile import repair as repair_file
+
+    click.echo(repair_file(file))
     return EXIT_OK
 
 
@@ -518,16 +546,6 @@ def _format_tableau(method, A, b, c, eta) -> str:
 
 # --- cache ---------------------------------------------------------------------------------
 # --- sweep, paper -------------------------------------------------------------------------
-def _method_of(resolved: dict):
-    from elimfast import methods
-    parameters = dict(resolved.get("method") or {})
-    name = parameters.pop("name", None)
-    try:
-        return methods.get(name, **parameters) if name else None
-    except (ValueError, TypeError):
-        return None
-
-
 @cli.command(context_settings=CONTEXT)
 @click.argument("sweep_file", metavar="SWEEP.yaml")
 @click.option("-o", "--output", metavar="OUT.h5", help="Store every run under /runs/<label>/ of this file.")
@@ -555,79 +573,38 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
       elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
     """
+    from elimfast import sweep as sweeps
     from elimfast.streaming import StopOnSignals
-    from elimfast.sweep import (REFERENCE_LABEL, ensemble_table, format_table, load_sweep, run_ensemble_sweep,
-                                run_sweep, table_rows)
 
-    writer = None
     if output is not None:
-        from elimfast.io.hdf5 import check_output_path
         output = Path(output).expanduser()
-        check_output_path(output, overwrite=overwrite)
-    spec = load_sweep(sweep_file)
 
     def hard_stop(signal_name):
         kept = f"; the finished runs are in {output}" if output is not None else ""
         return f"error: interrupted by {signal_name}{kept}"
 
-    def open_writer():
-        nonlocal writer
-        if output is not None:
-            from elimfast.io.hdf5 import SweepWriter
-            writer = SweepWriter(output, sweep_text=Path(sweep_file).read_text(errors="replace"),
-                                 attributes={"source": str(sweep_file), "axes": list(spec.axes) or [""]},
-                                 overwrite=overwrite)
+    def on_start(n_trajectories):
+        if not quiet:
+            click.echo(f"ensemble: running {n_trajectories:,} trajectories on {workers or 'all'} thread(s)", err=True)
+
+    def on_done(outcome, done, total):
+        if not quiet:
+            name = "reference run" if outcome.label == sweeps.REFERENCE_LABEL else outcome.label
+            click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
 
     # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
     with StopOnSignals(raising=True, hard_stop=hard_stop):
-        if spec.ensemble is not None:   # one config, many initial states: the parallel kernel
-            def on_start(n_trajectories):   # the ensemble is validated and fits: now the file
-                open_writer()
-                if not quiet:
-                    click.echo(f"ensemble: running {n_trajectories:,} trajectories on {workers or 'all'} "
-                               "thread(s)", err=True)
-            try:
-                run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=on_start)
-                if writer is not None:
-                    writer.add_ensemble(result, states, run_spec.resolved)
-            finally:
-                if writer is not None:
-                    writer.close()
-            header, rows = ensemble_table(result)
-            click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "
-                       f"of {result.n_steps} steps, h = {result.h:g}")
-            click.echo(format_table(header, rows, table_format), nl=False)
-            if result.n_failed:
-                click.echo(f"error: {result.n_failed} of {result.n_trajectories} trajectories failed: "
-                           f"{result.failure_message(int(result.ok.argmin()))}", err=True)
-                return EXIT_FAILED
-            return EXIT_OK
-
-        open_writer()
-
-        def on_done(outcome, done, total):
-            if writer is not None and outcome.label != REFERENCE_LABEL:
-                writer.add_run(outcome, _method_of(outcome.resolved))
-            outcome.arrays = {}   # stored: the parent keeps only the summary of each run
-            if not quiet:
-                name = "reference run" if outcome.label == REFERENCE_LABEL else outcome.label
-                click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
-
-        try:
-            outcomes, reference = run_sweep(spec, workers=workers, on_done=on_done, store_arrays=writer is not None)
-        finally:
-            if writer is not None:
-                writer.close()
-    header, rows = table_rows(spec, outcomes, reference)
-    click.echo(format_table(header, rows, table_format), nl=False)
-    if reference is not None and not reference.ok:
-        click.echo(f"error: the reference run failed, so there are no errors: {reference.status}", err=True)
-        return EXIT_FAILED
-    failed = [o for o in outcomes if not o.ok]
-    if failed:
-        click.echo(f"error: {len(failed)} of {len(outcomes)} runs failed (see the status column)", err=True)
-        return EXIT_FAILED
-    return EXIT_OK
+        outcome = sweeps.run_to_file(sweep_file, output, workers=workers, overwrite=overwrite, on_start=on_start,
+                                     on_done=on_done)
+    if outcome.ensemble is not None:
+        result = outcome.ensemble
+        click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "
+                   f"of {result.n_steps} steps, h = {result.h:g}")
+    header, rows = outcome.table(table_format)
+    click.echo(sweeps.format_table(header, rows, table_format), nl=False)
+    for line in outcome.failures():
+        click.echo(f"error: {line}", err=True)
+    return EXIT_FAILED if outcome.failures() else EXIT_OK
 
 
 def paper_configs() -> Path:

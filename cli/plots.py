@@ -106,12 +106,16 @@ def draw(run_file, kind: str):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(figsize=(8, 5), dpi=100)
+    relative_axes = None
+    if kind == "invariants":   # absolute errors, and beside them the relative ones
+        figure, (axes, relative_axes) = plt.subplots(1, 2, figsize=(13, 5), dpi=100)
+    else:
+        figure, axes = plt.subplots(figsize=(8, 5), dpi=100)
     try:
         if kind == "orbit":
             _orbit(run_file, axes)
         elif kind == "invariants":
-            _invariants(run_file, axes)
+            _invariants(run_file, axes, relative_axes)
         elif kind == "alpha":
             _multipliers(run_file, axes)
         elif kind == "iterations":
@@ -141,7 +145,7 @@ def sparse(points: np.ndarray) -> bool:
 def _orbit(run_file, axes) -> None:
     n = run_file.n_samples
     if n < 2:
-        raise PlotError(f"{run_file.path}: only {n} sample(s) stored; nothing to draw")
+        raise PlotError(f"{run_file.name}: only {n} sample(s) stored; nothing to draw")
     y = run_file.y(_stride(n))
     names = run_file.coordinate_names
     m = len(names) // 2
@@ -172,10 +176,14 @@ def _orbit(run_file, axes) -> None:
         axes.legend(fontsize="small", ncol=2)
 
 
-def _invariants(run_file, axes) -> None:
+def _invariants(run_file, axes, relative_axes=None) -> None:
+    """|I(t) - I(t0)| on ``axes``; on ``relative_axes`` |I(t) - I(t0)| / |I(t0)|, absolute
+    where I(t0) = 0 (say for the solar system's H0 = -3.2e-8 an absolute 1e-20 means little)."""
+    from elimfast.integrate import relative_error
+
     n = run_file.n_samples
     if n < 2:
-        raise PlotError(f"{run_file.path}: only {n} sample(s) stored; nothing to draw")
+        raise PlotError(f"{run_file.name}: only {n} sample(s) stored; nothing to draw")
     stride = _stride(n)
     t = run_file.t(stride)
     conserve = set(run_file.attrs.get("conserve") or [])
@@ -185,10 +193,20 @@ def _invariants(run_file, axes) -> None:
         error[error == 0.0] = np.nan   # exact agreement has no place on a log scale
         label = name + (" (imposed)" if name in conserve else "")
         axes.semilogy(t, error, lw=0.8, label=label)
+        if relative_axes is not None:
+            scale = relative_error(1.0, float(values[0]))    # 1/|I0|, or 1 where I0 = 0
+            relative_label = label + ("" if values[0] != 0.0 else " (absolute: I(t0) = 0)")
+            relative_axes.semilogy(t, error * scale, lw=0.8, label=relative_label)
     axes.set_xlabel("t")
     axes.set_ylabel("|I(t) - I(t0)|")
     axes.legend(fontsize="small")
     axes.grid(True, which="major", alpha=0.3)
+    if relative_axes is not None:
+        relative_axes.set_xlabel("t")
+        relative_axes.set_ylabel("|I(t) - I(t0)| / |I(t0)|")
+        relative_axes.set_title("relative errors")
+        relative_axes.legend(fontsize="small")
+        relative_axes.grid(True, which="major", alpha=0.3)
 
 
 def _step_times(run_file, count: int, stride: int) -> np.ndarray:
@@ -198,11 +216,11 @@ def _step_times(run_file, count: int, stride: int) -> np.ndarray:
 
 def _multipliers(run_file, axes) -> None:
     if run_file.multiplier_name is None:
-        raise PlotError(f"{run_file.path}: {run_file.attrs.get('method')} imposes no invariant, so there is no "
+        raise PlotError(f"{run_file.name}: {run_file.attrs.get('method')} imposes no invariant, so there is no "
                         "alpha to plot; try --kind invariants")
     n = run_file.steps_done
     if n < 1:
-        raise PlotError(f"{run_file.path}: no steps stored yet; nothing to draw")
+        raise PlotError(f"{run_file.name}: no steps stored yet; nothing to draw")
     stride = _stride(n)
     values = run_file.multipliers(stride)
     t = _step_times(run_file, n, stride)
@@ -216,7 +234,7 @@ def _multipliers(run_file, axes) -> None:
 def _iterations(run_file, axes) -> None:
     n = run_file.steps_done
     if n < 1:
-        raise PlotError(f"{run_file.path}: no steps stored yet; nothing to draw")
+        raise PlotError(f"{run_file.name}: no steps stored yet; nothing to draw")
     stride = _stride(n)
     iterations = run_file.iterations(stride)
     t = _step_times(run_file, n, stride)

@@ -44,12 +44,12 @@ def config_of(run_file) -> dict:
 def energy_note(attrs, drift: dict, initial: dict) -> str | None:
     """Spec 8, "Quadrature of H": a method that should keep H but lost more than round-off
     (relative 1e-12) keeps it only up to the quadrature error of its k nodes at this h."""
-    from elimfast.integrate import H_WARNING_RELATIVE
+    from elimfast.integrate import H_WARNING_RELATIVE, relative_error
 
-    error, reference = drift.get("H", math.nan), abs(initial.get("H", math.nan))
+    error = drift.get("H", math.nan)
     if not math.isfinite(error):
         return None
-    relative = error / reference if reference > 0 else error
+    relative = relative_error(error, initial.get("H", math.nan))
     if not relative > H_WARNING_RELATIVE:
         return None
     return (f"H error {relative:.1e} (relative) is above round-off: {attrs.get('method')} keeps H only up to the "
@@ -78,7 +78,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
         rows.append(f"{key:<13}{value}")
 
     conserve = list(a.get("conserve") or [])
-    row("file", f"{run_file.path}" + ("  (opened in SWMR mode: its writer did not close it)" if run_file.swmr else ""))
+    row("file", f"{run_file.name}" + ("  (opened in SWMR mode: its writer did not close it; other HDF5 programs "
+                                       f"open it after 'elimfast repair {run_file.path}')" if run_file.swmr else ""))
     row("problem", _problem_text(run_file))
     method = f"{a.get('method')}, order {2 * int(a.get('s', 0))}"
     row("method", method + (f", imposing {', '.join(conserve)}" if conserve else ""))
@@ -89,7 +90,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("steps done", f"{done} / {n_steps}" + (f"  ({100.0 * done / n_steps:.1f}%)" if done < n_steps else ""))
     status = run_file.status
     if status == "killed":
-        status = "killed (the writer stopped without closing the file; continue with elimfast run ... --resume)"
+        status = ("killed (the writer stopped without closing the file; continue with elimfast run ... --resume"
+                  + (f"; make it readable by other HDF5 programs with elimfast repair {run_file.path})"
+                     if run_file.swmr else ")"))
     elif status == "running":
         status = "running (another process is writing it)"
     row("status", status)
@@ -100,12 +103,18 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("created", f"{a.get('created')} with elimfast {a.get('elimfast_version')}, numba {a.get('numba_version')}, "
                    f"numpy {a.get('numpy_version')}, h5py {a.get('h5py_version')}")
 
+    from elimfast.integrate import relative_error
+
     drift = run_file.invariant_drift()
-    rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples")
+    initial = run_file.initial_invariants()
+    rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples, and relative to |I(t0)|")
     width = max(len(n) for n in drift) if drift else 0
     for name, value in drift.items():
         tag = "  (imposed)" if name in conserve else ("  (H: kept by every HBVM/ELIM/LIM)" if name == "H" else "")
-        rows.append(f"  {name:<{width}}  {value:.3e}{tag}")
+        first = initial.get(name, math.nan)
+        relative = (f"relative {relative_error(value, first):.3e}" if first != 0.0 and math.isfinite(first)
+                    else "(absolute: I(t0) = 0)" if first == 0.0 else "")
+        rows.append(f"  {name:<{width}}  {value:.3e}  {relative}{tag}".rstrip())
 
     stats = run_file.iteration_stats()
     if stats.get("count"):
@@ -123,7 +132,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
-    warning = energy_note(a, drift, run_file.initial_invariants())
+    warning = energy_note(a, drift, initial)
     if warning:
         row("note", warning)
     labels = run_file.multiplier_labels()

@@ -15,7 +15,8 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 
 from . import methods, problems
 from .errors import ConvergenceError, ElimfastError
+from .archive import load
 from .integrate import Integration, Result, integrate
 
-__all__ = ["__version__", "integrate", "Integration", "Result", "ConvergenceError", "ElimfastError",
+__all__ = ["__version__", "integrate", "load", "Integration", "Result", "ConvergenceError", "ElimfastError",
            "methods", "problems"]

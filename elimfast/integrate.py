@@ -213,6 +213,17 @@ class Result:
         """max over samples of |I(t) - I(t0)| for H and every invariant."""
         return {name: float(np.max(np.abs(v - v[0]))) if v.size else 0.0 for name, v in self.invariants.items()}
 
+    def relative_invariant_errors(self) -> dict[str, float]:
+        """max over samples of |I(t) - I(t0)| / |I(t0)| (absolute where I(t0) = 0), see ``relative_error``."""
+        return {name: relative_error(error, float(self.invariants[name][0]) if self.invariants[name].size else 0.0)
+                for name, error in self.invariant_errors().items()}
+
+    def to_xarray(self):
+        """An xarray.Dataset: y on (t, component), H and every invariant on t, the per-step data
+        on step; attributes as in a run file (``elimfast.io.xarray_view``; needs xarray)."""
+        from .io.xarray_view import result_dataset
+        return result_dataset(self)
+
     @property
     def split_steps(self) -> int:
         """How many steps were split into substeps (docs/solver.md#when-a-step-fails-retry-then-split)."""
@@ -232,6 +243,13 @@ class Result:
                 f"max |I - I0|: {errors}>")
 
 
+def relative_error(error: float, initial: float) -> float:
+    """|I - I0| / |I0|, or the absolute error where I0 = 0 (a relative error means nothing
+    there): the relative errors of inspect, the plots, the sweep tables and the energy note."""
+    reference = abs(float(initial))
+    return float(error) / reference if reference > 0 else float(error)
+
+
 def energy_warning(method: Method, h: float, H_values) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s. Returns a
@@ -239,9 +257,7 @@ def energy_warning(method: Method, h: float, H_values) -> str | None:
     values = np.asarray(H_values, dtype=float)
     if values.size < 2:
         return None
-    drift = float(np.max(np.abs(values - values[0])))
-    reference = abs(float(values[0]))
-    relative = drift / reference if reference > 0 else drift
+    relative = relative_error(float(np.max(np.abs(values - values[0]))), float(values[0]))
     if not relative > H_WARNING_RELATIVE:
         return None
     return (f"H error {relative:.1e} (relative) is above round-off: {method.name} keeps H only up to the "
@@ -445,7 +461,7 @@ class Integration:
         return count
 
     def initial_chunk(self) -> Chunk:
-        """The sample at t0 (H and invariants at y0), with no steps."""
+        """The sample of the current state (at t0: H and invariants at y0), with no steps."""
         p = self.problem
         values = np.empty(len(p.invariant_names))
         p.invariants(self.y, p.params, values)
@@ -490,8 +506,14 @@ class Integration:
         self.status = int(status)
         # On failure keep the failed step's iteration count: it says how hard the step was.
         n_iter = done + (1 if status != codes.STATUS_OK else 0)
-        return Chunk(t_out[:samples], y_out[:samples], inv_out[:samples], mult_out[:done],
-                     iter_out[:n_iter], substeps_out[:done], first, int(status))
+        t_out, y_out, inv_out = t_out[:samples], y_out[:samples], inv_out[:samples]
+        if status != codes.STATUS_OK and self.steps_done % self.store_every != 0:
+            # The failure fell between samples: keep one of the last good state (resume drops it again).
+            last = self.initial_chunk()
+            t_out, y_out, inv_out = (np.concatenate([t_out, last.t]), np.concatenate([y_out, last.y]),
+                                     np.concatenate([inv_out, last.invariants]))
+        return Chunk(t_out, y_out, inv_out, mult_out[:done], iter_out[:n_iter], substeps_out[:done], first,
+                     int(status))
 
     def failure_message(self) -> str:
         """One line naming the step and time of a failure, what the solver saw, and what to do."""

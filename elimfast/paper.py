@@ -128,7 +128,7 @@ def _figures(table_outcomes: list[RunOutcome], long_outcomes: list[RunOutcome], 
 
     # Figure 1: the two alpha components, EHBVM(12,3) imposing L1 and L2, h = pi/30.
     outcome = next(o for o in table_outcomes if o.coordinates == {"method": "EHBVM(12,3) L1,L2", "h": "pi/30"})
-    alpha = outcome.arrays["multipliers"]
+    alpha = outcome.result.alpha
     t = outcome.h * np.arange(1, alpha.shape[0] + 1)
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for i in range(alpha.shape[1]):
@@ -138,10 +138,8 @@ def _figures(table_outcomes: list[RunOutcome], long_outcomes: list[RunOutcome], 
     save(fig, "figure1_alpha.png")
 
     def invariant_error(o, name):
-        arrays = o.arrays
-        column = list(arrays["invariant_names"]).index(name)
-        values = arrays["invariants"][:, column]
-        return arrays["t"], np.abs(values - values[0])
+        values = o.result.invariants[name]
+        return o.result.t, np.abs(values - values[0])
 
     for number, label, name, title in ((2, "GAUSS3", "H", "Hamiltonian error, GAUSS3"),
                                        (3, "HBVM(12,3)", "angular_momentum", "angular momentum error, HBVM(12,3)")):
@@ -166,9 +164,8 @@ def drift_summary(long_outcomes: list[RunOutcome]) -> dict[str, dict[str, float]
     """For each method and H, L1, |A|: the max error over the first and the last tenth of the run."""
     summary = {}
     for o in long_outcomes:
-        arrays = o.arrays
-        names = list(arrays["invariant_names"])
-        inv = arrays["invariants"]
+        names = list(o.result.invariants)
+        inv = np.column_stack([o.result.invariants[name] for name in names])
         n = inv.shape[0]
         tenth = max(1, n // 10)
         entry = {}

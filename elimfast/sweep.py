@@ -74,7 +74,7 @@ class SweepRun:
 
 @dataclass
 class RunOutcome:
-    """What a worker sends back: summary numbers and the arrays to store."""
+    """What a worker sends back: summary numbers and, to be stored, the run's Result."""
 
     label: str
     coordinates: dict[str, str]
@@ -90,7 +90,15 @@ class RunOutcome:
     iterations_total: int = 0
     max_multiplier: float = math.nan    # max |alpha| (ELIM) or |lambda| (LIM), nan otherwise
     invariant_errors: dict[str, float] = field(default_factory=dict)
-    arrays: dict[str, Any] = field(default_factory=dict)  # t, y, invariants, iterations, alpha/lambda
+    initial_invariants: dict[str, float] = field(default_factory=dict)   # I(t0), for the relative errors
+    result: Any = None                  # the Result integrate would return (kept when the runs are stored)
+
+    @property
+    def relative_invariant_errors(self) -> dict[str, float]:
+        """max |I - I0| / |I0| (absolute where I0 = 0), see integrate.relative_error."""
+        from .integrate import relative_error
+        return {name: relative_error(error, self.initial_invariants.get(name, 0.0))
+                for name, error in self.invariant_errors.items()}
 
     @property
     def ok(self) -> bool:
@@ -107,6 +115,7 @@ class SweepSpec:
     order_axis: str | None
     ensemble: dict | None = None        # {"n", "seed", "spread"} or {"states"}; the base is the run
     base: dict | None = None
+    axis_keys: dict[str, str] = field(default_factory=dict)   # plain axes: name -> the dotted key it sets
 
 
 # --- reading the sweep file ----------------------------------------------------------
@@ -252,6 +261,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         _fail(source, "grid", "must be a list of axes, each {name, values} or {name, key, values}")
     axis_points = []
     axis_names = []
+    axis_keys = {}
     for index, axis in enumerate(axes):
         key = f"grid[{index}]"
         if not isinstance(axis, dict) or "values" not in axis:
@@ -280,6 +290,8 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                 points.append((label, {"replace": variant["set"]}))
         axis_points.append(points)
         axis_names.append(name)
+        if "key" in axis:
+            axis_keys[name] = axis["key"]
 
     # Count (and size) the grid before expanding it: the product of the axes' lengths grows
     # fast, and each point holds a copy of the base config.
@@ -328,7 +340,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
-                     reference=reference, order_axis=order_axis, ensemble=ensemble, base=base)
+                     reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
 
 
 def _whole_number(value) -> int | None:
@@ -412,8 +424,9 @@ def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Ca
     return run, states, result
 
 
-def ensemble_table(result) -> tuple[list[str], list[list[str]]]:
+def ensemble_table(result, fmt: str = "markdown") -> tuple[list[str], list[list[str]]]:
     """One row per invariant (and H): max and median over trajectories of max |I(t) - I(0)|."""
+    _fmt = (lambda value: _number(value, fmt == "csv"))  # noqa: E731
     ok = result.ok
     header = ["quantity", "max over trajectories", "median", "trajectories"]
     rows = []
@@ -451,6 +464,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     own failure: a bad config or a failed integration becomes the outcome's status."""
     from .config import load_run_from_dict  # in the worker: keeps the parent light
     from .integrate import Integration
+    from .integrate import _collect as collect_result
 
     outcome = RunOutcome(label=label, coordinates=coordinates, status="complete")
     try:
@@ -495,24 +509,17 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.steps_done = run.steps_done
     outcome.y_final = run.y.copy()
     outcome.t_final = run.t
+    result = collect_result(run, chunks)
     if run.status != 0:
-        outcome.status = "failed: " + run.failure_message()
-    iterations = np.concatenate([c.iterations for c in chunks])
-    multipliers = np.concatenate([c.multipliers for c in chunks])
-    invariants = np.concatenate([c.invariants for c in chunks])
-    outcome.iterations_total = int(iterations.sum())
-    if multipliers.size:
+        outcome.status = result.status = "failed: " + run.failure_message()
+    outcome.iterations_total = int(result.iterations.sum())
+    multipliers = result.alpha if result.alpha is not None else result.lam
+    if multipliers is not None and multipliers.size:
         outcome.max_multiplier = float(np.max(np.abs(multipliers)))
-    names = ("H",) + spec.problem.invariant_names
-    outcome.invariant_errors = {name: float(np.max(np.abs(invariants[:, i] - invariants[0, i])))
-                                for i, name in enumerate(names)}
+    outcome.invariant_errors = result.invariant_errors()
+    outcome.initial_invariants = {name: float(values[0]) for name, values in result.invariants.items()}
     if store_arrays:
-        outcome.arrays = {
-            "t": np.concatenate([c.t for c in chunks]), "y": np.concatenate([c.y for c in chunks]),
-            "invariants": invariants, "invariant_names": names, "iterations": iterations,
-            "multipliers": multipliers, "multiplier_name": spec.method.multiplier_name(len(spec.conserve)),
-            "coordinate_names": spec.problem.coordinate_names,
-        }
+        outcome.result = result
     return outcome
 
 
@@ -632,34 +639,87 @@ def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, flo
     return orders
 
 
-def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome | None) -> tuple[list[str], list[list[str]]]:
-    """The sweep's summary table: one row per run."""
+def _axis_value(resolved: dict, dotted: str):
+    """The resolved value of a plain axis's key (a number where the config evaluated one)."""
+    node = resolved
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome | None,
+               fmt: str = "markdown") -> tuple[list[str], list[list[str]]]:
+    """The sweep's summary table: one row per run, formatted for ``fmt``.
+
+    markdown: numbers to 4 digits, an axis by its label (pi/30). csv: numbers at full
+    precision (repr: they read back exactly), a plain axis by its value, with the value
+    as the sweep file writes it in a column ``<axis>_expression`` beside it (and the
+    label in ``<axis>_label`` where the axis names its values otherwise). Each invariant's max |I - I0| comes
+    with its relative error max |I - I0| / |I0| (absolute where I0 = 0).
+    """
     errors = errors_of(spec, outcomes, reference)
     orders = orders_of(spec, outcomes, errors)
+    csv = fmt == "csv"
     invariant_names = []
     for outcome in outcomes:
         for name in outcome.invariant_errors:
             if name not in invariant_names:
                 invariant_names.append(name)
-    header = list(spec.axes) + (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
-        + ["iterations", "max |alpha|/|lambda|"] + [f"max err {n}" for n in invariant_names] + ["status"]
+    expanded = [a for a in spec.axes if csv and a in spec.axis_keys]
+    written = {run.label: {axis: _axis_value(run.config, spec.axis_keys[axis]) for axis in expanded}
+               for run in spec.runs}   # each plain axis's value as the sweep file writes it (pi/30)
+    labelled = [a for a in expanded if any(o.coordinates.get(a) != str(written.get(o.label, {}).get(a))
+                                           for o in outcomes)]
+    header = []
+    for axis in spec.axes:
+        header += [axis, f"{axis}_expression"] + ([f"{axis}_label"] if axis in labelled else []) \
+            if axis in expanded else [axis]
+    header += (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
+        + ["iterations", "max |alpha|/|lambda|"]
+    for name in invariant_names:
+        header += [f"max err {name}", f"max rel err {name}"]
+    header.append("status")
     rows = []
     for outcome in outcomes:
-        row = [outcome.coordinates.get(a, "") for a in spec.axes]
+        row = []
+        for axis in spec.axes:
+            label = outcome.coordinates.get(axis, "")
+            if axis in expanded:
+                value = _axis_value(outcome.resolved, spec.axis_keys[axis])
+                as_written = str(written.get(outcome.label, {}).get(axis, label))
+                row += [_number(value, csv) if isinstance(value, (int, float)) else as_written, as_written]
+                row += [label] if axis in labelled else []
+            else:
+                row.append(label)
         if spec.error_mode:
-            row.append(_fmt(errors[outcome.label]))
+            row.append(_number(errors[outcome.label], csv))
         if spec.order_axis:
-            row.append("" if math.isnan(orders[outcome.label]) else f"{orders[outcome.label]:.2f}")
+            order = orders[outcome.label]
+            row.append("" if math.isnan(order) else repr(order) if csv else f"{order:.2f}")
         row.append(str(outcome.iterations_total) if outcome.steps_done else "")
-        row.append(_fmt(outcome.max_multiplier))
-        row.extend(_fmt(outcome.invariant_errors.get(n, math.nan)) for n in invariant_names)
+        row.append(_number(outcome.max_multiplier, csv))
+        relative = outcome.relative_invariant_errors
+        for name in invariant_names:
+            row += [_number(outcome.invariant_errors.get(name, math.nan), csv),
+                    _number(relative.get(name, math.nan), csv)]
         row.append(outcome.status)
         rows.append(row)
     return header, rows
 
 
+def _number(value, full: bool = False) -> str:
+    """A table's number: 4 significant digits, or full precision (repr) for CSV; '' for none."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)
+    return repr(float(value)) if full else f"{float(value):.3e}"
+
+
 def _fmt(value: float) -> str:
-    return "" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.3e}"
+    return _number(value)
 
 
 def format_table(header: list[str], rows: list[list[str]], fmt: str = "markdown") -> str:
@@ -671,6 +731,107 @@ def format_table(header: list[str], rows: list[list[str]], fmt: str = "markdown"
         writer.writerow(header)
         writer.writerows(rows)
         return buffer.getvalue()
+    # A '|' inside a cell would end it: markdown writes it as '\|'.
+    header = [cell.replace("|", "\\|") for cell in header]
+    rows = [[str(cell).replace("|", "\\|") for cell in row] for row in rows]
     widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
     line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
     return "\n".join([line(header), "|" + "|".join("-" * (w + 2) for w in widths) + "|", *map(line, rows)]) + "\n"
+
+
+# --- a sweep into its file ------------------------------------------------------------------
+@dataclass
+class SweepOutcome:
+    """What ``run_to_file`` did: the grid's outcomes and the reference run (a grid sweep), or
+    the ensemble (an ensemble sweep); the file they were stored in (None: not stored)."""
+
+    spec: SweepSpec
+    path: Path | None
+    outcomes: list[RunOutcome] = field(default_factory=list)
+    reference: RunOutcome | None = None
+    ensemble: Any = None                # elimfast.ensemble's result of an ensemble sweep
+
+    def table(self, fmt: str = "markdown") -> tuple[list[str], list[list[str]]]:
+        if self.ensemble is not None:
+            return ensemble_table(self.ensemble, fmt)
+        return table_rows(self.spec, self.outcomes, self.reference, fmt)
+
+    def failures(self) -> list[str]:
+        """One line per thing that failed (empty when everything completed)."""
+        if self.ensemble is not None:
+            result = self.ensemble
+            if not result.n_failed:
+                return []
+            return [f"{result.n_failed} of {result.n_trajectories} trajectories failed: "
+                    f"{result.failure_message(int(result.ok.argmin()))}"]
+        lines = []
+        if self.reference is not None and not self.reference.ok:
+            lines.append(f"the reference run failed, so there are no errors: {self.reference.status}")
+        failed = [o for o in self.outcomes if not o.ok]
+        if failed:
+            lines.append(f"{len(failed)} of {len(self.outcomes)} runs failed (see the status column)")
+        return lines
+
+
+def _config_text(resolved: dict) -> str:
+    import yaml
+    return yaml.safe_dump(resolved or {}, sort_keys=False, default_flow_style=None, width=100)
+
+
+def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool = False,
+                keep_results: bool = False, on_start: Callable[[int], None] | None = None,
+                on_done: Callable[[RunOutcome, int, int], None] | None = None) -> SweepOutcome:
+    """Run a sweep (a SweepSpec or the path of a sweep file) and store every run in the HDF5
+    file ``path`` (None: store nothing), one /runs/<label> group per run as each finishes.
+
+    A grid sweep runs in ``workers`` processes (``run_sweep``); an ensemble sweep runs in
+    the parallel kernel on ``workers`` threads, and its file is created only once the
+    ensemble is known to fit (``on_start(n_trajectories)`` is called then). ``on_done``:
+    as in run_sweep, after the run is stored. The Results are dropped once stored, unless
+    ``keep_results``. Raises SweepError for a bad sweep file, OutputError for an output
+    that cannot be written; the runs' own failures are in the outcome (``failures()``).
+    """
+    from .io.sweepfile import SweepWriter
+
+    if path is not None:   # before reading the sweep: an unwritable output is reported before any work
+        from .io.safety import check_output_path
+        path = check_output_path(Path(path).expanduser(), overwrite=overwrite)
+    spec = sweep if isinstance(sweep, SweepSpec) else load_sweep(sweep)
+    writer = None
+
+    def open_writer():
+        nonlocal writer
+        if path is not None:
+            writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
+                                 attributes={"source": spec.source, "axes": list(spec.axes) or [""]},
+                                 overwrite=overwrite)
+
+    try:
+        if spec.ensemble is not None:
+            def started(n_trajectories):
+                open_writer()
+                if on_start is not None:
+                    on_start(n_trajectories)
+            run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=started)
+            if writer is not None:
+                writer.add_ensemble(result, states, run_spec.resolved)
+            return SweepOutcome(spec=spec, path=path, ensemble=result)
+
+        open_writer()
+
+        def stored(outcome, done, total):
+            if writer is not None and outcome.label != REFERENCE_LABEL:
+                writer.add_run(outcome.label, outcome.result, status=outcome.status,
+                               config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
+                               wall_time_s=outcome.wall_time)
+            if not keep_results:
+                outcome.result = None   # stored: the parent keeps only the summary of each run
+            if on_done is not None:
+                on_done(outcome, done, total)
+
+        outcomes, reference = run_sweep(spec, workers=workers, on_done=stored,
+                                        store_arrays=writer is not None or keep_results)
+        return SweepOutcome(spec=spec, path=path, outcomes=outcomes, reference=reference)
+    finally:
+        if writer is not None:
+            writer.close()

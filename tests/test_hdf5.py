@@ -57,7 +57,8 @@ def test_layout_of_an_ehbvm_run(tmp_path, kepler):
         # samples: every 7th step and the last one (300 is no multiple of 7), plus t0
         n_samples = 1 + 300 // 7 + 1
         assert f["t"].shape == (n_samples,) and f["y"].shape == (n_samples, 4)
-        assert list(f["y"].attrs["coordinates"]) == ["q1", "q2", "p1", "p2"]
+        assert [n.decode() for n in f["component"][()]] == ["q1", "q2", "p1", "p2"]   # CF reserves "coordinates"
+        assert "coordinates" not in f["y"].attrs
         assert set(f["invariants"]) == {"H", "angular_momentum", "lrl_x", "lrl_y"}
         assert f["invariants/lrl_y"].attrs["imposed"] and not f["invariants/lrl_x"].attrs["imposed"]
         assert f["steps/iterations"].shape == (300,) and f["steps/iterations"].dtype.kind == "i"
@@ -97,7 +98,7 @@ def test_gauss_stores_no_multipliers(tmp_path, kepler):
     path = tmp_path / "gauss.h5"
     write(kepler_run(kepler, n_steps=20, every=1, method=methods.gauss(2), conserve=()), path)
     with h5py.File(path, "r") as f:
-        assert set(f["steps"]) == {"iterations", "substeps"}
+        assert set(f["steps"]) == {"iterations", "substeps", "step"}   # step: the dimension (no data)
         assert (f["steps/substeps"][:] == 1).all()
         assert f["method/A"].shape == (2, 2)
     with hdf5.RunFile(path) as run_file:

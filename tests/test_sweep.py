@@ -154,7 +154,9 @@ def test_cli_sweep_stores_every_run_marks_the_failed_one_and_exits_1(tmp_path):
     result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--workers", "2", "--format", "csv", "-q"])
     assert result.exit_code == 1, result.output
     lines = result.stdout.strip().splitlines()
-    assert lines[0].startswith("h,error,") and lines[1].startswith("small,") and "failed:" in lines[2]
+    # CSV: h as a number at full precision, beside it as written and the run's label
+    assert lines[0].startswith("h,h_expression,h_label,error,") and "failed:" in lines[2]
+    assert lines[1].startswith(f"{2 * math.pi / 40!r},2*pi/40,small,")
     assert "1 of 2 runs failed" in result.stderr
     with h5py.File(out) as f:
         assert f.attrs["format"] == "elimfast-sweep"

@@ -1,0 +1,61 @@
+"""Reading a run back: ``load(path)`` and ``load(path, run=label)`` return the Result that
+``integrate`` returned (or would have returned) for the run stored there.
+
+The problem and the method are built again from the resolved config stored with the run
+(a ``python:`` problem needs its file where the config says), the arrays are read from
+the file (``elimfast.io.runfile.RunFile``). Like REBOUND's SimulationArchive, this reader
+knows the file only through the RunFile that reads it, and the run only through its config.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ElimfastError
+from .kernels.codes import FAMILY_LIM
+
+
+def load(path, run: str | None = None):
+    """The Result stored in the run file ``path``, or in the run labelled ``run`` of a sweep
+    file (``path`` may also be given as ``"sweep.h5:/runs/<label>"``).
+
+    y_final and t_final are the saved state of a run file (what --resume continues from),
+    and the last sample of a sweep run (a failed run ends with a sample of its last good
+    state). Raises OutputError (an ElimfastError) for a file or run that cannot be read.
+    """
+    from .config import load_run_from_dict, parse_yaml
+    from .integrate import Result
+    from .io.runfile import RunFile, split_run_path
+
+    file_path, run = split_run_path(path, run)
+    with RunFile(file_path, run=run) as stored:
+        source = f"{stored.name} (its stored config)"
+        try:
+            spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
+                                      base_dir=Path(file_path).parent)
+        except ElimfastError as err:
+            raise type(err)(f"{stored.name}: cannot rebuild the run from its stored config: {err}") from None
+        t, y = stored.t(), stored.y()
+        invariants = {name: stored.invariant(name) for name in stored.invariant_names}
+        multipliers = stored.multipliers()
+        iterations = stored.iterations()
+        if "failed_step_iterations" in stored.attrs:
+            iterations = np.append(iterations, int(stored.attrs["failed_step_iterations"]))
+        substeps = stored.substeps()
+        if run is None:
+            saved = stored.saved_state()
+            y_final, t_final = saved["y"].copy(), float(saved["clock"][0])
+        else:
+            y_final, t_final = y[-1].copy(), float(t[-1])
+        name = stored.multiplier_name
+        elim_family = spec.method.imposes_invariants and spec.method.kernel_family != FAMILY_LIM
+        if name == "alpha":
+            alpha = multipliers
+        else:   # as integrate: ELIM imposing nothing has alpha with no columns
+            alpha = np.zeros((stored.steps_done, 0)) if elim_family else None
+        return Result(problem=spec.problem, method=spec.method, h=float(stored.attrs.get("h", spec.h)),
+                      conserve=tuple(spec.conserve), t=t, y=y, invariants=invariants, alpha=alpha,
+                      lam=multipliers if name == "lambda" else None, iterations=iterations, substeps=substeps,
+                      y_final=y_final, t_final=t_final, n_steps=int(stored.attrs.get("n_steps", spec.n_steps)),
+                      steps_done=stored.steps_done, status=stored.status, solver=spec.solver)

@@ -1,0 +1,354 @@
+"""The layout of a run group, shared by the run file and every run of a sweep file.
+
+A run group (the root of a run file, /runs/<label> of a sweep file) holds, every growing
+dataset chunked, compressed with the shuffle filter and gzip, checksummed with HDF5's
+fletcher32 filter, and extended as the run goes:
+
+    t                      (samples,)           time of each sample; a dimension scale ('t')
+    component              (2m,) strings        the state's component names, q then p; a dimension scale
+    y                      (samples, 2m)        the state, on dimensions (t, component)
+    invariants/H           (samples,)           the Hamiltonian at each sample, on dimension t
+    invariants/<name>      (samples,)           every invariant of the problem; attribute ``imposed``
+    steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
+    steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split
+    steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
+    steps/lambda           (steps_done, nu+1)   LIM/GHBVM (H first, then the imposed invariants)
+    steps/invariant        (nu or nu+1,)        which invariant each multiplier column belongs to
+    method/A, b, c         the Runge-Kutta form (all but LIM/GHBVM; for ELIM/EHBVM the
+                           underlying HBVM(k,s) tableau, i.e. eta = 1: attribute ``tableau``)
+    method/quadrature_nodes, quadrature_weights                      k-point Gauss-Legendre on [0, 1]
+    method/invariant_quadrature_nodes, invariant_quadrature_weights  the r points (ELIM/LIM)
+
+Every dataset has HDF5 dimension scales (netCDF-4's convention), so that
+``xarray.open_dataset(path, engine="h5netcdf")`` opens a run file with ``t`` and
+``component`` as coordinates, and ``xarray.open_datatree`` opens every group (a sweep
+file: one node per run). Dimensions that are not variables (``step``, ``node``, ...) are
+netCDF's "dimension but not a variable" scales: empty datasets that hold only a length.
+Variables carry ``long_name``, and ``units`` where the problem states its units (the
+built-in solar system: AU, days, solar masses; also the group attributes
+``<quantity>_unit``).
+
+Format history: 1 (no checksums), 2 (fletcher32, /state/record; the component names as
+an attribute of /y named ``coordinates``, which CF reserves: still read), 3 (dimension
+scales, ``component``, long_name and units).
+"""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+
+from .safety import _plain  # noqa: F401 (the attribute reader, re-exported for the readers)
+
+FORMAT = "elimfast-run"
+FORMAT_VERSION = 3            # 2: fletcher32 on every chunk, /state/record; 3: dimension scales, /component
+# SWMR needs the 1.10 file format; bounding it at 1.10 keeps the files readable by any
+# HDF5 >= 1.10 (tools linked against older 1.x libraries are common).
+LIBVER = ("v110", "v110")
+# gzip (readable by every HDF5 tool, unlike lzf) at level 1 after the shuffle filter:
+# levels above 1 cost more time than they save bytes on these data.
+GZIP_LEVEL = 1
+# Small HDF5 chunks: every flush recompresses the last, partial chunk of each dataset,
+# so this bounds the cost of a flush (256 KiB chunks made flushes 3x slower).
+CHUNK_BYTES = 1 << 14      # target bytes per HDF5 chunk
+MIN_CHUNK_ROWS = 64
+# Disk space reserved ahead of the writes of a chunk: the chunk's raw bytes (compression
+# only shrinks them) times this factor, plus SPACE_MARGIN per dataset (each flush rewrites
+# the last partial HDF5 chunk of each dataset at a new address) and SPACE_BASE for
+# metadata and for closing the file. A 10^4-step Kepler run grew by 0.55 bytes per raw byte.
+SPACE_FACTOR = 1.25
+SPACE_MARGIN = 2 * CHUNK_BYTES
+SPACE_BASE = 64 << 10
+VERIFY_BLOCK_BYTES = 16 << 20   # bytes per read when verifying or reducing long datasets
+STATUS_RUNNING = "running"
+STATUS_COMPLETE = "complete"
+STATUS_INTERRUPTED = "interrupted"
+STATUS_KILLED = "killed"
+FAILED_PREFIX = "failed: "
+STOPPED_PREFIX = "stopped: "
+# netCDF-4 marks a dimension scale that is no variable by this NAME (h5netcdf, netCDF-C).
+DIMENSION_ONLY = "This is a netCDF dimension but not a netCDF variable.%10d"
+LONG_NAMES = {"t": "time", "component": "state component (positions q, then momenta p)",
+              "y": "state y = (q, p)", "H": "Hamiltonian (energy)", "iterations": "solver iterations per step",
+              "substeps": "substeps per step (1: not split)", "alpha": "ELIM multiplier alpha per step",
+              "lambda": "LIM multiplier lambda per step", "invariant": "invariant of each multiplier column"}
+
+
+def _chunk_rows(row_bytes: int) -> int:
+    return max(MIN_CHUNK_ROWS, CHUNK_BYTES // max(row_bytes, 1))
+
+
+def _growing(group, name: str, width: int | None, dtype) -> "_Growing":
+    """An empty dataset, chunked, compressed and checksummed, resizable along its first axis.
+
+    Created through h5py's low-level API: the high-level one re-derives the filter
+    pipeline for every dataset and costs more than writing a whole short run. fletcher32
+    comes last in the pipeline, so it checksums the stored (compressed) bytes.
+    """
+    dtype = np.dtype(dtype)
+    tail = () if width is None else (int(width),)
+    rows = _chunk_rows(dtype.itemsize * (width or 1))
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_chunk((rows,) + tail)
+    dcpl.set_shuffle()
+    dcpl.set_deflate(GZIP_LEVEL)
+    dcpl.set_fletcher32()
+    space = h5py.h5s.create_simple((0,) + tail, (h5py.h5s.UNLIMITED,) + tail)
+    dataset_id = h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(dtype), space, dcpl=dcpl)
+    return _Growing(dataset_id)
+
+
+class _Growing:
+    """A dataset extended along its first axis by low-level writes (no h5py selection machinery)."""
+
+    __slots__ = ("id", "rows", "tail", "dtype")
+
+    def __init__(self, dataset_id):
+        self.id = dataset_id
+        shape = dataset_id.shape
+        self.rows, self.tail = shape[0], tuple(shape[1:])
+        self.dtype = dataset_id.dtype
+
+    @property
+    def attrs(self):
+        return h5py.Dataset(self.id).attrs
+
+    @property
+    def row_bytes(self) -> int:
+        return self.dtype.itemsize * int(np.prod(self.tail, dtype=np.int64))
+
+    def append(self, data) -> None:
+        count = len(data)
+        if count == 0:
+            return
+        data = np.ascontiguousarray(data, dtype=self.dtype)
+        start = self.rows
+        self.id.set_extent((start + count,) + self.tail)
+        file_space = self.id.get_space()
+        file_space.select_hyperslab((start,) + (0,) * len(self.tail), (count,) + self.tail)
+        self.id.write(h5py.h5s.create_simple((count,) + self.tail), file_space, data)
+        self.rows = start + count
+
+    def truncate(self, rows: int) -> None:
+        self.id.set_extent((rows,) + self.tail)
+        self.rows = rows
+
+
+
+
+# The per-step datasets of /steps that are not multipliers (adaptive runs add h and t).
+PER_STEP_RECORDS = ("iterations", "substeps", "h", "t")
+STEP_SCALES = ("step", "invariant")   # the dimension scales of /steps
+
+
+def multiplier_name(integration) -> str | None:
+    """The name of the run's per-step multipliers ('alpha', 'lambda'), or None: the method's."""
+    return integration.method.multiplier_name(len(integration.conserve))
+
+
+def multiplier_datasets(steps) -> list[str]:
+    """The per-step multipliers stored in /steps: every dataset but the per-step records. The
+    file names them by the method's multiplier (alpha, lambda), so no reader lists families."""
+    return [name for name in steps if name not in PER_STEP_RECORDS + STEP_SCALES]
+
+
+def version_attributes() -> dict:
+    import numba
+
+    from .. import __version__
+    return {"elimfast_version": __version__, "numba_version": numba.__version__,
+            "numpy_version": np.__version__, "h5py_version": h5py.__version__,
+            "hdf5_version": h5py.version.hdf5_version}
+
+# (HDF5 2.0 segfaults), so its objects are kept here, never released; the file on disk is
+# then as a killed writer leaves it, consistent and resumable.
+_ABANDONED: list = []
+
+
+def _write_method(group, method) -> None:
+    if method.has_runge_kutta_form:
+        A, b, c = method.butcher()
+        for name, table in (("A", A), ("b", b), ("c", c)):
+            _small_dataset(group, name, table)
+        if method.kind.scales_tableau:
+            tableau = (f"the underlying HBVM({method.k},{method.s}) tableau (eta = 1); each ELIM step scales it "
+                       "with eta_j = 1 - h^(2(s-1-j)) alpha_j (docs/methods.md#elim)")
+        else:
+            tableau = f"{method.name}: A, b, c of its Runge-Kutta form"
+    else:
+        tableau = f"{method.name} has no fixed Runge-Kutta form (its correction acts through phi_0, docs/methods.md#lim)"
+    _set_attributes(group, {"order": method.order, "tableau": tableau,
+                            "quadrature": f"{method.k}-point Gauss-Legendre on [0, 1] for H"
+                                          + (f", {method.r}-point for the invariants" if method.imposes_invariants
+                                             else "")})
+    _small_dataset(group, "quadrature_nodes", method.c)
+    _small_dataset(group, "quadrature_weights", method.b)
+    if method.imposes_invariants:
+        _small_dataset(group, "invariant_quadrature_nodes", method.chat)
+        _small_dataset(group, "invariant_quadrature_weights", method.bhat)
+
+
+def _replace_attributes(obj, values: dict) -> None:
+    for name in values:
+        if name in obj.attrs:
+            del obj.attrs[name]
+    _set_attributes(obj, values)
+
+
+def _set_attributes(obj, values: dict) -> None:
+    """Create attributes through h5py's low-level API (numbers, strings, lists of strings, arrays)."""
+    for name, value in values.items():
+        if isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)):
+            data = np.array(value, dtype=h5py.string_dtype())
+        else:
+            data = np.asarray(value)
+        space = h5py.h5s.create(h5py.h5s.SCALAR) if data.ndim == 0 else h5py.h5s.create_simple(data.shape)
+        attribute = h5py.h5a.create(obj.id, name.encode(), h5py.h5t.py_create(data.dtype, logical=True), space)
+        attribute.write(data, mtype=h5py.h5t.py_create(data.dtype))
+
+
+def _small_dataset(group, name: str, value):
+    """A small contiguous dataset (tables, /state) written at once; returns its low-level id."""
+    data = np.array(value, order="C")   # (ascontiguousarray would make a scalar 1-d)
+    space = h5py.h5s.create(h5py.h5s.SCALAR) if data.ndim == 0 else h5py.h5s.create_simple(data.shape)
+    dataset_id = h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(data.dtype), space)
+    dataset_id.write(h5py.h5s.ALL, h5py.h5s.ALL, data)
+    return dataset_id
+
+
+# --- dimension scales (netCDF-4 / xarray) ------------------------------------------------------
+def _dataset(obj) -> h5py.Dataset:
+    """A high-level dataset of a Dataset, a low-level DatasetID or a _Growing."""
+    if isinstance(obj, h5py.Dataset):
+        return obj
+    return h5py.Dataset(obj if isinstance(obj, h5py.h5d.DatasetID) else obj.id)
+
+
+def dimension(group, name: str, length: int | None = None) -> h5py.Dataset:
+    """The dimension scale ``name`` of ``group``, created when missing as a netCDF dimension
+    that is no variable: an empty dataset of ``length`` entries (None: unlimited, its length
+    the longest of the datasets attached to it) that stores no data."""
+    if name in group:
+        return group[name]
+    if length is None:
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_chunk((MIN_CHUNK_ROWS,))
+        space = h5py.h5s.create_simple((0,), (h5py.h5s.UNLIMITED,))
+    else:
+        dcpl = None
+        space = h5py.h5s.create_simple((int(length),))
+    scale = h5py.Dataset(h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(np.dtype("f4")), space,
+                                         dcpl=dcpl))
+    scale.make_scale(DIMENSION_ONLY % (0 if length is None else int(length)))
+    return scale
+
+
+def attach(dataset, *scales) -> None:
+    """Put ``dataset`` on the given dimension scales, one per axis (None: leave that axis)."""
+    dataset = _dataset(dataset)
+    for axis, scale in enumerate(scales):
+        if scale is not None:
+            dataset.dims[axis].attach_scale(_dataset(scale))
+
+
+def label(dataset, long_name: str | None = None, units: str | None = None) -> None:
+    values = {}
+    if long_name:
+        values["long_name"] = long_name
+    if units:
+        values["units"] = units
+    _set_attributes(_dataset(dataset), values)
+
+
+def _string_dataset(group, name: str, values) -> h5py.Dataset:
+    """A small dataset of UTF-8 strings (names), through h5py's high-level API (its string types)."""
+    return group.create_dataset(name, data=np.array([str(v) for v in values], dtype=h5py.string_dtype()))
+
+
+def unit_attributes(problem) -> dict:
+    """``<quantity>_unit`` attributes of a problem that states its units (e.g. time_unit = 'day')."""
+    return {f"{quantity}_unit": unit for quantity, unit in dict(getattr(problem, "units", {}) or {}).items()}
+
+
+# --- the run group ------------------------------------------------------------------------------
+def create_run_group(group, *, problem, method, conserve, n_multipliers: int, multiplier: str | None,
+                     attributes: dict) -> dict:
+    """Create the layout of a run in ``group`` (the module doc) with its attributes; return
+    the growing datasets {"t", "y", "invariants": [H, ...], "iterations", "substeps",
+    "multipliers"} (empty, to be extended by ``append_rows``). The one writer of a run
+    group: the run file (``runfile.RunWriter``) and each run of a sweep file use it."""
+    units = dict(getattr(problem, "units", {}) or {})
+    _set_attributes(group, {**attributes, **unit_attributes(problem)})
+    names = list(problem.coordinate_names)
+    t = _growing(group, "t", None, "f8")
+    t_dataset = h5py.Dataset(t.id)
+    t_dataset.make_scale("t")
+    label(t_dataset, LONG_NAMES["t"], units.get("time"))
+    component = _string_dataset(group, "component", names)
+    component.make_scale("component")
+    label(component, LONG_NAMES["component"])
+    y = _growing(group, "y", len(names), "f8")
+    attach(y, t_dataset, component)
+    label(y, LONG_NAMES["y"])
+    invariant_names = ("H",) + tuple(problem.invariant_names)
+    inv = group.create_group("invariants")
+    _set_attributes(inv, {"order": list(invariant_names)})
+    invariants = []
+    for name in invariant_names:
+        dataset = _growing(inv, name, None, "f8")
+        attach(dataset, t_dataset)
+        _set_attributes(h5py.Dataset(dataset.id), {"imposed": name in conserve,
+                                                   "long_name": LONG_NAMES["H"] if name == "H" else
+                                                   f"invariant {name}"})
+        invariants.append(dataset)
+    steps = group.create_group("steps")
+    step = dimension(steps, "step")
+    iterations = _growing(steps, "iterations", None, "i4")
+    substeps = _growing(steps, "substeps", None, "i4")
+    for dataset, name in ((iterations, "iterations"), (substeps, "substeps")):
+        attach(dataset, step)
+        label(dataset, LONG_NAMES[name])
+    multipliers = None
+    if multiplier is not None:
+        imposed = tuple(method.multiplier_components(tuple(conserve)))
+        column = _string_dataset(steps, "invariant", imposed)
+        column.make_scale("invariant")
+        label(column, LONG_NAMES["invariant"])
+        multipliers = _growing(steps, multiplier, n_multipliers, "f8")
+        attach(multipliers, step, column)
+        _set_attributes(h5py.Dataset(multipliers.id), {"invariants": list(imposed),
+                                                       "long_name": LONG_NAMES[multiplier]})
+    write_method(group.create_group("method"), method)
+    return {"t": t, "y": y, "invariants": invariants, "iterations": iterations, "substeps": substeps,
+            "multipliers": multipliers}
+
+
+def append_rows(datasets: dict, *, t, y, invariants, iterations, substeps, multipliers) -> None:
+    """Extend a run group's datasets: samples (t, y, invariants as columns H, ...) and steps."""
+    datasets["t"].append(t)
+    datasets["y"].append(y)
+    for column, dataset in enumerate(datasets["invariants"]):
+        dataset.append(invariants[:, column])
+    datasets["iterations"].append(iterations)
+    if datasets.get("substeps") is not None:
+        datasets["substeps"].append(substeps)
+    if datasets.get("multipliers") is not None:
+        datasets["multipliers"].append(multipliers)
+
+
+def write_method(group, method) -> None:
+    """The method's tables (``_write_method``) on their dimensions: stage and node (k), invariant_node (r)."""
+    _write_method(group, method)
+    for name, axes in (("A", ("stage", "node")), ("b", ("node",)), ("c", ("stage",)),
+                       ("quadrature_nodes", ("node",)), ("quadrature_weights", ("node",)),
+                       ("invariant_quadrature_nodes", ("invariant_node",)),
+                       ("invariant_quadrature_weights", ("invariant_node",))):
+        if name in group:
+            dataset = group[name]
+            attach(dataset, *(dimension(group, axis, length) for axis, length in zip(axes, dataset.shape)))
+
+
+def component_names(group) -> list[str]:
+    """The state's component names: /component (format 3), else the attribute of /y (format 1, 2)."""
+    if "component" in group:
+        return [str(name) for name in _plain(group["component"][()])]
+    return [str(name) for name in _plain(group["y"].attrs.get("coordinates", []))]

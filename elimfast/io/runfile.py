@@ -1,0 +1,920 @@
+"""The run file: its writer (streaming, crash-safe, resumable) and its reader.
+
+Layout (format ``elimfast-run``): the run group of ``layout.py`` at the root, plus
+
+    /state/...              what resume needs, rewritten after every flushed chunk:
+                            y, y_comp (Kahan compensation), clock = [t, its compensation],
+                            coef (s, 2m) last step's coefficients, multipliers, last_h,
+                            newton_base, steps_done, n_samples, wall_time_s, kernel_time_s
+    /state/record           (2, L) float64: the same state as one row, written alternately
+                            into row 0 and row 1 (see "Saved state" below)
+
+Root attributes: elimfast_version, numba_version, numpy_version, h5py_version,
+hdf5_version, created (UTC, ISO 8601), config (the resolved YAML), problem, method,
+family, r, k, s, h, t0, t_end, n_steps, output_every, conserve, steps_done, status
+(running | complete | interrupted | killed | stopped: <reason> | failed: <reason>),
+wall_time_s, kernel_time_s, format = 'elimfast-run', format_version, and
+``<quantity>_unit`` where the problem states its units. 'stopped' (the disk filled up, a
+problem function raised) can be resumed; 'failed' (the numerics failed) only with other
+solver settings; 'killed' is what ``repair`` writes into the file of a killed writer.
+
+The file is written in SWMR mode (``safety.py``): root attributes cannot change then, so
+they are final only once the run ends (the writer then reopens the file normally);
+while a run is going, or after a kill, ``status`` still says ``running`` and /state holds
+the truth. Data rows beyond the saved state may exist after a kill; they belong to the
+chunk being written and are dropped by resume and by ``repair``.
+
+Saved state. The named /state datasets are written one by one, so a kill between two
+of those writes would leave them mixed (y of one chunk, steps_done of the one before).
+The record is written in one piece, alternately into its two rows, each row with a
+sequence number and a CRC-32 of its values (and HDF5's fletcher32 on each row): the
+valid row with the higher sequence number is the state, and if a kill or a damaged
+sector spoils one row, the other still holds the state of the chunk before.
+
+Damage. A resume first reads everything it will build on and refuses a damaged file,
+leaving it as it was; every read error names the file and the place (``DamagedFileError``).
+
+The reader also opens one run of a sweep file (``RunFile("sweep.h5:/runs/<label>")``),
+whose group has the same layout without /state.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime
+import math
+import os
+import socket
+import zlib
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import DiskFullError, ElimfastError
+from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATUS_KILLED,
+                     STATUS_RUNNING, VERIFY_BLOCK_BYTES, _Growing, _plain, _replace_attributes, _set_attributes,
+                     _small_dataset, append_rows, attach, component_names, create_run_group, dimension,
+                     multiplier_datasets, multiplier_name, PER_STEP_RECORDS, version_attributes)
+from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
+                     _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
+                     _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
+                     _writer_lock_held, clear_consistency_flags, consistency_flags, ensure_not_busy,
+                     set_consistency_flags)
+
+SWEEP_FORMAT = "elimfast-sweep"
+RUNS_GROUP = "runs"
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end: float | None,
+                   output_every: int, conserve) -> dict:
+    """The attributes that describe a run, alike in a run file and in each run of a sweep file."""
+    return {"problem": problem.name, "method": method.name, "family": method.family, "r": method.r, "k": method.k,
+            "s": method.s, "h": float(h), "t0": float(t0),
+            "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
+            "n_steps": int(n_steps), "output_every": int(output_every), "conserve": list(conserve)}
+
+
+def samples_on_grid(steps_done: int, output_every: int) -> int:
+    """Samples a run holds after steps_done steps when it stopped between samples: t0 and
+    every multiple of output_every (a failed run adds one of its last good state)."""
+    return 1 + int(steps_done) // max(int(output_every), 1)
+
+
+def _state_dimensions(f, state, record) -> None:
+    """Dimension scales of /state (so that xarray.open_datatree reads the whole file)."""
+    component = f["component"]
+    datasets = {name: h5py.Dataset(state[name].id) for name in state}
+    attach(datasets["y"], component)
+    attach(datasets["y_comp"], component)
+    attach(datasets["coef"], dimension(state, "coefficient", datasets["coef"].shape[0]), component)
+    for name, axis in (("clock", "clock_term"), ("multipliers", "multiplier"), ("last_h", "last_h_entry"),
+                       ("newton_base", "newton_base_entry")):
+        if name in datasets:
+            attach(datasets[name], dimension(state, axis, datasets[name].shape[0]))
+    record = h5py.Dataset(record)
+    attach(record, dimension(state, "record_slot", record.shape[0]), dimension(state, "record_field", record.shape[1]))
+
+
+def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
+    """(file, run label) of ``file.h5`` or ``file.h5:/runs/<label>`` (a run of a sweep file)."""
+    text = os.fspath(path)
+    if run is None and not os.path.exists(text):
+        marker = f":/{RUNS_GROUP}/"
+        at = text.find(marker)
+        while at > 0:
+            if os.path.isfile(text[:at]):
+                return Path(text[:at]), text[at + len(marker):]
+            at = text.find(marker, at + 1)
+    return Path(text), run
+
+
+def _sweep_run_group(path: Path, f, label: str):
+    """The group of the sweep run ``label`` (its label or its group name), or an OutputError listing the runs."""
+    from .sweepfile import sweep_group_name
+    try:
+        fmt = _plain(f.attrs.get("format", ""))
+        runs = f[RUNS_GROUP] if RUNS_GROUP in f else None
+    except (OSError, RuntimeError, KeyError, ValueError) as err:
+        raise _damaged(path, "its root", err) from None
+    if fmt != SWEEP_FORMAT or runs is None:
+        raise NotAnElimfastFile(f"{path}: not an elimfast sweep file, so it has no run {label!r}; give the file "
+                                "alone for a run file")
+    for name in (label, sweep_group_name(label)):
+        if name in runs:
+            group = runs[name]
+            missing = [member for member in ("t", "y", "invariants", "steps/iterations") if member not in group]
+            if missing:
+                status = _plain(group.attrs.get("status", "?"))
+                raise OutputError(f"{path}:/{RUNS_GROUP}/{name}: the run stored no data ({status})")
+            return group
+    labels = [str(_plain(runs[name].attrs.get("label", name))) for name in runs]
+    shown = ", ".join(labels[:8]) + (", ..." if len(labels) > 8 else "")
+    raise OutputError(f"{path}: has no run {label!r}; its runs: {shown or 'none'}")
+
+
+def repair(path) -> str:
+    """Make the file of a killed writer readable by every HDF5 program (as ``h5clear -s``),
+    once no process writes it; return what was done.
+
+    A run file is also cut back to its saved state (the rows of the chunk that was being
+    written go) and gets ``status = killed`` and the saved ``steps_done`` as root
+    attributes, so that readers that know nothing of /state (xarray) see the truth.
+    ``--resume`` continues a repaired file as it would the killed one.
+    """
+    path = Path(path)
+    _regular_file(path, "file")
+    if not h5py.is_hdf5(path):
+        raise NotAnElimfastFile(f"{path}: not an HDF5 file; nothing to repair")
+    ensure_not_busy(path)
+    flags = consistency_flags(path)
+    if not flags:
+        return f"{path}: nothing to repair (no writer left it open)"
+    with RunFile(path) if _format_of(path) == FORMAT else contextlib.nullcontext() as run_file:
+        saved = run_file.saved_state() if run_file is not None else None
+    guard = _FileGuard(path)
+    try:
+        if not guard.lock():
+            raise FileBusyError(f"{path}: is being written by another process; stop it first")
+        clear_consistency_flags(path)
+        try:
+            with h5py.File(path, "r+", libver=LIBVER) as f:
+                if saved is not None:
+                    _cut_back(f, saved["n_samples"], saved["steps_done"])
+                    f.attrs["status"] = STATUS_KILLED
+                    f.attrs["steps_done"] = saved["steps_done"]
+                    f.attrs["wall_time_s"] = float(saved["wall_time_s"])
+                    f.attrs["kernel_time_s"] = float(saved["kernel_time_s"])
+        except (OSError, RuntimeError) as err:
+            with contextlib.suppress(OSError, OutputError):
+                set_consistency_flags(path, flags)
+            raise _damaged(path, "its start (HDF5 cannot open it for the repair)", err) from None
+    finally:
+        guard.close()
+    if saved is None:
+        return f"{path}: repaired: cleared the flags its writer left; every HDF5 program opens it now"
+    return (f"{path}: repaired: cleared the flags its killed writer left and kept the {saved['steps_done']} steps "
+            "it had saved; every HDF5 program opens it now (continue the run with elimfast run ... --resume)")
+
+
+def _format_of(path) -> str:
+    from .safety import _open_swmr
+    try:
+        with _open_swmr(path) as f:
+            return str(_plain(f.attrs.get("format", "")))
+    except (OSError, RuntimeError, KeyError):
+        return ""
+
+
+def _cut_back(f, n_samples: int, steps_done: int) -> None:
+    for d in _sample_datasets(f):
+        if d.shape[0] > n_samples:
+            d.resize(n_samples, axis=0)
+    for d in _step_datasets(f):
+        if d.shape[0] > steps_done:
+            d.resize(steps_done, axis=0)
+
+
+_RECORD_HEADER = ("sequence", "steps_done", "n_samples", "wall_time_s", "kernel_time_s")
+
+
+def _record_length(n: int, s: int, n_mult: int) -> int:
+    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + (n + 3) + 1
+
+
+def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float, kernel_time_s: float) -> np.ndarray:
+    body = np.concatenate([
+        np.array([sequence, state["steps_done"], n_samples, wall_time_s, kernel_time_s], dtype=np.float64),
+        np.asarray(state["clock"], dtype=np.float64).ravel(), np.asarray(state["y"], dtype=np.float64).ravel(),
+        np.asarray(state["y_comp"], dtype=np.float64).ravel(), np.asarray(state["coef"], dtype=np.float64).ravel(),
+        np.asarray(state["multipliers"], dtype=np.float64).ravel(), np.asarray(state["last_h"], dtype=np.float64).ravel(),
+        np.asarray(state["newton_base"], dtype=np.float64).ravel()])
+    return np.append(body, float(zlib.crc32(body.astype("<f8").tobytes())))
+
+
+def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int) -> dict | None:
+    """The state in a record row, or None if its CRC does not match (a torn or damaged row)."""
+    if row.shape != (_record_length(n, s, n_mult),) or not np.all(np.isfinite(row[:5])):
+        return None
+    if float(zlib.crc32(row[:-1].astype("<f8").tobytes())) != row[-1]:
+        return None
+    header = dict(zip(_RECORD_HEADER, row[:5].tolist()))
+    at = len(_RECORD_HEADER)
+    parts = {}
+    for key, size, shape in (("clock", 2, (2,)), ("y", n, (n,)), ("y_comp", n, (n,)), ("coef", s * n, (s, n)),
+                             ("multipliers", n_mult, (n_mult,)), ("last_h", 1, (1,)), ("newton_base", n + 3, (n + 3,))):
+        parts[key] = row[at:at + size].reshape(shape).copy()
+        at += size
+    return {**parts, "steps_done": int(header["steps_done"]), "n_samples": int(header["n_samples"]),
+            "wall_time_s": header["wall_time_s"], "kernel_time_s": header["kernel_time_s"],
+            "sequence": int(header["sequence"])}
+
+
+def _record_dataset(group, length: int):
+    """/state/record: (2, length), one HDF5 chunk per row, fletcher32."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_chunk((1, length))
+    dcpl.set_fletcher32()
+    space = h5py.h5s.create_simple((2, length))
+    return h5py.h5d.create(group.id, b"record", h5py.h5t.py_create(np.dtype("<f8")), space, dcpl=dcpl)
+
+
+def _write_record_row(dataset_id, slot: int, row: np.ndarray) -> None:
+    file_space = dataset_id.get_space()
+    file_space.select_hyperslab((slot, 0), (1, row.size))
+    dataset_id.write(h5py.h5s.create_simple((1, row.size)), file_space, np.ascontiguousarray(row[None, :]))
+
+
+class RunWriter:
+    """Appends the chunks of one run to its file and keeps /state current.
+
+    ``create`` starts a new file, ``resume`` reopens one and returns the saved state.
+    Before a chunk, ``fit_steps`` reserves its disk space. After each ``append`` call
+    ``save_state``: the data are flushed first and the state second, so a state on disk
+    never refers to data that did not reach it. ``finish`` writes the final root
+    attributes and closes the file. If HDF5 fails while writing (``WriteFailed``), the
+    writer is abandoned: the file stays as a killed writer would leave it.
+    """
+
+    def __init__(self, path: Path, file: h5py.File, datasets: dict, guard: _FileGuard | None = None,
+                 sequence: int = 1):
+        self.path = path
+        self._file = file
+        # Handles kept: h5py's name lookups cost more than the writes of a chunk.
+        self._datasets = datasets
+        self._t, self._y = datasets["t"], datasets["y"]
+        self._invariants = datasets["invariants"]    # in the column order of Chunk.invariants
+        self._iterations = datasets["iterations"]
+        self._substeps = datasets.get("substeps")    # absent in files written before the step engine
+        self._multipliers = datasets.get("multipliers")
+        self._state = datasets["state"]
+        self._record = datasets.get("record")
+        self._sequence = sequence
+        self._guard = guard
+        self.failed_step_iterations = None
+        self.abandoned = False
+        self.saved = {"steps_done": 0, "n_samples": 0, "t": math.nan}
+
+    @classmethod
+    def _from_file(cls, path: Path, f: h5py.File, guard, sequence: int) -> "RunWriter":
+        steps = f["steps"]
+        multipliers = next((steps[name] for name in multiplier_datasets(steps)), None)
+        order = [str(name) for name in _plain(f["invariants"].attrs["order"])]
+        state = {name: dataset.id for name, dataset in f["state"].items() if name != "record"}
+        return cls(path, f, {
+            "t": _Growing(f["t"].id), "y": _Growing(f["y"].id),
+            "invariants": [_Growing(f["invariants"][name].id) for name in order],
+            "iterations": _Growing(steps["iterations"].id),
+            "substeps": _Growing(steps["substeps"].id) if "substeps" in steps else None,
+            "multipliers": _Growing(multipliers.id) if multipliers is not None else None,
+            "state": state, "record": f["state"]["record"].id if "record" in f["state"] else None},
+            guard=guard, sequence=sequence)
+
+    # --- opening ---
+    @classmethod
+    def create(cls, path, integration, *, config_text: str, t_end: float | None = None,
+               attributes: dict | None = None, overwrite: bool = True) -> "RunWriter":
+        """Create ``path`` with the layout, the run's metadata and its sample at t0.
+
+        The file is built under a temporary name and renamed to ``path`` once complete; an
+        existing ``path`` is replaced (``overwrite``) unless another process is writing it.
+        """
+        path = Path(path)
+        run, problem, method = integration, integration.problem, integration.method
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"{path}: cannot create: {_one_line(err)}") from None
+        ensure_not_busy(path)
+        free = _free_bytes(path.parent)
+        if free is not None and free < SPACE_BASE:
+            raise DiskFullError(f"{path}: the disk is full ({_size(free)} free); free some space, or write "
+                                "the run elsewhere")
+        temporary = _temporary_path(path)
+        try:
+            f = h5py.File(temporary, "w", libver=LIBVER)
+        except OSError as err:
+            with contextlib.suppress(OSError):
+                temporary.unlink()
+            if _is_disk_full(err):
+                raise DiskFullError(f"{path}: the disk is full; free some space, or write the run elsewhere") from None
+            raise OutputError(f"{path}: cannot create: {_one_line(err)}") from None
+        guard = None
+        try:
+            guard = _FileGuard(temporary)
+            guard.lock()
+            mult = multiplier_name(run)
+            n_datasets = 5 + len(problem.invariant_names) + (mult is not None)
+            guard.reserve(SPACE_BASE + n_datasets * SPACE_MARGIN)
+            _set_attributes(f, {**version_attributes(), "format": FORMAT, "format_version": FORMAT_VERSION,
+                                "created": _now()})
+            datasets = create_run_group(f, problem=problem, method=method, conserve=run.conserve,
+                                        n_multipliers=run.multipliers.size, multiplier=mult, attributes={
+                "config": config_text, **run_attributes(problem, method, h=run.h, t0=run.t0, n_steps=run.n_steps,
+                                                        t_end=t_end, output_every=run.store_every,
+                                                        conserve=run.conserve),
+                "steps_done": 0, "status": STATUS_RUNNING, "wall_time_s": 0.0, "kernel_time_s": 0.0,
+                **(attributes or {})})
+            state = f.create_group("state")
+            initial = dict(run.state(), n_samples=np.int64(1), wall_time_s=0.0, kernel_time_s=0.0)
+            datasets["state"] = {key: _small_dataset(state, key, value) for key, value in initial.items()}
+            n, s = run.y.size, run.coef.shape[0]
+            record = _record_dataset(state, _record_length(n, s, run.multipliers.size))
+            _state_dimensions(f, state, record)
+            for sequence in (0, 1):
+                _write_record_row(record, sequence, _pack_record(run.state(), sequence, 1, 0.0, 0.0))
+            datasets["record"] = record
+            _mark_writer(state)
+
+            writer = cls(path, f, datasets, guard=guard, sequence=1)
+            writer.append(integration.initial_chunk())
+            writer.saved = {"steps_done": run.steps_done, "n_samples": 1, "t": run.t}
+            f.swmr_mode = True   # flushes: from here on the file on disk is always consistent
+            _publish(temporary, path, overwrite)
+            return writer
+        except OutputError:                      # busy, or appeared meanwhile: HDF5 itself is fine
+            _close_quietly(f, guard, temporary)
+            raise
+        except (OSError, RuntimeError) as err:   # HDF5 failed a write (or no room): never close it again
+            _abandon(f, guard)
+            with contextlib.suppress(OSError):
+                temporary.unlink()
+            if isinstance(err, DiskFullError) or _is_disk_full(err):
+                raise DiskFullError(f"{path}: the disk is full; free some space, or write the run "
+                                    "elsewhere") from None
+            raise OutputError(f"{path}: cannot create: {_one_line(err)}") from None
+        except BaseException:
+            _close_quietly(f, guard, temporary)
+            raise
+
+    @classmethod
+    def resume(cls, path, *, restore=None, stop=None, config_text: str | None = None) -> tuple["RunWriter", dict]:
+        """Reopen a run for writing; return (writer, saved) with saved = the state and the root attributes.
+
+        Nothing is changed until everything the run will build on has been read back and
+        found sound (``RunFile.verify``: metadata checksums, fletcher32 of every chunk up
+        to the saved state, the state record) and ``restore(saved)`` has accepted the
+        state (it raises ValueError or KeyError if the state does not fit the run). A file
+        left by a killed writer (SWMR flags still set) is then repaired; if reopening it
+        still fails, the flags are put back as they were. ``config_text``: the resolved
+        config the run continues with, when its solver settings differ from the stored
+        one's; it replaces the stored config, and ``solver_history`` records the change.
+        """
+        path = Path(path)
+        if not path.exists():
+            raise OutputError(f"{path}: no such file to resume")
+        _regular_file(path, "run file")
+        if not h5py.is_hdf5(path):
+            raise NotAnElimfastFile(f"{path}: not an HDF5 file, so not an elimfast run to resume")
+        ensure_not_busy(path)
+        with RunFile(path) as existing:
+            saved = existing.saved_state()
+            existing.verify(stop=stop)
+            # A failed run ends with a sample of its last good state, off the output grid:
+            # the continuation samples the grid again, as an uninterrupted run does.
+            saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
+                saved["steps_done"], int(existing.attrs.get("output_every", 1))))
+            n_datasets = 4 + len(existing.invariant_names) + (existing.multiplier_name is not None)
+        # A format 1 file (no checksums, no record) is continued in its own format.
+        if restore is not None:
+            try:
+                restore(saved)
+            except (KeyError, ValueError) as err:
+                raise OutputError(f"{path}: the stored state does not fit this run ({err})") from None
+        flags = consistency_flags(path)
+        guard = _FileGuard(path)
+        try:
+            if not guard.lock():
+                raise FileBusyError(f"{path}: is being written by another process; stop it first")
+            guard.reserve(SPACE_BASE + n_datasets * SPACE_MARGIN)
+        except DiskFullError as err:
+            guard.close()
+            raise DiskFullError(f"{err}; free some space, then resume again") from None
+        except BaseException:
+            guard.close()
+            raise
+        if flags:
+            clear_consistency_flags(path)
+        try:
+            f = h5py.File(path, "r+", libver=LIBVER)
+        except OSError as err:
+            guard.close()
+            if flags:
+                with contextlib.suppress(OSError, OutputError):
+                    set_consistency_flags(path, flags)
+            raise OutputError(f"{path}: cannot open for resuming: {_one_line(err)}") from None
+        try:
+            attrs = {key: _plain(value) for key, value in f.attrs.items()}
+            # Drop rows of the chunk that was being written when the run stopped.
+            for d in _sample_datasets(f):
+                d.resize(saved["n_samples"], axis=0)
+            for d in _step_datasets(f):
+                d.resize(saved["steps_done"], axis=0)
+            f.attrs["status"] = STATUS_RUNNING
+            if config_text is not None:
+                history = list(_plain(f.attrs.get("solver_history", [])) or [])
+                history.append(f"from step {saved['steps_done']}: {_solver_line(config_text)} "
+                               f"(before: {_solver_line(str(attrs.get('config', '')))})")
+                _replace_attributes(f, {"config": config_text, "solver_history": history})
+            for key in ("failed_step_iterations",):
+                if key in f.attrs:
+                    del f.attrs[key]
+            _mark_writer(f["state"])
+            f.flush()
+            f.swmr_mode = True
+        except (OSError, RuntimeError) as err:
+            _abandon(f, guard)
+            if _is_disk_full(err):
+                raise DiskFullError(f"{path}: the disk is full; free some space, then resume again") from None
+            raise OutputError(f"{path}: cannot be resumed: {_one_line(err)}") from None
+        except BaseException:
+            _close_quietly(f, guard, None)
+            raise
+        writer = cls._from_file(path, f, guard, saved.get("sequence", 1))
+        writer.saved = {"steps_done": saved["steps_done"], "n_samples": saved["n_samples"],
+                        "t": float(saved["clock"][0])}
+        saved["attrs"] = attrs
+        return writer, saved
+
+    # --- disk space ---
+    @property
+    def n_datasets(self) -> int:
+        return 3 + len(self._invariants) + (self._substeps is not None) + (self._multipliers is not None)
+
+    def fit_steps(self, steps: int, step_bytes: float) -> int:
+        """How many of ``steps`` steps (at ``step_bytes`` each) the disk can take; their
+        space is reserved. 0: not even one step fits (the disk is full)."""
+        if self._guard is None:
+            return steps
+        margin = SPACE_BASE + self.n_datasets * SPACE_MARGIN
+        try:
+            self._guard.reserve(margin + SPACE_FACTOR * steps * step_bytes)
+            return steps
+        except DiskFullError:
+            pass
+        free = (self._guard.available() or 0) + self._guard.reserved()
+        fitting = int((free - margin) // max(SPACE_FACTOR * step_bytes, 1.0))
+        if fitting < 1:
+            return 0
+        try:
+            self._guard.reserve(margin + SPACE_FACTOR * fitting * step_bytes)
+        except DiskFullError:
+            return 0
+        return min(steps, fitting)
+
+    # --- writing ---
+    def append(self, chunk) -> None:
+        """Extend every dataset by the chunk's samples and steps (not yet flushed)."""
+        steps_done = len(chunk.multipliers)
+        iterations = chunk.iterations
+        if len(iterations) > steps_done:   # a failed step's count: kept apart, rows stay per done step
+            self.failed_step_iterations = int(iterations[steps_done])
+            iterations = iterations[:steps_done]
+        append_rows(self._datasets, t=chunk.t, y=chunk.y, invariants=chunk.invariants, iterations=iterations,
+                    substeps=chunk.substeps, multipliers=chunk.multipliers)
+
+    def save_state(self, state: dict, *, wall_time_s: float, kernel_time_s: float) -> None:
+        """Flush the appended data, then write and flush the state (two flushes: see class doc)."""
+        self._file.flush()
+        n_samples = self._t.rows
+        if self._record is not None:
+            self._sequence += 1
+            _write_record_row(self._record, self._sequence % 2,
+                              _pack_record(state, self._sequence, n_samples, wall_time_s, kernel_time_s))
+        values = dict(state, n_samples=n_samples, wall_time_s=wall_time_s, kernel_time_s=kernel_time_s)
+        for key, value in values.items():
+            dataset = self._state.get(key)
+            if dataset is None:     # last_h, newton_base: a file written before the step engine (no record)
+                continue
+            dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
+        self._file.flush()
+        self.saved = {"steps_done": int(state["steps_done"]), "n_samples": n_samples,
+                      "t": float(np.asarray(state["clock"])[0])}
+
+    def finish(self, status: str, *, steps_done: int, wall_time_s: float, kernel_time_s: float) -> None:
+        """Close the SWMR session, then write the final root attributes in a normal session.
+
+        Rows appended after the last saved state (a chunk cut short) are dropped first, so
+        the datasets end where the saved state says.
+        """
+        if self.abandoned:
+            return
+        if self._guard is not None:
+            self._guard.reserve(SPACE_BASE)
+        saved_samples, saved_steps = self.saved["n_samples"], self.saved["steps_done"]
+        cut_short = self._t.rows > saved_samples or self._iterations.rows > saved_steps
+        self._file.close()
+        try:
+            with h5py.File(self.path, "r+", libver=LIBVER) as f:
+                if cut_short:
+                    for d in _sample_datasets(f):
+                        if d.shape[0] > saved_samples:
+                            d.resize(saved_samples, axis=0)
+                    for d in _step_datasets(f):
+                        if d.shape[0] > saved_steps:
+                            d.resize(saved_steps, axis=0)
+                f.attrs["status"] = status
+                f.attrs["steps_done"] = min(steps_done, saved_steps)
+                f.attrs["wall_time_s"] = wall_time_s
+                f.attrs["kernel_time_s"] = kernel_time_s
+                if self.failed_step_iterations is not None:
+                    f.attrs["failed_step_iterations"] = self.failed_step_iterations
+        finally:
+            if self._guard is not None:
+                self._guard.close()
+
+    def close(self) -> None:
+        """Close without final attributes (the file stays valid, status 'running')."""
+        if self.abandoned:
+            return
+        try:
+            if self._file.id.valid:
+                self._file.close()
+        finally:
+            if self._guard is not None:
+                self._guard.close()
+
+    def abandon(self) -> None:
+        """After HDF5 failed a write: never touch the file again (see _ABANDONED)."""
+        if not self.abandoned:
+            self.abandoned = True
+            _abandon(self._file, self._guard, keep=self)
+
+
+def _mark_writer(state_group) -> None:
+    state_group.attrs["writer_pid"] = os.getpid()
+    state_group.attrs["writer_host"] = socket.gethostname()
+
+
+def _step_datasets(f):
+    """Every dataset with one row per step: the per-step records and the multipliers."""
+    steps = f["steps"]
+    for name in PER_STEP_RECORDS + tuple(multiplier_datasets(steps)):
+        if name in steps:
+            yield steps[name]
+
+
+def _sample_datasets(f):
+    yield f["t"]
+    yield f["y"]
+    yield from f["invariants"].values()
+
+
+def _solver_line(config_text: str) -> str:
+    """The solver section of a resolved config, on one line."""
+    import yaml
+    try:
+        solver = (yaml.safe_load(config_text) or {}).get("solver") or {}
+    except (yaml.YAMLError, AttributeError):
+        return "?"
+    return ", ".join(f"{key} {value}" for key, value in solver.items()) if isinstance(solver, dict) else "?"
+
+
+_STATE_MEMBERS = ("y", "y_comp", "clock", "coef", "multipliers", "steps_done", "n_samples", "wall_time_s",
+                  "kernel_time_s")
+_LAYOUT = ("t", "y", "invariants", "steps", "steps/iterations", "method", "state",
+           *(f"state/{name}" for name in _STATE_MEMBERS))
+
+def _require_ours(path, f) -> None:
+    """The format attribute, a version this reader knows, and every member of the layout."""
+    try:
+        names = set(f.attrs)    # listing them reads the whole attribute index: damage shows here
+        fmt = _plain(f.attrs["format"]) if "format" in names else None
+        version = int(f.attrs["format_version"]) if "format_version" in names else 0
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
+        raise _damaged(path, "its root attributes", err) from None
+    if fmt != FORMAT:
+        what = f"its format is {fmt!r}" if fmt else f"no '{FORMAT}' format attribute"
+        raise NotAnElimfastFile(f"{path}: not an elimfast run file ({what}); give a file written by 'elimfast run'")
+    if version > FORMAT_VERSION:
+        raise OutputError(f"{path}: written in elimfast run format {version}; this elimfast reads up to "
+                          f"{FORMAT_VERSION}: upgrade elimfast")
+    for name in _LAYOUT:
+        try:
+            present = name in f
+        except (OSError, RuntimeError, KeyError, ValueError) as err:
+            raise _damaged(path, f"/{name}", err) from None
+        if not present:
+            raise DamagedFileError(f"{path} is damaged or incomplete: it has the elimfast run format but no /{name}; "
+                                   f"{_DAMAGE_ADVICE}")
+
+
+class RunFile:
+    """A run file opened for reading (read-only; a killed run's file is opened in SWMR mode).
+
+    ``attrs``: root attributes as plain Python values; ``steps_done`` and
+    ``n_samples``: the rows that are consistent (from the saved state); ``status``: the
+    recorded status, or 'killed' / 'running' for a file whose writer did not finish
+    (decided by whether the writer process is alive). Every read that fails (a checksum,
+    a missing member) raises DamagedFileError naming the file and the place.
+    """
+
+    def __init__(self, path, run: str | None = None):
+        path, run = split_run_path(path, run)
+        self.path = Path(path)
+        self.run = run
+        self._file = _open(self.path)
+        try:
+            if run is None:
+                _require_ours(self.path, self._file)
+                self._root = self._file
+            else:
+                self._root = _sweep_run_group(self.path, self._file, run)
+            with self._reading("the layout"):
+                self._load()
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def name(self) -> str:
+        """The file, or file:/runs/<label> for a run of a sweep file."""
+        return f"{self.path}:{self._root.name}" if self.run is not None else str(self.path)
+
+    def _load(self) -> None:
+        f = self._root
+        with self._reading("the root attributes"):
+            self.attrs = {key: _plain(value) for key, value in f.attrs.items()}
+            if self.run is not None:   # the sweep file's versions and date, under the run's own attributes
+                self.attrs = {**{key: _plain(value) for key, value in self._file.attrs.items()
+                                 if key not in ("format", "sweep")}, **self.attrs}
+        self._saved = self._read_state() if self.run is None else self._sweep_run_counts()
+        self.steps_done = self._saved["steps_done"]
+        with self._reading("/t"):
+            self.n_samples = min(self._saved["n_samples"], f["t"].shape[0])
+        self.wall_time_s = self._saved["wall_time_s"]
+        self.kernel_time_s = self._saved["kernel_time_s"]
+        self.status = str(self.attrs.get("status", "?"))
+        if self.status == STATUS_RUNNING:
+            if int(self.attrs.get("format_version", 1)) >= 2:   # its writer holds the lock while it lives
+                alive = _writer_lock_held(self.path)
+            else:
+                state = f["state"]
+                pid = int(state.attrs.get("writer_pid", 0))
+                host = str(_plain(state.attrs.get("writer_host", "")))
+                alive = host == socket.gethostname() and pid and _process_alive(pid) and pid != os.getpid()
+            self.status = STATUS_RUNNING if alive else "killed"
+        with self._reading("/y"):
+            self.coordinate_names = component_names(f)
+        with self._reading("/invariants"):
+            self.invariant_names = [str(n) for n in _plain(f["invariants"].attrs["order"])]
+            self.imposed = {name: bool(f["invariants"][name].attrs.get("imposed", False))
+                            for name in self.invariant_names}
+        with self._reading("/steps"):
+            self.multiplier_name = next(iter(multiplier_datasets(f["steps"])), None)
+
+    @contextlib.contextmanager
+    def _reading(self, where: str):
+        """Turn any failure of HDF5 inside the block into DamagedFileError naming ``where``."""
+        try:
+            yield
+        except ElimfastError:
+            raise
+        except (KeyError, OSError, RuntimeError, ValueError, TypeError, IndexError) as err:
+            raise _damaged(self.path, where, err) from None
+
+    def _read_state(self) -> dict:
+        """The saved state: the valid row of /state/record with the higher sequence number
+        (format 2), or the named /state datasets (format 1)."""
+        state = self._root["state"]
+        with self._reading("/state"):
+            named = {key: np.array(state[key][()]) for key in _STATE_MEMBERS}
+        if "record" not in state:
+            return {**named, "steps_done": int(named["steps_done"]), "n_samples": int(named["n_samples"]),
+                    "wall_time_s": float(named["wall_time_s"]), "kernel_time_s": float(named["kernel_time_s"])}
+        n, (s, _), n_mult = named["y"].size, named["coef"].shape, named["multipliers"].size
+        best, problems = None, []
+        for slot in (0, 1):
+            try:
+                row = self._root["state/record"][slot]
+            except (KeyError, OSError, RuntimeError, ValueError) as err:
+                problems.append(f"row {slot}: {_hdf5_reason(err)}")
+                continue
+            values = _unpack_record(np.asarray(row, dtype=np.float64), n, s, n_mult)
+            if values is None:
+                problems.append(f"row {slot} fails its CRC")
+            elif best is None or values["sequence"] > best["sequence"]:
+                best = values
+        if best is None:
+            raise DamagedFileError(f"{self.path} is damaged at /state/record: neither copy of the saved state is "
+                                   f"sound ({'; '.join(problems)}); {_DAMAGE_ADVICE}")
+        return best
+
+    def _sweep_run_counts(self) -> dict:
+        """A sweep run has no /state: its datasets end where the run ended."""
+        f = self._root
+        with self._reading("/t"):
+            n_samples = f["t"].shape[0]
+        with self._reading("/steps/iterations"):
+            steps_done = min(int(self.attrs.get("steps_done", 0)), f["steps/iterations"].shape[0])
+        return {"steps_done": steps_done, "n_samples": n_samples,
+                "wall_time_s": float(self.attrs.get("wall_time_s", 0.0)), "kernel_time_s": 0.0}
+
+    def saved_state(self) -> dict:
+        """What resume continues from: y, y_comp, clock, coef, multipliers, steps_done,
+        n_samples, wall_time_s, kernel_time_s (and the record's sequence number)."""
+        return {key: (value.copy() if isinstance(value, np.ndarray) else value) for key, value in self._saved.items()}
+
+    def verify(self, stop=None) -> dict:
+        """Read every stored row the saved state counts (and the method tables) block by
+        block, so that HDF5 checks every metadata checksum and every chunk's fletcher32;
+        DamagedFileError at the first failure, also if a dataset is shorter than the state
+        says. ``stop``: an object whose ``requested`` ends the check early (KeyboardInterrupt).
+        Returns {"chunks": HDF5 chunks read, "checksummed": whether they carry fletcher32}."""
+        f = self._root
+        targets = [("/t", "t", self._saved["n_samples"]), ("/y", "y", self._saved["n_samples"])]
+        targets += [(f"/invariants/{name}", f"invariants/{name}", self._saved["n_samples"])
+                    for name in self.invariant_names]
+        with self._reading("/steps"):
+            targets += [(f"/steps/{name}", f"steps/{name}", self._saved["steps_done"]) for name in f["steps"]
+                        if name in PER_STEP_RECORDS or name in multiplier_datasets(f["steps"])]
+        chunks, checksummed = 0, True
+        for where, name, count in targets:
+            with self._reading(where):
+                dataset = f[name]
+                if dataset.shape[0] < count:
+                    raise DamagedFileError(f"{self.path} is damaged or incomplete at {where}: it has "
+                                           f"{dataset.shape[0]} rows, the saved state counts {count}; "
+                                           f"{_DAMAGE_ADVICE}")
+                checksummed = checksummed and bool(dataset.fletcher32)
+                chunk_rows = dataset.chunks[0] if dataset.chunks else max(count, 1)
+                row_bytes = dataset.dtype.itemsize * int(np.prod(dataset.shape[1:], dtype=np.int64))
+                block = max(1, VERIFY_BLOCK_BYTES // max(row_bytes, 1) // chunk_rows) * chunk_rows
+            for start in range(0, count, block):
+                if stop is not None and stop.requested:
+                    raise KeyboardInterrupt
+                end = min(count, start + block)
+                with self._reading(f"{where} rows {start}-{end - 1}"):
+                    dataset[start:end]
+            chunks += -(-count // chunk_rows)
+        with self._reading("/method"):
+            for name in f["method"]:
+                f["method"][name][()]
+        return {"chunks": chunks, "checksummed": checksummed}
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        if getattr(self, "_file", None) is not None and self._file.id.valid:
+            self._file.close()
+
+    @property
+    def swmr(self) -> bool:
+        return bool(self._file.swmr_mode)
+
+    # --- data ---
+    def _rows(self, name: str, count: int, stride: int) -> np.ndarray:
+        with self._reading(f"/{name}"):
+            return self._root[name][:count:stride]
+
+    def t(self, stride: int = 1) -> np.ndarray:
+        return self._rows("t", self.n_samples, stride)
+
+    def y(self, stride: int = 1) -> np.ndarray:
+        return self._rows("y", self.n_samples, stride)
+
+    def invariant(self, name: str, stride: int = 1) -> np.ndarray:
+        return self._rows(f"invariants/{name}", self.n_samples, stride)
+
+    def iterations(self, stride: int = 1) -> np.ndarray:
+        return self._rows("steps/iterations", self.steps_done, stride)
+
+    def substeps(self, stride: int = 1) -> np.ndarray:
+        """Substeps of each step; ones for a file written before the step engine (none stored)."""
+        with self._reading("/steps"):
+            present = "substeps" in self._root["steps"]
+        if not present:
+            return np.ones(len(range(0, self.steps_done, stride)), dtype=np.int32)
+        return self._rows("steps/substeps", self.steps_done, stride)
+
+    def multipliers(self, stride: int = 1) -> np.ndarray | None:
+        if self.multiplier_name is None:
+            return None
+        return self._rows(f"steps/{self.multiplier_name}", self.steps_done, stride)
+
+    def multiplier_labels(self) -> list[str]:
+        if self.multiplier_name is None:
+            return []
+        with self._reading(f"/steps/{self.multiplier_name}"):
+            names = _plain(self._root["steps"][self.multiplier_name].attrs.get("invariants", []))
+        return [f"{self.multiplier_name}[{name}]" for name in names]
+
+    def method_table(self, name: str) -> np.ndarray | None:
+        with self._reading(f"/method/{name}"):
+            group = self._root["method"]
+            return group[name][()] if name in group else None
+
+    def final_state(self) -> dict:
+        return self.saved_state()
+
+    # --- reductions, block by block (memory bounded for any length) ---
+    def _blocks(self, name: str, stop: int):
+        dataset = self._root[name]
+        row_bytes = dataset.dtype.itemsize * int(np.prod(dataset.shape[1:], dtype=np.int64))
+        block = max(1, VERIFY_BLOCK_BYTES // max(row_bytes, 1))
+        for start in range(0, stop, block):
+            end = min(stop, start + block)
+            with self._reading(f"/{name} rows {start}-{end - 1}"):
+                yield dataset[start:end]
+
+    def invariant_drift(self) -> dict[str, float]:
+        """max over the stored samples of |I(t) - I(t0)| for H and every invariant."""
+        drift = {}
+        for name in self.invariant_names:
+            if self.n_samples == 0:
+                drift[name] = math.nan
+                continue
+            first = None
+            largest = 0.0
+            for block in self._blocks(f"invariants/{name}", self.n_samples):
+                if first is None:
+                    first = float(block[0])
+                largest = max(largest, float(np.max(np.abs(block - first))))
+            drift[name] = largest
+        return drift
+
+    def iteration_stats(self) -> dict:
+        count, total, low, high = 0, 0, None, None
+        histogram = np.zeros(0, dtype=np.int64)
+        for block in self._blocks("steps/iterations", self.steps_done):
+            if block.size == 0:
+                continue
+            count += block.size
+            total += int(block.sum(dtype=np.int64))
+            low = int(block.min()) if low is None else min(low, int(block.min()))
+            high = int(block.max()) if high is None else max(high, int(block.max()))
+            counts = np.bincount(np.maximum(block, 0).astype(np.int64))
+            if counts.size > histogram.size:
+                counts[:histogram.size] += histogram
+                histogram = counts
+            else:
+                histogram[:counts.size] += counts
+        if count == 0:
+            return {"count": 0}
+        cumulative = np.cumsum(histogram)
+        median = int(np.searchsorted(cumulative, (count + 1) // 2))
+        p99 = int(np.searchsorted(cumulative, math.ceil(0.99 * count)))
+        return {"count": count, "total": total, "mean": total / count, "min": low, "median": median,
+                "p99": p99, "max": high}
+
+    def initial_invariants(self) -> dict[str, float]:
+        """H and every invariant at the first sample (t0), NaN when there is none."""
+        values = {}
+        for name in self.invariant_names:
+            first = math.nan
+            for block in self._blocks(f"invariants/{name}", min(self.n_samples, 1)):
+                first = float(block[0])
+            values[name] = first
+        return values
+
+    def substep_stats(self) -> dict:
+        """{"split": steps split into substeps (docs/solver.md), "max": the most substeps of
+        one step}; zeros for a file written before the step engine (no /steps/substeps)."""
+        with self._reading("/steps"):
+            present = "substeps" in self._root["steps"]
+        split, largest = 0, 1 if self.steps_done else 0
+        if present:
+            for block in self._blocks("steps/substeps", self.steps_done):
+                if block.size:
+                    split += int(np.count_nonzero(block > 1))
+                    largest = max(largest, int(block.max()))
+        return {"split": split, "max": largest}
+
+    def max_abs_multipliers(self) -> list[float]:
+        if self.multiplier_name is None:
+            return []
+        name = f"steps/{self.multiplier_name}"
+        with self._reading(f"/{name}"):
+            width = self._root[name].shape[1]
+        result = np.zeros(width)
+        for block in self._blocks(name, self.steps_done):
+            if block.size:
+                result = np.maximum(result, np.max(np.abs(block), axis=0))
+        return result.tolist()

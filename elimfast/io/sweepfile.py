@@ -1,0 +1,201 @@
+"""The sweep file: every run of a sweep under /runs/<label>/, in the layout of a run group.
+
+Format ``elimfast-sweep``: root attributes as a run file's versions and date, plus
+``sweep`` (the sweep file's text), ``source`` and ``axes``. Each run's group is written
+by ``layout.create_run_group``, the function that writes a run file's root, so it holds
+t, component, y, invariants/<name>, steps/..., method/... on the same dimension scales,
+and a run file's attributes (config, problem, method, h, n_steps, steps_done, status,
+wall_time_s, ...) plus ``label`` and ``axis_<name>`` for its coordinates. An ensemble
+sweep stores /ensemble instead. ``xarray.open_datatree(path, engine="h5netcdf")`` reads
+the file, one node per run; ``RunFile("file.h5:/runs/<label>")`` and
+``elimfast.load(path, run=label)`` read one run.
+"""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import DiskFullError, ElimfastError
+from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _set_attributes, _small_dataset, append_rows,
+                     _string_dataset, attach, create_run_group, dimension, version_attributes, write_method)
+from .runfile import SWEEP_FORMAT, _now, run_attributes
+from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _publish,
+                     _temporary_path, ensure_not_busy)
+
+
+def sweep_group_name(label: str) -> str:
+    """The group of a sweep run: its label with '/' (an HDF5 path separator) written as '|',
+    and a label of only dots ('.', '..': not names HDF5 accepts) prefixed with '_'."""
+    name = label.replace("/", "|")
+    return "_" + name if not name.strip(".") else name
+
+
+class SweepWriter:
+    """One HDF5 file for a whole sweep: /runs/<label>/ per run, in the layout of a run file.
+
+    Each run's group holds t, y, invariants/<name>, steps/iterations, steps/alpha or
+    steps/lambda, method/..., and the run attributes of a run file (config, problem,
+    method, h, n_steps, steps_done, status, wall_time_s, ...) plus ``label`` and the
+    run's coordinates on the sweep's axes. There is no /state: a sweep run is not
+    resumable on its own; rerun the sweep. Runs are written and flushed as they finish,
+    so a killed sweep keeps every finished run. The file is built under a temporary
+    name and renamed into place (an existing file another process uses is refused).
+    """
+
+    def __init__(self, path, *, sweep_text: str, attributes: dict | None = None, overwrite: bool = True):
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"{self.path}: cannot create: {_one_line(err)}") from None
+        ensure_not_busy(self.path)
+        temporary = _temporary_path(self.path)
+        try:
+            self._file = h5py.File(temporary, "w", libver=LIBVER)
+        except OSError as err:
+            with contextlib.suppress(OSError):
+                temporary.unlink()
+            raise OutputError(f"{self.path}: cannot create: {_one_line(err)}") from None
+        self._guard = None
+        try:
+            self._guard = _FileGuard(temporary)
+            self._guard.reserve(SPACE_BASE + len(sweep_text))
+            _set_attributes(self._file, {
+                **version_attributes(), "format": SWEEP_FORMAT, "format_version": FORMAT_VERSION,
+                "created": _now(),
+                "sweep": sweep_text, **(attributes or {})})
+            self._runs = self._file.create_group("runs")
+            self._file.flush()
+            _publish(temporary, self.path, overwrite)
+        except DiskFullError:
+            _close_quietly(self._file, self._guard, temporary)
+            raise DiskFullError(f"{self.path}: the disk is full; free some space, or write the sweep elsewhere") \
+                from None
+        except BaseException:
+            _close_quietly(self._file, self._guard, temporary)
+            raise
+
+    def _writing(self):
+        """HDF5 failing a write (a full disk): abandon the file (see _ABANDONED) and say so."""
+        return _SweepWriting(self)
+
+    def _reserve(self, arrays) -> None:
+        """Room for a run's arrays before HDF5 writes any of them: DiskFullError leaves the
+        file as the last flush left it (closed normally, every stored run in it)."""
+        n_bytes = sum(getattr(value, "nbytes", 0) for value in arrays)
+        try:
+            self._guard.reserve(SPACE_BASE + SPACE_FACTOR * n_bytes)
+        except DiskFullError:
+            raise DiskFullError(f"{self.path}: the disk is full; the runs stored before this one are in the "
+                                "file") from None
+
+    def add_run(self, label: str, result=None, *, status: str, config_text: str, coordinates: dict,
+                wall_time_s: float = 0.0, group_name: str | None = None) -> None:
+        """Store one finished (or failed) sweep run: ``result`` is the Result of the run (the one
+        ``integrate`` returns; its arrays go into the group through ``layout.create_run_group``,
+        as a run file's do), or None for a run that never started (a bad config)."""
+        arrays = () if result is None else (result.t, result.y, result.iterations, *result.invariants.values())
+        self._reserve(arrays)
+        with self._writing():
+            self._add_run(label, result, status, config_text, coordinates, wall_time_s, group_name)
+
+    def _add_run(self, label, result, status, config_text, coordinates, wall_time_s, group_name) -> None:
+        import yaml
+
+        group = self._runs.create_group(group_name or sweep_group_name(label))
+        attributes = {"label": label, "status": status, "wall_time_s": float(wall_time_s), "config": config_text,
+                      **{f"axis_{axis}": value for axis, value in coordinates.items()}}
+        if result is None:
+            _set_attributes(group, {**attributes, "steps_done": 0})
+            self._file.flush()
+            return
+        try:
+            resolved = yaml.safe_load(config_text) or {}
+        except yaml.YAMLError:
+            resolved = {}
+        integration = resolved.get("integration") or {}
+        output = resolved.get("output") or {}
+        t0 = float(result.t[0]) if result.t.size else float(integration.get("t0", 0.0))
+        multipliers = result.alpha if result.alpha is not None else result.lam
+        name = "lambda" if result.lam is not None else "alpha" if result.alpha is not None and \
+            result.alpha.shape[1] else None
+        datasets = create_run_group(group, problem=result.problem, method=result.method, conserve=result.conserve,
+                                    n_multipliers=0 if multipliers is None else multipliers.shape[1],
+                                    multiplier=name, attributes={
+            **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=result.n_steps,
+                                           t_end=None, output_every=int(output.get("every", 1)),
+                                           conserve=result.conserve),
+            "steps_done": result.steps_done})
+        names = ("H",) + tuple(result.problem.invariant_names)
+        done = result.steps_done
+        append_rows(datasets, t=result.t, y=result.y,
+                    invariants=np.column_stack([result.invariants[n] for n in names]),
+                    iterations=result.iterations[:done], substeps=result.substeps[:done],
+                    multipliers=None if multipliers is None else multipliers[:done])
+        if result.iterations.size > done:
+            group.attrs["failed_step_iterations"] = int(result.iterations[done])
+        self._file.flush()
+
+    def add_ensemble(self, result, states, resolved: dict) -> None:
+        """Store an ensemble sweep under /ensemble: per trajectory y0, y_final, t_final,
+        iterations (totals), max_multiplier, status (0 ok), steps_done, and
+        invariant_errors/<name> (max |I(t) - I(0)|); the failure reasons as an attribute."""
+        self._reserve([states, result.y_final, *result.invariant_errors.values()]
+                      + [getattr(result, name) for name in ("t_final", "iterations", "max_multiplier", "status",
+                                                            "steps_done")])
+        with self._writing():
+            self._add_ensemble(result, states, resolved)
+
+    def _add_ensemble(self, result, states, resolved: dict) -> None:
+        import yaml
+
+        group = self._file.create_group("ensemble")
+        _set_attributes(group, {
+            "problem": result.problem.name, "method": result.method.name, "h": result.h,
+            "n_steps": result.n_steps, "conserve": list(result.conserve) or [""], "threads": result.n_threads,
+            "config": yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None, width=100),
+            "failed": result.n_failed, "reasons": list(result.reasons) or [""]})
+        component = _string_dataset(group, "component", result.problem.coordinate_names)
+        component.make_scale("component")
+        trajectory = dimension(group, "trajectory", states.shape[0])
+        attach(_small_dataset(group, "y0", states), trajectory, component)
+        for name in ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done"):
+            dataset = _small_dataset(group, name, getattr(result, name))
+            attach(dataset, trajectory, component if name == "y_final" else None)
+        errors = group.create_group("invariant_errors")
+        for name, values in result.invariant_errors.items():
+            attach(_small_dataset(errors, name, values), trajectory)
+        write_method(group.create_group("method"), result.method)
+        self._file.flush()
+
+    def close(self) -> None:
+        try:
+            if not getattr(self, "abandoned", False) and self._file.id.valid:
+                self._file.close()
+        finally:
+            if self._guard is not None:
+                self._guard.close()
+
+
+class _SweepWriting:
+    def __init__(self, writer: SweepWriter):
+        self.writer = writer
+
+    def __enter__(self):
+        if getattr(self.writer, "abandoned", False):
+            raise OutputError(f"{self.writer.path}: an earlier write failed; the file holds the runs before it")
+        return self
+
+    def __exit__(self, kind, err, traceback):
+        if kind is not None and issubclass(kind, (OSError, RuntimeError)) and not issubclass(kind, ElimfastError):
+            self.writer.abandoned = True
+            _abandon(self.writer._file, None, keep=self.writer)
+            if _is_disk_full(err):
+                raise DiskFullError(f"{self.writer.path}: the disk is full; the runs stored before this one are "
+                                    "in the file") from None
+            raise OutputError(f"{self.writer.path}: cannot write ({_one_line(err)[:200]}); the runs stored before "
+                              "this one are in the file") from None
+        return False

@@ -1,0 +1,172 @@
+"""Run and sweep files open in xarray (h5netcdf engine), and elimfast.load / Result.to_xarray
+give back what integrate returned (issue 10, items 4, 5 and 8's units)."""
+import math
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+import elimfast
+from elimfast import methods, problems, streaming
+from elimfast.integrate import Integration
+from elimfast.sweep import load_sweep, run_to_file
+
+xr = pytest.importorskip("xarray")
+pytest.importorskip("h5netcdf")
+
+ROOT = Path(__file__).resolve().parents[1]
+KEPLER = ROOT / "configs" / "kepler.yaml"
+CONSERVE = ("angular_momentum", "lrl_y")
+
+
+def run_file(path, config=KEPLER, overrides=()):
+    """A run file written the way `elimfast run` writes one (the stored config rebuilds the run)."""
+    from elimfast.config import load_run
+    spec = load_run(str(config), overrides=list(overrides))
+    text = yaml.safe_dump(spec.resolved, sort_keys=False)
+    outcome = streaming.run_to_file(spec.integration(), path, config_text=text, t_end=spec.t_end,
+                                    handle_signals=False)
+    return spec, outcome
+
+
+@pytest.fixture(scope="module")
+def kepler_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("xarray") / "kepler.h5"
+    spec, outcome = run_file(path, overrides=["integration.t_end=20"])
+    assert outcome.status == "complete"
+    return spec, path
+
+
+@pytest.fixture(scope="module")
+def sweep_file(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("sweep")
+    sweep = directory / "sweep.yaml"
+    sweep.write_text(yaml.safe_dump({
+        "base": str(KEPLER), "set": {"integration": {"t_end": "2*pi"}, "output": {"every": 5}},
+        "grid": [{"name": "method", "values": [
+                      {"label": "GAUSS3", "set": {"method": {"name": "gauss", "s": 3}, "conserve": []}},
+                      {"label": "GHBVM", "set": {"method": {"name": "ghbvm", "k": 6, "s": 3},
+                                                 "conserve": ["angular_momentum"]}}]},
+                 {"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/80"]}],
+        "error": {"exact": "initial"}, "order_axis": "h"}))
+    out = directory / "sweep.h5"
+    outcome = run_to_file(sweep, out, workers=1, keep_results=True)
+    assert not outcome.failures()
+    return out, outcome
+
+
+def test_a_run_file_opens_in_xarray_with_t_and_component_coordinates(kepler_file):
+    spec, path = kepler_file
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        assert ds["y"].dims == ("t", "component")
+        assert list(ds["component"].values) == ["q1", "q2", "p1", "p2"]
+        assert ds["t"].dims == ("t",) and ds.sizes["t"] == 21 and ds["t"].values[-1] == pytest.approx(20.0)
+        assert ds["t"].attrs["long_name"] == "time" and "long_name" in ds["y"].attrs
+        assert ds.attrs["status"] == "complete" and ds.attrs["format"] == "elimfast-run"
+        assert "coordinates" not in ds["y"].attrs     # CF reserves the name (issue 10, item 4)
+    with xr.open_dataset(path, engine="h5netcdf", group="invariants") as inv:
+        assert set(inv.data_vars) == {"H", "angular_momentum", "lrl_x", "lrl_y"}
+        assert all(inv[name].dims == ("t",) for name in inv.data_vars)
+        assert inv["H"].attrs["long_name"].startswith("Hamiltonian")
+
+
+def test_a_run_file_opens_as_a_datatree_with_every_group_on_named_dimensions(kepler_file):
+    _, path = kepler_file
+    with xr.open_datatree(path, engine="h5netcdf") as tree:
+        assert set(tree.children) == {"invariants", "steps", "method", "state"}
+        invariants = tree["invariants"].to_dataset()
+        assert invariants["H"].dims == ("t",) and invariants.sizes["t"] == 21
+        np.testing.assert_array_equal(tree["invariants"]["t"].values, tree["t"].values)   # inherited coordinate
+        steps = tree["steps"].to_dataset()
+        assert steps["iterations"].dims == ("step",) and steps.sizes["step"] == 200
+        assert steps["alpha"].dims == ("step", "invariant")
+        assert list(steps["invariant"].values) == list(CONSERVE)
+        assert tree["method"]["A"].dims == ("stage", "node")
+        assert tree["state"]["coef"].dims == ("coefficient", "component")
+
+
+def test_a_sweep_file_opens_as_a_datatree_with_one_node_per_run(sweep_file):
+    path, outcome = sweep_file
+    with xr.open_datatree(path, engine="h5netcdf") as tree:
+        runs = tree["runs"]
+        labels = {runs[name].attrs["label"] for name in runs.children}
+        assert labels == {o.label for o in outcome.outcomes} and len(labels) == 4
+        for name, node in runs.children.items():
+            assert node["y"].dims == ("t", "component") and node.attrs["status"] == "complete"
+            assert list(node["component"].values) == ["q1", "q2", "p1", "p2"]
+            assert node["invariants"]["H"].dims == ("t",)
+            assert node["steps"]["iterations"].dims == ("step",)
+            assert node.attrs["n_steps"] == node["steps"].to_dataset().sizes["step"]
+        ghbvm = runs["GHBVM|2*pi|40"]
+        assert ghbvm["steps"]["lambda"].dims == ("step", "invariant")
+        assert list(ghbvm["steps"]["invariant"].values) == ["H", "angular_momentum"]
+
+
+def test_load_gives_back_the_result_integrate_returns(kepler_file, kepler):
+    spec, path = kepler_file
+    loaded = elimfast.load(path)
+    direct = elimfast.integrate(kepler, methods.ehbvm(12, 3), h=0.1, t_end=20.0, conserve=CONSERVE, store_every=10)
+    assert isinstance(loaded, elimfast.Result) and loaded.method.name == direct.method.name
+    assert loaded.problem.name == "kepler" and loaded.conserve == direct.conserve
+    for name in ("t", "y", "iterations", "substeps", "alpha", "y_final"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(direct, name), err_msg=name)
+    assert loaded.lam is None and loaded.t_final == direct.t_final and loaded.status == "complete"
+    for name, values in direct.invariants.items():
+        np.testing.assert_array_equal(loaded.invariants[name], values)
+    assert (loaded.steps_done, loaded.n_steps, loaded.h) == (200, 200, 0.1)
+    assert len(repr(loaded)) < 300       # a short summary, not every array
+
+
+def test_load_of_a_sweep_run_by_label_and_by_path(sweep_file):
+    path, outcome = sweep_file
+    stored = next(o for o in outcome.outcomes if o.label == "GHBVM/2*pi/80")
+    for loaded in (elimfast.load(path, run="GHBVM/2*pi/80"), elimfast.load(f"{path}:/runs/GHBVM/2*pi/80")):
+        np.testing.assert_array_equal(loaded.y, stored.result.y)
+        np.testing.assert_array_equal(loaded.lam, stored.result.lam)
+        np.testing.assert_array_equal(loaded.y_final, stored.y_final)
+        assert loaded.method.name == "GHBVM(6,3)" and loaded.alpha is None
+        assert loaded.h == pytest.approx(2 * math.pi / 80) and loaded.status == "complete"
+    with pytest.raises(elimfast.ElimfastError, match="has no run 'nope'; its runs: GAUSS3/2"):
+        elimfast.load(path, run="nope")
+
+
+def test_result_to_xarray_matches_the_file_layout(kepler):
+    result = elimfast.integrate(kepler, methods.ehbvm(6, 3), h=0.1, n_steps=50, conserve=CONSERVE, store_every=5)
+    ds = result.to_xarray()
+    assert ds["y"].dims == ("t", "component") and ds.sizes == {"t": 11, "component": 4, "step": 50, "invariant": 2}
+    np.testing.assert_array_equal(ds["y"].values, result.y)
+    np.testing.assert_array_equal(ds["lrl_y"].values, result.invariants["lrl_y"])
+    np.testing.assert_array_equal(ds["alpha"].values, result.alpha)
+    assert list(ds["invariant"].values) == list(CONSERVE) and ds.attrs["status"] == "complete"
+
+
+def test_the_solar_system_states_its_units_in_the_file_and_in_xarray(tmp_path):
+    problem = problems.nbody()
+    run = Integration(problem, methods.gauss(2), 10.0, 4)
+    path = tmp_path / "solar.h5"
+    assert streaming.run_to_file(run, path, config_text="a: 1\n", handle_signals=False).status == "complete"
+    with h5py.File(path, "r") as f:
+        assert (f.attrs["length_unit"], f.attrs["time_unit"], f.attrs["mass_unit"]) == ("AU", "day", "solar mass")
+        assert f["t"].attrs["units"] == "day"
+    with xr.open_dataset(path, engine="h5netcdf", decode_timedelta=False) as ds:
+        assert ds["t"].attrs["units"] == "day" and ds["t"].dtype == np.float64
+    result = elimfast.integrate(problem, methods.gauss(2), h=10.0, n_steps=2)
+    assert result.to_xarray().attrs["length_unit"] == "AU"
+
+
+def test_files_of_format_2_are_still_read(tmp_path, kepler):
+    """Format 2 kept the component names in an attribute of /y named 'coordinates'."""
+    path = tmp_path / "old.h5"
+    run = Integration(kepler, methods.ehbvm(6, 3), 0.1, 20, conserve=CONSERVE)
+    streaming.run_to_file(run, path, config_text="a: 1\n", handle_signals=False)
+    with h5py.File(path, "r+") as f:
+        names = [n.decode() for n in f["component"][()]]
+        f["y"].dims[1].detach_scale(f["component"])
+        del f["component"]
+        f["y"].attrs["coordinates"] = names
+        f.attrs["format_version"] = 2
+    from elimfast.io.hdf5 import RunFile
+    with RunFile(path) as stored:
+        assert stored.coordinate_names == ["q1", "q2", "p1", "p2"]
