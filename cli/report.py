@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import yaml
 
 
@@ -83,11 +85,33 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("problem", _problem_text(run_file))
     method = f"{a.get('method')}, order {2 * int(a.get('s', 0))}"
     row("method", method + (f", imposing {', '.join(conserve)}" if conserve else ""))
-    row("h", f"{a.get('h')!r}  (t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, "
-             f"a sample every {a.get('output_every')} steps)")
-    n_steps = int(a.get("n_steps", 0))
     done = run_file.steps_done
-    row("steps done", f"{done} / {n_steps}" + (f"  ({100.0 * done / n_steps:.1f}%)" if done < n_steps else ""))
+    samples = (f"samples at {a.get('output_times')} requested times" if "output_times" in a
+               else f"a sample every {a.get('output_every')} steps")
+    if run_file.adaptive:
+        control = str(a.get("step_control"))
+        how = (f"rtol {a.get('rtol')!r}, atol {a.get('atol')!r}" + (", step doubling" if a.get("verify") else "")
+               if control == "error" else f"epsilon {a.get('epsilon')!r}")
+        row("steps", f"adaptive ({control}: {how}; docs/adaptive.md), t0 = {a.get('t0')!r}, "
+                     f"t_end = {a.get('t_end')!r}, {samples}")
+        sizes = run_file.step_sizes()
+        if sizes is not None and sizes.size:
+            row("h", f"min {sizes.min():.3e}, median {np.median(sizes):.3e}, max {sizes.max():.3e}")
+        row("steps done", f"{done:,}")
+        counters = run_file.adaptive_counters()
+        if counters:
+            row("stats", f"{counters.get('rejected', 0):,} rejected, {counters.get('failed', 0):,} halved after a "
+                         f"failed solve, {counters.get('side_steps', 0):,} side steps, "
+                         f"{counters.get('factorisations', 0) + counters.get('estimate_hessians', 0):,} Hessians")
+    else:
+        row("h", f"{a.get('h')!r}  (t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, {samples})")
+        n_steps = int(a.get("n_steps", 0))
+        row("steps done", f"{done} / {n_steps}" + (f"  ({100.0 * done / n_steps:.1f}%)" if done < n_steps else ""))
+    for name in run_file.event_names():
+        times, _ = run_file.event(name)
+        shown = ", ".join(f"{t:.10g}" for t in times[:3]) + (", ..." if times.size > 3 else "")
+        row("events" if name == run_file.event_names()[0] else "",
+            f"{name}: {times.size} found" + (f", t = {shown}" if times.size else ""))
     status = run_file.status
     if status == "killed":
         status = ("killed (the writer stopped without closing the file; continue with elimfast run ... --resume"

@@ -226,7 +226,10 @@ class AdaptiveIntegration:
     """A run with the adaptive kernel: varying steps, or fixed steps with output times or
     events. Mirrors integrate.Integration: ``advance``, ``state``/``restore`` (the
     controller's state and counters included, so a resumed run is bit for bit the
-    uninterrupted one)."""
+    uninterrupted one), ``initial_chunk``, ``failure_message``; the run file writer and
+    the streaming loop drive both alike."""
+
+    adaptive_kernel = True
 
     def __init__(self, problem: Problem, method: Method, conserve_idx, conserve, solver, control: StepControl | None,
                  t_end: float, t0: float, y0, t_eval=None, events: EventSpec | None = None,
@@ -268,6 +271,55 @@ class AdaptiveIntegration:
         self.finished_flag = False
         self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
         self._progress = np.zeros(kernel.N_PROGRESS, dtype=np.int64)
+        self.event_counts = np.zeros(self.events.directions.size, dtype=np.int64)
+
+    @classmethod
+    def from_spec(cls, spec) -> "AdaptiveIntegration":
+        """The run a validated config describes (config.RunSpec with step control, output
+        times or events)."""
+        from .integrate import resolve_conserve
+        names, idx = resolve_conserve(spec.problem, spec.method, spec.conserve)
+        events = EventSpec.build(spec.problem, spec.events) if spec.events else None
+        return cls(spec.problem, spec.method, idx, names, spec.solver, spec.step_control, t_end=spec.t_end,
+                   t0=spec.t0, y0=spec.problem.y0, t_eval=spec.t_eval, events=events,
+                   store_every=spec.output_every, h=spec.h, n_steps=spec.n_steps)
+
+    @property
+    def event_names(self) -> tuple[str, ...]:
+        return self.events.names
+
+    def file_attributes(self) -> dict:
+        """Root attributes of its run file: how the steps are chosen."""
+        control = self.control
+        values = {"step_control": control.controller if control is not None else "fixed"}
+        if control is not None:
+            values.update({key: value for key, value in control.as_dict().items()
+                           if value is not None and key not in ("controller",)})
+            values["h_first"] = float(self.h)
+        if self.t_eval.size:
+            values["output_times"] = int(self.t_eval.size)
+        return values
+
+    @property
+    def complete(self) -> bool:
+        return self.finished_flag and self.status == codes.STATUS_OK
+
+    @property
+    def remaining_steps(self) -> int | None:
+        """Steps left: known for fixed steps, None for adaptive ones."""
+        return None if self.n_steps is None else self.n_steps - self.steps_done
+
+    def initial_chunk(self) -> AdaptiveChunk:
+        t, y, inv = self.initial_samples()
+        n_mult = self.multipliers.size
+        return AdaptiveChunk(t, y, inv, np.zeros(0), np.zeros(0), np.zeros((0, n_mult)), np.zeros(0, dtype=np.int64),
+                             np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0),
+                             np.zeros((0, self.y.size)), self.steps_done, codes.STATUS_OK)
+
+    def failure_message(self) -> str:
+        from .integrate import failure_message
+        return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
+                               float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics)
 
     @property
     def t(self) -> float:
@@ -286,7 +338,7 @@ class AdaptiveIntegration:
                 "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "last_h": self.last_h.copy(),
                 "newton_base": self.newton_base.copy(), "control_state": self.control_state.copy(),
                 "counters": self.counters.copy(), "finished": int(self.finished_flag),
-                "steps_done": self.steps_done}
+                "event_counts": self.event_counts.copy(), "steps_done": self.steps_done}
 
     def restore(self, state: dict) -> None:
         for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h", "newton_base", "control_state",
@@ -297,6 +349,8 @@ class AdaptiveIntegration:
                 raise ValueError(f"saved state {key!r} has shape {value.shape}, expected {target.shape}")
             target[...] = value
         self.finished_flag = bool(state.get("finished", 0))
+        if "event_counts" in state:
+            self.event_counts[...] = np.asarray(state["event_counts"], dtype=np.int64)
         self.status = codes.STATUS_OK
 
     def initial_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -342,6 +396,7 @@ class AdaptiveIntegration:
         done, samples, found, finished = (int(v) for v in self._progress)
         self.status = int(status)
         self.finished_flag = bool(finished)
+        self.event_counts += np.bincount(event_out[:found], minlength=self.event_counts.size)
         return AdaptiveChunk(t_out[:samples], y_out[:samples], inv_out[:samples], step_t[:done], step_h[:done],
                              mult_out[:done], iter_out[:done], substeps_out[:done], event_out[:found],
                              event_t[:found], event_y[:found], first, int(status))

@@ -58,4 +58,22 @@ def load(path, run: str | None = None):
                       conserve=tuple(spec.conserve), t=t, y=y, invariants=invariants, alpha=alpha,
                       lam=multipliers if name == "lambda" else None, iterations=iterations, substeps=substeps,
                       y_final=y_final, t_final=t_final, n_steps=int(stored.attrs.get("n_steps", spec.n_steps)),
-                      steps_done=stored.steps_done, status=stored.status, solver=spec.solver)
+                      steps_done=stored.steps_done, status=stored.status, solver=spec.solver,
+                      **_adaptive_parts(stored, spec))
+
+
+def _adaptive_parts(stored, spec) -> dict:
+    """A run through the adaptive kernel (docs/adaptive.md): its steps, events and stats."""
+    if stored.step_sizes() is None:
+        return {}
+    from .adaptive import AdaptiveIntegration, EventRecord
+    from .kernels import adaptive as kernel
+
+    parts = {"step_t": stored.step_times(), "step_h": stored.step_sizes(), "step_control": spec.step_control,
+             "events": {name: EventRecord(*stored.event(name)) for name in stored.event_names()}}
+    counters = stored.saved_state().get("counters")
+    if counters is not None:
+        run = AdaptiveIntegration.from_spec(spec)
+        run.counters[...] = np.asarray(counters, dtype=np.int64)[:kernel.N_COUNTERS]
+        parts["stats"] = run.stats()
+    return parts

@@ -462,6 +462,8 @@ class _Builder:
                 if integration.verify or integration.h_max is not None:
                     raise ParameterError("verify" if integration.verify else "h_max",
                                          "applies to adaptive steps only; give rtol (or step_control: time_scale)")
+                if integration.h is None:
+                    raise self.error(("integration", "h"), f"missing; {_EXAMPLES['integration.h']}")
                 h, n_steps = resolve_steps(integration.h, t_end=integration.t_end, n_steps=integration.n_steps,
                                            t0=integration.t0)
                 t0 = integration.t0

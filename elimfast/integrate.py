@@ -407,9 +407,24 @@ class Integration:
 
     @classmethod
     def from_spec(cls, spec) -> "Integration":
-        """A fresh run of a validated config (``elimfast.config.RunSpec``); store_every = output.every."""
+        """A fresh run of a validated config (``elimfast.config.RunSpec``); store_every = output.every.
+        A config with adaptive steps, output times or events gets the run of the adaptive
+        kernel instead (``elimfast.adaptive.AdaptiveIntegration``, driven alike)."""
+        if getattr(spec, "uses_adaptive_kernel", False):
+            from .adaptive import AdaptiveIntegration
+            return AdaptiveIntegration.from_spec(spec)
         return cls(spec.problem, spec.method, spec.h, spec.n_steps, conserve=spec.conserve, solver=spec.solver,
                    store_every=spec.output_every, t0=spec.t0)
+
+    adaptive_kernel = False   # fixed steps through stepper.time_loop (elimfast.adaptive: the other kernel)
+
+    @property
+    def complete(self) -> bool:
+        return self.steps_done >= self.n_steps and self.status == codes.STATUS_OK
+
+    @property
+    def remaining_steps(self) -> int:
+        return self.n_steps - self.steps_done
 
     # Settings kept as attributes for callers that read them (and old pickles of runs).
     tol = property(lambda self: self.solver.tol)

@@ -224,13 +224,17 @@ def interrupted_line(signal_name: str | None, steps_done: int, n_steps: int, t: 
     """The one line that reports an interrupted run and how to continue it."""
     why = f" by {signal_name}" if signal_name else ""
     how = resume_command or "elimfast run CONFIG -o FILE --resume"
-    return (f"interrupted{why} at step {steps_done}/{n_steps} (t = {t:.17g}); {path} is complete up to there; "
+    of = f"/{n_steps}" if n_steps is not None else ""   # adaptive steps: no total known
+    return (f"interrupted{why} at step {steps_done}{of} (t = {t:.17g}); {path} is complete up to there; "
             f"continue with: {how}")
 
 
 # --- progress -----------------------------------------------------------------------------
 class NoProgress:
-    def start(self, steps_done: int, n_steps: int, label: str) -> None:
+    """Progress reports: by steps when their number is known, else (adaptive steps) by the
+    fraction of [t0, t_end] covered (t_span)."""
+
+    def start(self, steps_done: int, n_steps: int | None, label: str, t_span=None) -> None:
         pass
 
     def update(self, steps_done: int, t: float) -> None:
@@ -247,16 +251,24 @@ class LineProgress(NoProgress):
         self.stream = stream if stream is not None else sys.stderr
         self.interval = interval
 
-    def start(self, steps_done, n_steps, label):
-        self.n_steps, self.label = n_steps, label
+    def start(self, steps_done, n_steps, label, t_span=None):
+        self.n_steps, self.label, self.t_span = n_steps, label, t_span
         self.start_steps, self.start_time = steps_done, time.perf_counter()
         self.last = self.start_time
+        self.start_t = t_span[0] if t_span else 0.0
 
     def update(self, steps_done, t):
         now = time.perf_counter()
-        if now - self.last < self.interval or steps_done >= self.n_steps:
+        if now - self.last < self.interval or (self.n_steps is not None and steps_done >= self.n_steps):
             return
         self.last = now
+        if self.n_steps is None:
+            t0, t_end = self.t_span if self.t_span else (0.0, math.nan)
+            fraction = (t - t0) / (t_end - t0) if t_end != t0 else 1.0
+            rate = (steps_done - self.start_steps) / max(now - self.start_time, 1e-9)
+            print(f"elimfast: {self.label}: step {steps_done}, t = {t:.6g} of {t_end:.6g} ({100.0 * fraction:.1f}%), "
+                  f"{rate:,.0f} steps/s", file=self.stream, flush=True)
+            return
         rate = (steps_done - self.start_steps) / max(now - self.start_time, 1e-9)
         eta = (self.n_steps - steps_done) / rate if rate > 0 else math.inf
         print(f"elimfast: {self.label}: step {steps_done}/{self.n_steps} ({100.0 * steps_done / self.n_steps:.1f}%), "
@@ -270,13 +282,25 @@ class BarProgress(NoProgress):
         self.stream = stream if stream is not None else sys.stderr
         self.bar = None
 
-    def start(self, steps_done, n_steps, label):
+    def start(self, steps_done, n_steps, label, t_span=None):
         from tqdm import tqdm
-        self.bar = tqdm(total=n_steps, initial=steps_done, unit="step", unit_scale=True, desc=label,
-                        file=self.stream, dynamic_ncols=True, smoothing=0.3, leave=True)
-        self.done = steps_done
+        self.by_time = n_steps is None and t_span is not None
+        if self.by_time:   # adaptive steps: the bar counts time, not steps
+            self.t0, self.t_end = t_span
+            self.bar = tqdm(total=float(self.t_end - self.t0), initial=0.0, unit="t", unit_scale=True, desc=label,
+                            file=self.stream, dynamic_ncols=True, smoothing=0.3, leave=True)
+            self.done = 0.0
+        else:
+            self.bar = tqdm(total=n_steps, initial=steps_done, unit="step", unit_scale=True, desc=label,
+                            file=self.stream, dynamic_ncols=True, smoothing=0.3, leave=True)
+            self.done = steps_done
 
     def update(self, steps_done, t):
+        if self.by_time:
+            self.bar.set_postfix_str(f"step {steps_done}", refresh=False)
+            self.bar.update((t - self.t0) - self.done)
+            self.done = t - self.t0
+            return
         self.bar.set_postfix_str(f"t={t:.6g}", refresh=False)
         self.bar.update(steps_done - self.done)
         self.done = steps_done
@@ -350,10 +374,12 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     steps = max(1, min(first_chunk_steps, int(max_chunk_bytes // step_bytes) or 1))
     probing = True   # the first kernel call only measures the speed: its data join the first chunk's flush
     stopped = None   # (status reason, message) when the run stops short
-    progress.start(integration.steps_done, integration.n_steps, label)
+    progress.start(integration.steps_done, integration.n_steps, label,
+                   t_span=(integration.t0, getattr(integration, "t_end", math.nan)))
     try:
         while not integration.finished and not (stop is not None and stop.requested):
-            fitting = writer.fit_steps(min(steps, integration.n_steps - integration.steps_done), step_bytes)
+            remaining = integration.remaining_steps
+            fitting = writer.fit_steps(steps if remaining is None else min(steps, remaining), step_bytes)
             if fitting < 1:
                 stopped = _disk_full(writer, resume_command)
                 break
@@ -371,7 +397,7 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
                 writer.append(chunk)
                 steps = next_chunk_steps(len(chunk.iterations) or fitting, tock - tick, step_bytes,
                                          target_seconds, max_chunk_bytes,
-                                         remaining=integration.n_steps - integration.steps_done)
+                                         remaining=integration.remaining_steps)
                 if probing and not integration.finished:
                     probing = False
                     write_s += time.perf_counter() - tock
@@ -406,7 +432,7 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
         status = STOPPED_PREFIX + stopped[0]
     elif integration.status != 0:
         status = FAILED_PREFIX + integration.failure_message()
-    elif integration.steps_done >= integration.n_steps:
+    elif integration.complete:
         status = STATUS_COMPLETE
     else:
         status = STATUS_INTERRUPTED

@@ -70,7 +70,8 @@ DIMENSION_ONLY = "This is a netCDF dimension but not a netCDF variable.%10d"
 LONG_NAMES = {"t": "time", "component": "state component (positions q, then momenta p)",
               "y": "state y = (q, p)", "H": "Hamiltonian (energy)", "iterations": "solver iterations per step",
               "substeps": "substeps per step (1: not split)", "alpha": "ELIM multiplier alpha per step",
-              "lambda": "LIM multiplier lambda per step", "invariant": "invariant of each multiplier column"}
+              "lambda": "LIM multiplier lambda per step", "invariant": "invariant of each multiplier column",
+              "step_t": "time at the end of each step", "step_h": "size of each step"}
 
 
 def _chunk_rows(row_bytes: int) -> int:
@@ -271,7 +272,7 @@ def unit_attributes(problem) -> dict:
 
 # --- the run group ------------------------------------------------------------------------------
 def create_run_group(group, *, problem, method, conserve, n_multipliers: int, multiplier: str | None,
-                     attributes: dict) -> dict:
+                     attributes: dict, adaptive_steps: bool = False, event_names=()) -> dict:
     """Create the layout of a run in ``group`` (the module doc) with its attributes; return
     the growing datasets {"t", "y", "invariants": [H, ...], "iterations", "substeps",
     "multipliers"} (empty, to be extended by ``append_rows``). The one writer of a run
@@ -317,13 +318,46 @@ def create_run_group(group, *, problem, method, conserve, n_multipliers: int, mu
         attach(multipliers, step, column)
         _set_attributes(h5py.Dataset(multipliers.id), {"invariants": list(imposed),
                                                        "long_name": LONG_NAMES[multiplier]})
+    datasets = {"t": t, "y": y, "invariants": invariants, "iterations": iterations, "substeps": substeps,
+                "multipliers": multipliers}
+    if adaptive_steps:   # docs/adaptive.md: the end time and size of every step
+        for name in ("t", "h"):
+            dataset = _growing(steps, name, None, "f8")
+            attach(dataset, step)
+            label(dataset, LONG_NAMES[f"step_{name}"], units.get("time"))
+            datasets[f"step_{name}"] = dataset
+    if event_names:
+        events = group.create_group("events")
+        _set_attributes(events, {"order": list(event_names)})
+        datasets["events"] = []
+        for name in event_names:
+            event = events.create_group(name)
+            occurrence = dimension(event, "occurrence")
+            event_t = _growing(event, "t", None, "f8")
+            event_y = _growing(event, "y", len(names), "f8")
+            attach(event_t, occurrence)
+            attach(event_y, occurrence, component)
+            label(event_t, f"time of event {name}", units.get("time"))
+            label(event_y, f"state at event {name}")
+            datasets["events"].append((event_t, event_y))
     write_method(group.create_group("method"), method)
-    return {"t": t, "y": y, "invariants": invariants, "iterations": iterations, "substeps": substeps,
-            "multipliers": multipliers}
+    return datasets
 
 
-def append_rows(datasets: dict, *, t, y, invariants, iterations, substeps, multipliers) -> None:
-    """Extend a run group's datasets: samples (t, y, invariants as columns H, ...) and steps."""
+def append_rows(datasets: dict, *, t, y, invariants, iterations, substeps, multipliers, step_t=None, step_h=None,
+                event_index=None, event_t=None, event_y=None) -> None:
+    """Extend a run group's datasets: samples (t, y, invariants as columns H, ...), steps
+    (and for adaptive runs their end times and sizes), and events found (event_index says
+    which of the group's events each row is)."""
+    if datasets.get("step_t") is not None and step_t is not None:
+        datasets["step_t"].append(step_t)
+        datasets["step_h"].append(step_h)
+    if datasets.get("events") and event_index is not None:
+        for which, (dataset_t, dataset_y) in enumerate(datasets["events"]):
+            rows = event_index == which
+            if np.any(rows):
+                dataset_t.append(event_t[rows])
+                dataset_y.append(event_y[rows])
     datasets["t"].append(t)
     datasets["y"].append(y)
     for column, dataset in enumerate(datasets["invariants"]):

@@ -75,7 +75,9 @@ def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end:
     return {"problem": problem.name, "method": method.name, "family": method.family, "r": method.r, "k": method.k,
             "s": method.s, "h": float(h), "t0": float(t0),
             "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
-            "n_steps": int(n_steps), "output_every": int(output_every), "conserve": list(conserve)}
+            # 0: not known in advance (adaptive steps, docs/adaptive.md)
+            "n_steps": int(n_steps) if n_steps is not None else 0, "output_every": int(output_every),
+            "conserve": list(conserve)}
 
 
 def samples_on_grid(steps_done: int, output_every: int) -> int:
@@ -92,7 +94,8 @@ def _state_dimensions(f, state, record) -> None:
     attach(datasets["y_comp"], component)
     attach(datasets["coef"], dimension(state, "coefficient", datasets["coef"].shape[0]), component)
     for name, axis in (("clock", "clock_term"), ("multipliers", "multiplier"), ("last_h", "last_h_entry"),
-                       ("newton_base", "newton_base_entry")):
+                       ("newton_base", "newton_base_entry"), ("control_state", "control_entry"),
+                       ("counters", "counter"), ("event_counts", "event")):
         if name in datasets:
             attach(datasets[name], dimension(state, axis, datasets[name].shape[0]))
     record = h5py.Dataset(record)
@@ -201,8 +204,19 @@ def _cut_back(f, n_samples: int, steps_done: int) -> None:
 _RECORD_HEADER = ("sequence", "steps_done", "n_samples", "wall_time_s", "kernel_time_s")
 
 
-def _record_length(n: int, s: int, n_mult: int) -> int:
-    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + (n + 3) + 1
+# Adaptive runs (docs/adaptive.md) add to the record, in this order: the controller's state,
+# the counters, whether the run is finished, and how many of each event were found.
+_ADAPTIVE_STATE = ("control_state", "counters", "finished", "event_counts")
+
+
+def _record_length(n: int, s: int, n_mult: int, extras: int = 0) -> int:
+    return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + (n + 3) + extras + 1
+
+
+def _adaptive_extras(state: dict) -> list[np.ndarray]:
+    if "control_state" not in state:
+        return []
+    return [np.asarray(state[key], dtype=np.float64).ravel() for key in _ADAPTIVE_STATE]
 
 
 def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float, kernel_time_s: float) -> np.ndarray:
@@ -211,13 +225,15 @@ def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float,
         np.asarray(state["clock"], dtype=np.float64).ravel(), np.asarray(state["y"], dtype=np.float64).ravel(),
         np.asarray(state["y_comp"], dtype=np.float64).ravel(), np.asarray(state["coef"], dtype=np.float64).ravel(),
         np.asarray(state["multipliers"], dtype=np.float64).ravel(), np.asarray(state["last_h"], dtype=np.float64).ravel(),
-        np.asarray(state["newton_base"], dtype=np.float64).ravel()])
+        np.asarray(state["newton_base"], dtype=np.float64).ravel(), *_adaptive_extras(state)])
     return np.append(body, float(zlib.crc32(body.astype("<f8").tobytes())))
 
 
-def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int) -> dict | None:
-    """The state in a record row, or None if its CRC does not match (a torn or damaged row)."""
-    if row.shape != (_record_length(n, s, n_mult),) or not np.all(np.isfinite(row[:5])):
+def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int, adaptive=None) -> dict | None:
+    """The state in a record row, or None if its CRC does not match (a torn or damaged row).
+    adaptive: (n_control_state, n_counters, n_events) for an adaptive run, else None."""
+    extras = 0 if adaptive is None else adaptive[0] + adaptive[1] + 1 + adaptive[2]
+    if row.shape != (_record_length(n, s, n_mult, extras),) or not np.all(np.isfinite(row[:5])):
         return None
     if float(zlib.crc32(row[:-1].astype("<f8").tobytes())) != row[-1]:
         return None
@@ -228,6 +244,12 @@ def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int) -> dict | None:
                              ("multipliers", n_mult, (n_mult,)), ("last_h", 1, (1,)), ("newton_base", n + 3, (n + 3,))):
         parts[key] = row[at:at + size].reshape(shape).copy()
         at += size
+    if adaptive is not None:
+        for key, size, dtype in (("control_state", adaptive[0], np.float64), ("counters", adaptive[1], np.int64),
+                                 ("finished", 1, np.int64), ("event_counts", adaptive[2], np.int64)):
+            parts[key] = row[at:at + size].astype(dtype)
+            at += size
+        parts["finished"] = int(parts["finished"][0])
     return {**parts, "steps_done": int(header["steps_done"]), "n_samples": int(header["n_samples"]),
             "wall_time_s": header["wall_time_s"], "kernel_time_s": header["kernel_time_s"],
             "sequence": int(header["sequence"])}
@@ -290,7 +312,10 @@ class RunWriter:
             "iterations": _Growing(steps["iterations"].id),
             "substeps": _Growing(steps["substeps"].id) if "substeps" in steps else None,
             "multipliers": _Growing(multipliers.id) if multipliers is not None else None,
-            "state": state, "record": f["state"]["record"].id if "record" in f["state"] else None},
+            "state": state, "record": f["state"]["record"].id if "record" in f["state"] else None,
+            **({"step_t": _Growing(steps["t"].id), "step_h": _Growing(steps["h"].id)} if "h" in steps else {}),
+            **({"events": [(_Growing(f["events"][name]["t"].id), _Growing(f["events"][name]["y"].id))
+                           for name in _event_names(f)]} if "events" in f else {})},
             guard=guard, sequence=sequence)
 
     # --- opening ---
@@ -331,18 +356,22 @@ class RunWriter:
             guard.reserve(SPACE_BASE + n_datasets * SPACE_MARGIN)
             _set_attributes(f, {**version_attributes(), "format": FORMAT, "format_version": FORMAT_VERSION,
                                 "created": _now()})
+            adaptive = getattr(run, "adaptive_kernel", False)
             datasets = create_run_group(f, problem=problem, method=method, conserve=run.conserve,
-                                        n_multipliers=run.multipliers.size, multiplier=mult, attributes={
+                                        n_multipliers=run.multipliers.size, multiplier=mult,
+                                        adaptive_steps=adaptive, event_names=run.event_names if adaptive else (),
+                                        attributes={
                 "config": config_text, **run_attributes(problem, method, h=run.h, t0=run.t0, n_steps=run.n_steps,
                                                         t_end=t_end, output_every=run.store_every,
                                                         conserve=run.conserve),
                 "steps_done": 0, "status": STATUS_RUNNING, "wall_time_s": 0.0, "kernel_time_s": 0.0,
-                **(attributes or {})})
+                **(run.file_attributes() if adaptive else {}), **(attributes or {})})
             state = f.create_group("state")
             initial = dict(run.state(), n_samples=np.int64(1), wall_time_s=0.0, kernel_time_s=0.0)
             datasets["state"] = {key: _small_dataset(state, key, value) for key, value in initial.items()}
             n, s = run.y.size, run.coef.shape[0]
-            record = _record_dataset(state, _record_length(n, s, run.multipliers.size))
+            record = _record_dataset(state, _record_length(n, s, run.multipliers.size,
+                                                           sum(v.size for v in _adaptive_extras(run.state()))))
             _state_dimensions(f, state, record)
             for sequence in (0, 1):
                 _write_record_row(record, sequence, _pack_record(run.state(), sequence, 1, 0.0, 0.0))
@@ -433,6 +462,9 @@ class RunWriter:
                 d.resize(saved["n_samples"], axis=0)
             for d in _step_datasets(f):
                 d.resize(saved["steps_done"], axis=0)
+            for name, count in zip(_event_names(f), saved.get("event_counts", ())):
+                for member in ("t", "y"):
+                    f["events"][name][member].resize(int(count), axis=0)
             f.attrs["status"] = STATUS_RUNNING
             if config_text is not None:
                 history = list(_plain(f.attrs.get("solver_history", [])) or [])
@@ -494,7 +526,9 @@ class RunWriter:
             self.failed_step_iterations = int(iterations[steps_done])
             iterations = iterations[:steps_done]
         append_rows(self._datasets, t=chunk.t, y=chunk.y, invariants=chunk.invariants, iterations=iterations,
-                    substeps=chunk.substeps, multipliers=chunk.multipliers)
+                    substeps=chunk.substeps, multipliers=chunk.multipliers, step_t=getattr(chunk, "step_t", None),
+                    step_h=getattr(chunk, "step_h", None), event_index=getattr(chunk, "event_index", None),
+                    event_t=getattr(chunk, "event_t", None), event_y=getattr(chunk, "event_y", None))
 
     def save_state(self, state: dict, *, wall_time_s: float, kernel_time_s: float) -> None:
         """Flush the appended data, then write and flush the state (two flushes: see class doc)."""
@@ -567,6 +601,13 @@ class RunWriter:
 def _mark_writer(state_group) -> None:
     state_group.attrs["writer_pid"] = os.getpid()
     state_group.attrs["writer_host"] = socket.gethostname()
+
+
+def _event_names(f) -> list[str]:
+    """The names of a run's events, in the order of its events group (none: no group)."""
+    if "events" not in f:
+        return []
+    return [str(name) for name in _plain(f["events"].attrs.get("order", []))]
 
 
 def _step_datasets(f):
@@ -706,6 +747,11 @@ class RunFile:
             return {**named, "steps_done": int(named["steps_done"]), "n_samples": int(named["n_samples"]),
                     "wall_time_s": float(named["wall_time_s"]), "kernel_time_s": float(named["kernel_time_s"])}
         n, (s, _), n_mult = named["y"].size, named["coef"].shape, named["multipliers"].size
+        adaptive = None
+        if "control_state" in state:
+            with self._reading("/state"):
+                adaptive = (state["control_state"].shape[0], state["counters"].shape[0],
+                            state["event_counts"].shape[0])
         best, problems = None, []
         for slot in (0, 1):
             try:
@@ -713,7 +759,7 @@ class RunFile:
             except (KeyError, OSError, RuntimeError, ValueError) as err:
                 problems.append(f"row {slot}: {_hdf5_reason(err)}")
                 continue
-            values = _unpack_record(np.asarray(row, dtype=np.float64), n, s, n_mult)
+            values = _unpack_record(np.asarray(row, dtype=np.float64), n, s, n_mult, adaptive)
             if values is None:
                 problems.append(f"row {slot} fails its CRC")
             elif best is None or values["sequence"] > best["sequence"]:
@@ -813,6 +859,43 @@ class RunFile:
         if not present:
             return np.ones(len(range(0, self.steps_done, stride)), dtype=np.int32)
         return self._rows("steps/substeps", self.steps_done, stride)
+
+    @property
+    def adaptive(self) -> bool:
+        """Steps chosen by a controller (docs/adaptive.md): /steps/h holds their sizes."""
+        return str(self.attrs.get("step_control", "fixed")) != "fixed"
+
+    def step_sizes(self, stride: int = 1) -> np.ndarray | None:
+        """/steps/h of a run through the adaptive kernel, else None (every step is h)."""
+        if "h" not in self._root["steps"]:
+            return None
+        return self._rows("steps/h", self.steps_done, stride)
+
+    def step_times(self, stride: int = 1) -> np.ndarray | None:
+        if "t" not in self._root["steps"]:
+            return None
+        return self._rows("steps/t", self.steps_done, stride)
+
+    def event_names(self) -> list[str]:
+        return _event_names(self._root)
+
+    def event(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(t, y) of the occurrences of an event saved so far."""
+        counts = dict(zip(self.event_names(), self._saved.get("event_counts", ())))
+        count = int(counts.get(name, self._root["events"][name]["t"].shape[0]))
+        with self._reading(f"/events/{name}"):
+            return (np.array(self._root["events"][name]["t"][:count]),
+                    np.array(self._root["events"][name]["y"][:count]))
+
+    def adaptive_counters(self) -> dict:
+        """The counters of an adaptive run's saved state (kernels/adaptive.py CNT_*), by name."""
+        counters = self._saved.get("counters")
+        if counters is None:
+            return {}
+        from ..kernels import adaptive as kernel
+        names = {value: name[4:].lower() for name, value in vars(kernel).items()
+                 if name.startswith("CNT_") and isinstance(value, int)}
+        return {names[i]: int(v) for i, v in enumerate(counters) if i in names}
 
     def multipliers(self, stride: int = 1) -> np.ndarray | None:
         if self.multiplier_name is None:

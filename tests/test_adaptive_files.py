@@ -1,0 +1,167 @@
+"""Adaptive runs through the CLI and their files (issue 11): /steps/h and /steps/t, events
+in /events/<name>, the controller's state in the record, bit-exact resume after kill -9,
+the config keys, and what inspect shows."""
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+import elimfast
+from elimfast.config import load_run, load_run_from_dict, ConfigError
+from elimfast.integrate import Integration
+from elimfast_cli.main import cli
+
+ELIMFAST = str(Path(sys.executable).with_name("elimfast"))
+PERIOD = 2 * math.pi
+CONFIG = {
+    "problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.9}},
+    "conserve": ["angular_momentum", "lrl_y"],
+    "method": {"name": "ehbvm", "s": 4},
+    "integration": {"rtol": 1e-13, "t_end": "600*pi"},
+    "output": {"every": 20},
+    "events": {"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1}},
+}
+
+
+def write_config(tmp_path, config=CONFIG) -> Path:
+    path = tmp_path / "adaptive.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The uninterrupted run, in this process, through the same driver as the CLI."""
+    path = write_config(tmp_path_factory.mktemp("reference"))
+    spec = load_run(path)
+    run = Integration.from_spec(spec)
+    chunks = [run.initial_chunk()]
+    while not run.finished:
+        chunks.append(run.advance(50_000))
+    return {"y_final": run.y.copy(), "clock": run.clock.copy(), "steps": run.steps_done,
+            "t": np.concatenate([c.t for c in chunks]), "y": np.concatenate([c.y for c in chunks]),
+            "h": np.concatenate([c.step_h for c in chunks]), "alpha": np.concatenate([c.multipliers for c in chunks]),
+            "events": np.concatenate([c.event_t for c in chunks]), "counters": run.counters.copy()}
+
+
+def test_config_defaults_k_to_2s_and_records_the_step_control(tmp_path):
+    spec = load_run(write_config(tmp_path))
+    assert spec.method.name == "EHBVM(8,4)" and spec.step_control.rtol == 1e-13 and spec.n_steps is None
+    assert spec.resolved["integration"]["step_control"] == "error"
+    assert spec.resolved["events"]["pericentre"]["direction"] == 1
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"integration": {"rtol": "x", "t_end": 10}}, "integration.rtol"),
+    ({"integration": {"rtol": 1e-10, "n_steps": 10}}, "integration.t_end"),
+    ({"integration": {"step_control": "time_scale", "epsilon": 5, "t_end": 10}}, "integration.epsilon"),
+    ({"output": {"times": {"start": 0, "stop": 1e9, "step": 1}}}, "output.times"),
+    ({"events": {"p": {"expression": "q1", "direction": 5}}}, "events.p.direction"),
+    ({"events": {"p": {"expression": "open('x')"}}}, "events.p"),
+])
+def test_bad_adaptive_config_names_the_key(change, key):
+    config = {**CONFIG, **change}
+    with pytest.raises(ConfigError) as info:
+        load_run_from_dict(config, source="run.yaml")
+    assert str(info.value).startswith(f"run.yaml: {key}: "), str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_adaptive_run_file_layout_and_inspect(tmp_path, reference):
+    config = write_config(tmp_path)
+    out = tmp_path / "run.h5"
+    result = CliRunner().invoke(cli, ["run", str(config), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(out, "r") as f:
+        assert f.attrs["status"] == "complete" and f.attrs["step_control"] == "error"
+        np.testing.assert_array_equal(f["steps/h"][:], reference["h"])
+        assert f["steps/t"][-1] == 600 * math.pi and f["t"][-1] == 600 * math.pi
+        np.testing.assert_array_equal(f["events/pericentre/t"][:], reference["events"])
+        assert f["events/pericentre/y"].shape == (300, 4)
+    loaded = elimfast.load(out)
+    np.testing.assert_array_equal(loaded.step_h, reference["h"])
+    np.testing.assert_array_equal(loaded.events["pericentre"].t, reference["events"])
+    assert loaded.stats["steps"] == reference["steps"] and loaded.stats["events"] == 300
+    report = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert report.exit_code == 0
+    assert "adaptive (error: rtol 1e-13" in report.output and "pericentre: 300 found" in report.output
+    xr = pytest.importorskip("xarray")
+    tree = xr.open_datatree(out, engine="h5netcdf")
+    # the group's own t (its root's t is inherited in a datatree: ask for the node alone)
+    events = tree["events/pericentre"].to_dataset(inherit=False)
+    assert events["t"].dims == ("occurrence",) and events["y"].dims == ("occurrence", "component")
+    np.testing.assert_array_equal(events["t"].values, reference["events"])
+    alone = xr.open_dataset(out, engine="h5netcdf", group="events/pericentre")
+    np.testing.assert_array_equal(alone["t"].values, reference["events"])
+    assert tree["steps"].to_dataset(inherit=False)["h"].dims == ("step",)
+
+
+def _steps_on_disk(path: Path) -> int:
+    try:
+        with h5py.File(path, "r", swmr=True) as f:
+            return int(f["state/steps_done"][()])
+    except (OSError, KeyError):
+        return 0
+
+
+@pytest.mark.slow
+def test_kill_9_and_resume_equal_the_uninterrupted_run(tmp_path, reference):
+    config = write_config(tmp_path)
+    out = tmp_path / "run.h5"
+    process = subprocess.Popen([ELIMFAST, "run", str(config), "-o", str(out), "--quiet"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while _steps_on_disk(out) < 3000:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+    done = _steps_on_disk(out)
+    assert 3000 <= done < reference["steps"]
+    resumed = subprocess.run([ELIMFAST, "run", str(config), "-o", str(out), "--resume", "--quiet"],
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    with h5py.File(out, "r") as f:
+        assert f.attrs["status"] == "complete"
+        np.testing.assert_array_equal(f["state/y"][:], reference["y_final"])
+        np.testing.assert_array_equal(f["state/clock"][:], reference["clock"])
+        np.testing.assert_array_equal(f["state/counters"][:], reference["counters"])
+        np.testing.assert_array_equal(f["t"][:], reference["t"])
+        np.testing.assert_array_equal(f["y"][:], reference["y"])
+        np.testing.assert_array_equal(f["steps/h"][:], reference["h"])
+        np.testing.assert_array_equal(f["steps/alpha"][:], reference["alpha"])
+        np.testing.assert_array_equal(f["events/pericentre/t"][:], reference["events"])
+
+
+def test_output_times_in_config_give_samples_at_those_times(tmp_path):
+    config = {**CONFIG, "integration": {"rtol": 1e-12, "t_end": "4*pi"},
+              "output": {"times": {"start": 0, "stop": "4*pi", "n": 9}}}
+    config.pop("events")
+    out = tmp_path / "times.h5"
+    result = CliRunner().invoke(cli, ["run", str(write_config(tmp_path, config)), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    loaded = elimfast.load(out)
+    np.testing.assert_allclose(loaded.t, np.linspace(0, 4 * math.pi, 9), rtol=0, atol=1e-15)
+    assert max(loaded.invariant_errors().values()) <= 1e-13
+
+
+def test_fixed_step_run_with_events_keeps_its_steps(tmp_path):
+    config = {"problem": {"builtin": "kepler"}, "method": {"name": "hbvm", "k": 6, "s": 3},
+              "integration": {"h": 0.1, "n_steps": 200},
+              "events": {"apocentre": {"expression": "q1*p1 + q2*p2", "direction": -1}}}
+    spec = load_run_from_dict(config)
+    run = Integration.from_spec(spec)
+    chunks = [run.advance(1000)]
+    plain = elimfast.integrate(spec.problem, spec.method, 0.1, n_steps=200)
+    assert np.array_equal(run.y, plain.y_final)
+    times = np.concatenate([c.event_t for c in chunks])
+    assert times.size == 3 and np.allclose(times, PERIOD * (np.arange(3) + 0.5), atol=1e-6)
