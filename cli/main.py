@@ -356,9 +356,11 @@ def inspect(file):
 
 @cli.command(context_settings=CONTEXT)
 @click.argument("file", metavar="OUT.h5")
-@click.option("--kind", type=click.Choice(["orbit", "invariants", "alpha", "iterations"]), default="invariants",
+@click.option("--kind", type=click.Choice(["orbit", "invariants", "alpha", "iterations", "section"]),
+              default="invariants",
               show_default=True, help="orbit: the trajectory; invariants: |I(t) - I(t0)| on a log scale; "
-                                      "alpha: the multipliers per step (lambda for LIM); iterations: per step.")
+                                      "alpha: the multipliers per step (lambda for LIM); iterations: per step; "
+                                      "section: the states at the run's first event (a surface of section).")
 @click.option("-o", "--output", metavar="FIG.png", help="Image file (default: OUT_<kind>.png beside OUT.h5); "
                                                         "the suffix picks the format (png, pdf, svg).")
 @click.option("--overwrite", is_flag=True, help="Replace FIG if it exists.")

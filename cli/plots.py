@@ -64,7 +64,13 @@ def status_text(status: str, limit: int = TITLE_STATUS_CHARS) -> str:
 def plot_title(run_file) -> str:
     """Problem, method and h; a second line with the status unless the run is complete."""
     attrs = run_file.attrs
-    title = f"{attrs.get('problem')}, {attrs.get('method')}, h = {attrs.get('h'):.6g}"
+    if run_file.adaptive:   # docs/adaptive.md
+        control = attrs.get("step_control")
+        steps = (f"adaptive steps, rtol = {attrs.get('rtol'):.3g}" if control == "error"
+                 else f"time-reversible steps, epsilon = {attrs.get('epsilon'):.3g}")
+    else:
+        steps = f"h = {attrs.get('h'):.6g}"
+    title = f"{attrs.get('problem')}, {attrs.get('method')}, {steps}"
     if run_file.status != "complete":
         title += f"\n[{status_text(run_file.status)}]"
     return title
@@ -120,8 +126,10 @@ def draw(run_file, kind: str):
             _multipliers(run_file, axes)
         elif kind == "iterations":
             _iterations(run_file, axes)
+        elif kind == "section":
+            _section(run_file, axes)
         else:
-            raise PlotError(f"unknown plot kind {kind!r}; use orbit, invariants, alpha or iterations")
+            raise PlotError(f"unknown plot kind {kind!r}; use orbit, invariants, alpha, iterations or section")
         axes.set_title(plot_title(run_file), fontsize="medium")
         figure.tight_layout()
     except BaseException:
@@ -210,8 +218,30 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
 
 
 def _step_times(run_file, count: int, stride: int) -> np.ndarray:
+    stored = run_file.step_times(stride)   # adaptive steps: their end times are stored
+    if stored is not None:
+        return stored[:len(range(0, count, stride))]
     attrs = run_file.attrs
     return float(attrs["t0"]) + float(attrs["h"]) * (np.arange(0, count, stride) + 1)
+
+
+def _section(run_file, axes) -> None:
+    """A surface of section: the states at the occurrences of the run's first event, the last
+    q against the last p (Henon-Heiles with the event q1 = 0: the (q2, p2) plane)."""
+    names = run_file.event_names()
+    if not names:
+        raise PlotError(f"{run_file.name}: the run has no events; a section plot needs one, e.g. events: "
+                        "{section: {expression: q1, direction: 1}} (docs/adaptive.md)")
+    times, states = run_file.event(names[0])
+    if times.size == 0:
+        raise PlotError(f"{run_file.name}: event {names[0]!r} never occurred; nothing to draw")
+    coordinates = run_file.coordinate_names
+    m = len(coordinates) // 2
+    axes.plot(states[:, m - 1], states[:, 2 * m - 1], ".", ms=2.0, color="k")
+    axes.set_xlabel(coordinates[m - 1])
+    axes.set_ylabel(coordinates[2 * m - 1])
+    axes.annotate(f"{times.size} crossings of {names[0]}", (0.01, 0.01), xycoords="axes fraction",
+                  fontsize="small", color="0.4")
 
 
 def _multipliers(run_file, axes) -> None:

@@ -316,6 +316,34 @@ class AdaptiveIntegration:
                              np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0),
                              np.zeros((0, self.y.size)), self.steps_done, codes.STATUS_OK)
 
+    def result(self, chunks: list[AdaptiveChunk]):
+        """The Result of this run from its chunks (the initial one first), as integrate returns it."""
+        from .integrate import STATUS_NAMES, Result
+
+        problem, method = self.problem, self.method
+        inv = np.concatenate([c.invariants for c in chunks])
+        invariants = {"H": inv[:, 0].copy()}
+        for i, name in enumerate(problem.invariant_names):
+            invariants[name] = inv[:, 1 + i].copy()
+        is_lim = method.kernel_family == codes.FAMILY_LIM
+        mult = np.concatenate([c.multipliers for c in chunks])
+        index = np.concatenate([c.event_index for c in chunks])
+        times = np.concatenate([c.event_t for c in chunks])
+        states = np.concatenate([c.event_y for c in chunks])
+        found = {name: EventRecord(times[index == i], states[index == i]) for i, name in enumerate(self.event_names)}
+        return Result(
+            problem=problem, method=method, h=float(self.h), conserve=self.conserve,
+            t=np.concatenate([c.t for c in chunks]), y=np.concatenate([c.y for c in chunks]), invariants=invariants,
+            alpha=mult if (method.imposes_invariants and not is_lim) else None, lam=mult if is_lim else None,
+            iterations=np.concatenate([c.iterations for c in chunks]),
+            substeps=np.concatenate([c.substeps for c in chunks]),
+            y_final=self.y.copy(), t_final=self.t, n_steps=self.steps_done if self.n_steps is None else self.n_steps,
+            steps_done=self.steps_done,
+            status="complete" if self.status == codes.STATUS_OK else STATUS_NAMES[self.status],
+            solver=self.solver, step_t=np.concatenate([c.step_t for c in chunks]),
+            step_h=np.concatenate([c.step_h for c in chunks]), step_control=self.control, stats=self.stats(),
+            events=found)
+
     def failure_message(self) -> str:
         from .integrate import failure_message
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,

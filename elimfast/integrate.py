@@ -663,7 +663,7 @@ def _step_control(step_control, rtol, atol, epsilon, verify, h, h_max):
 def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve, store_every, t0, y0, backward,
                                     chunk_steps, solver, control, t_eval, events) -> Result:
     """Adaptive steps, or fixed steps with output times or events (elimfast.adaptive)."""
-    from .adaptive import AdaptiveIntegration, EventRecord, EventSpec
+    from .adaptive import AdaptiveIntegration, EventSpec
 
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
@@ -700,43 +700,10 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     run = AdaptiveIntegration(problem, method, conserve_idx, names, solver, control, t_end=t_end, t0=t0,
                               y0=y_start, t_eval=t_eval, events=event_spec, store_every=store_every, h=h,
                               n_steps=n_steps)
-    t_parts, y_parts, inv_parts = map(lambda a: [a], run.initial_samples())
-    step_t, step_h, mult, iterations, substeps, event_parts = [], [], [], [], [], []
+    chunks = [run.initial_chunk()]
     while not run.finished:
-        chunk = run.advance(chunk_steps)
-        t_parts.append(chunk.t)
-        y_parts.append(chunk.y)
-        inv_parts.append(chunk.invariants)
-        step_t.append(chunk.step_t)
-        step_h.append(chunk.step_h)
-        mult.append(chunk.multipliers)
-        iterations.append(chunk.iterations)
-        substeps.append(chunk.substeps)
-        event_parts.append((chunk.event_index, chunk.event_t, chunk.event_y))
-    inv = np.concatenate(inv_parts)
-    invariants = {"H": inv[:, 0].copy()}
-    for i, name in enumerate(problem.invariant_names):
-        invariants[name] = inv[:, 1 + i].copy()
-    is_lim = method.kernel_family == codes.FAMILY_LIM
-    mult = np.concatenate(mult) if mult else np.zeros((0, run.multipliers.size))
-    found = {}
-    if event_spec is not None:
-        index = np.concatenate([e[0] for e in event_parts])
-        times = np.concatenate([e[1] for e in event_parts])
-        states = np.concatenate([e[2] for e in event_parts]) if event_parts else np.zeros((0, n))
-        for i, name in enumerate(event_spec.names):
-            found[name] = EventRecord(times[index == i], states[index == i])
-    steps_h = np.concatenate(step_h) if step_h else np.zeros(0)
-    result = Result(
-        problem=problem, method=method, h=float(run.h), conserve=names,
-        t=np.concatenate(t_parts), y=np.concatenate(y_parts), invariants=invariants,
-        alpha=mult if (method.imposes_invariants and not is_lim) else None, lam=mult if is_lim else None,
-        iterations=np.concatenate(iterations) if iterations else np.zeros(0, dtype=np.int64),
-        substeps=np.concatenate(substeps) if substeps else np.zeros(0, dtype=np.int64),
-        y_final=run.y.copy(), t_final=run.t, n_steps=run.steps_done if n_steps is None else n_steps,
-        steps_done=run.steps_done, status="complete" if run.status == codes.STATUS_OK else STATUS_NAMES[run.status],
-        solver=solver, step_t=np.concatenate(step_t) if step_t else np.zeros(0), step_h=steps_h,
-        step_control=control, stats=run.stats(), events=found)
+        chunks.append(run.advance(chunk_steps))
+    result = run.result(chunks)
     if run.status != codes.STATUS_OK:
         message = failure_message(method, solver, run.status, run.steps_done + 1, run.t,
                                   float(run.diagnostics[stepper.DIAG_STEP]), run.diagnostics)

@@ -88,6 +88,7 @@ class RunOutcome:
     y_final: np.ndarray | None = None
     t_final: float = math.nan
     iterations_total: int = 0
+    grad_H_evaluations: int = 0         # the work users compare methods by (docs/adaptive.md)
     max_multiplier: float = math.nan    # max |alpha| (ELIM) or |lambda| (LIM), nan otherwise
     invariant_errors: dict[str, float] = field(default_factory=dict)
     initial_invariants: dict[str, float] = field(default_factory=dict)   # I(t0), for the relative errors
@@ -509,10 +510,14 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.steps_done = run.steps_done
     outcome.y_final = run.y.copy()
     outcome.t_final = run.t
-    result = collect_result(run, chunks)
+    result = run.result(chunks) if run.adaptive_kernel else collect_result(run, chunks)
     if run.status != 0:
         outcome.status = result.status = "failed: " + run.failure_message()
     outcome.iterations_total = int(result.iterations.sum())
+    from .adaptive import evaluations_per_iteration
+    outcome.grad_H_evaluations = int(result.stats.get("grad_H_evaluations", outcome.iterations_total * (
+        evaluations_per_iteration(spec.method, len(spec.conserve), spec.solver.rhs == "stable")[0])))
+    outcome.n_steps = result.n_steps
     multipliers = result.alpha if result.alpha is not None else result.lam
     if multipliers is not None and multipliers.size:
         outcome.max_multiplier = float(np.max(np.abs(multipliers)))
@@ -535,6 +540,8 @@ def _worker_init() -> None:
 def run_bytes(run) -> int:
     """Memory of one sweep run's results: per-step iterations and multipliers, per-sample t, y
     and invariants."""
+    if run.n_steps is None:   # adaptive steps: their number is not known in advance
+        return 0
     samples = run.n_samples_between(0, run.n_steps) + 1
     per_sample = 8 * (1 + run.y.size + 1 + len(run.problem.invariant_names))
     return run.n_steps * 8 * (1 + run.multipliers.size) + samples * per_sample
@@ -677,7 +684,7 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
         header += [axis, f"{axis}_expression"] + ([f"{axis}_label"] if axis in labelled else []) \
             if axis in expanded else [axis]
     header += (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
-        + ["iterations", "max |alpha|/|lambda|"]
+        + ["steps", "iterations", "grad H evals", "max |alpha|/|lambda|"]
     for name in invariant_names:
         header += [f"max err {name}", f"max rel err {name}"]
     header.append("status")
@@ -698,7 +705,9 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
         if spec.order_axis:
             order = orders[outcome.label]
             row.append("" if math.isnan(order) else repr(order) if csv else f"{order:.2f}")
+        row.append(str(outcome.steps_done) if outcome.steps_done else "")
         row.append(str(outcome.iterations_total) if outcome.steps_done else "")
+        row.append(str(outcome.grad_H_evaluations) if outcome.steps_done else "")
         row.append(_number(outcome.max_multiplier, csv))
         relative = outcome.relative_invariant_errors
         for name in invariant_names:

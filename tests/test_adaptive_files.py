@@ -165,3 +165,39 @@ def test_fixed_step_run_with_events_keeps_its_steps(tmp_path):
     assert np.array_equal(run.y, plain.y_final)
     times = np.concatenate([c.event_t for c in chunks])
     assert times.size == 3 and np.allclose(times, PERIOD * (np.arange(3) + 0.5), atol=1e-6)
+
+
+def test_section_plot_of_the_henon_heiles_config(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "section.h5"
+    ran = CliRunner().invoke(cli, ["run", str(root / "configs" / "henon_heiles_section.yaml"), "-o", str(out),
+                                   "--quiet", "--set", "integration.t_end=300"])
+    assert ran.exit_code == 0, ran.output
+    with h5py.File(out, "r") as f:
+        states = f["events/section/y"][:]
+    assert states.shape[0] >= 40 and np.max(np.abs(states[:, 0])) <= 1e-13 and np.all(states[:, 2] > 0)
+    figure = tmp_path / "section.png"
+    plotted = CliRunner().invoke(cli, ["plot", str(out), "--kind", "section", "-o", str(figure)])
+    assert plotted.exit_code == 0, plotted.output
+    assert figure.stat().st_size > 5000
+    # a run without events: a clear one-line error, exit 2
+    plain = tmp_path / "plain.h5"
+    CliRunner().invoke(cli, ["run", str(root / "configs" / "henon_heiles_section.yaml"), "-o", str(plain),
+                             "--quiet", "--set", "integration.t_end=10", "--set", "events=null"])
+    refused = CliRunner().invoke(cli, ["plot", str(plain), "--kind", "section", "-o", str(tmp_path / "x.png")])
+    assert refused.exit_code != 0 and "has no events" in refused.output and "Traceback" not in refused.output
+
+
+def test_rtol_sweep_prints_error_against_work(tmp_path):
+    from elimfast import sweep
+    root = Path(__file__).resolve().parents[1]
+    spec = sweep.load_sweep(root / "configs" / "sweeps" / "kepler_rtol.yaml")
+    outcome = sweep.run_to_file(spec, tmp_path / "rtol.h5")
+    header, rows = outcome.table("csv")
+    column = {name: header.index(name) for name in ("rtol", "error", "steps", "grad H evals")}
+    ehbvm = [row for row in rows if row[0].startswith("EHBVM")]
+    errors = [float(row[column["error"]]) for row in ehbvm]
+    work = [int(row[column["grad H evals"]]) for row in ehbvm]
+    steps = [int(row[column["steps"]]) for row in ehbvm]
+    assert len(ehbvm) == 6 and errors[-1] < errors[0] / 1000     # tighter rtol: smaller error ...
+    assert steps == sorted(steps) and work[-1] > work[0]          # ... for more work

@@ -124,7 +124,8 @@ class SweepWriter:
             result.alpha.shape[1] else None
         datasets = create_run_group(group, problem=result.problem, method=result.method, conserve=result.conserve,
                                     n_multipliers=0 if multipliers is None else multipliers.shape[1],
-                                    multiplier=name, attributes={
+                                    multiplier=name, adaptive_steps=result.step_h is not None,
+                                    event_names=tuple(result.events), attributes={
             **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=result.n_steps,
                                            t_end=None, output_every=int(output.get("every", 1)),
                                            conserve=result.conserve),
@@ -134,7 +135,8 @@ class SweepWriter:
         append_rows(datasets, t=result.t, y=result.y,
                     invariants=np.column_stack([result.invariants[n] for n in names]),
                     iterations=result.iterations[:done], substeps=result.substeps[:done],
-                    multipliers=None if multipliers is None else multipliers[:done])
+                    multipliers=None if multipliers is None else multipliers[:done],
+                    step_t=result.step_t, step_h=result.step_h, **_event_rows(result))
         if result.iterations.size > done:
             group.attrs["failed_step_iterations"] = int(result.iterations[done])
         self._file.flush()
@@ -199,3 +201,13 @@ class _SweepWriting:
             raise OutputError(f"{self.writer.path}: cannot write ({_one_line(err)[:200]}); the runs stored before "
                               "this one are in the file") from None
         return False
+
+
+def _event_rows(result) -> dict:
+    """A Result's events as append_rows takes them (one table, an index per row)."""
+    if not result.events:
+        return {}
+    index = np.concatenate([np.full(record.t.size, i, dtype=np.int64)
+                            for i, record in enumerate(result.events.values())])
+    return {"event_index": index, "event_t": np.concatenate([r.t for r in result.events.values()]),
+            "event_y": np.concatenate([r.y for r in result.events.values()])}
