@@ -26,7 +26,7 @@ def run_file(path, config=KEPLER, overrides=()):
     from elimfast.config import load_run
     spec = load_run(str(config), overrides=list(overrides))
     text = yaml.safe_dump(spec.resolved, sort_keys=False)
-    outcome = streaming.run_to_file(spec.integration(), path, config_text=text, t_end=spec.t_end,
+    outcome = streaming.run_to_file(Integration.from_spec(spec), path, config_text=text, t_end=spec.t_end,
                                     handle_signals=False)
     return spec, outcome
 
