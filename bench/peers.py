@@ -1,6 +1,7 @@
-"""elimfast beside other integrators on Kepler e = 0.6 (issue 5, item 4).
+"""elimfast beside other integrators on Kepler e = 0.6 (issue 5, item 4), 0.9 and 0.99 (issue 11, item 8).
 
-Usage: .venv/bin/python bench/peers.py [--repeats 5] [--long-repeats 3] [--out-dir bench/results]
+Usage: .venv/bin/python bench/peers.py [--repeats 5] [--long-repeats 3] [--rounds 21] [--quick]
+       [--out-dir bench/results]      (about 3 minutes on 2 shared cores; --quick about 75 s)
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: scipy, rebound, heyoka); a
 peer that cannot be imported is skipped with a message.
@@ -14,6 +15,15 @@ peer that cannot be imported is skipped with a message.
    default and at tight tolerances. Max error in H, angular momentum L and the LRL
    vector A over the run, whether it drifts, the error of y at t = 1000 against the
    exact solution (Kepler's equation), and the wall time.
+3. Kepler e = 0.9 and e = 0.99 (issue 11): over 10 periods, adaptive elimfast (HBVM(2s,s)
+   s = 4, 5, 6 and EHBVM(8,4) imposing L and lrl_y at rtol 1e-9..1e-14; the time_scale
+   controller at several epsilon) beside fixed-step HBVM(12,4)/EHBVM(12,4), IAS15 and
+   heyoka: error against wall time and against grad H evaluations (elimfast's stats;
+   fixed step: k x iterations; IAS15: force evaluations, counted by a zero additional
+   force in an untimed run; heyoka: not comparable). For e = 0.9 the acceptance question
+   (error <= 1e-10: fastest adaptive elimfast against fastest IAS15) is timed again,
+   interleaved for --rounds rounds. Over 1000 periods: H, L and A errors from samples
+   (adaptive elimfast stores every 10th step), the final error against Kepler's equation.
 
 Fairness: every integrator is timed in this one process, the configurations
 interleaved round by round, and the median kept (the machine is shared). Timed runs
