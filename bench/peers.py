@@ -1,6 +1,7 @@
-"""elimfast beside other integrators on Kepler e = 0.6 (issue 5, item 4).
+"""elimfast beside other integrators on Kepler e = 0.6 (issue 5, item 4), 0.9 and 0.99 (issue 11, item 8).
 
-Usage: .venv/bin/python bench/peers.py [--repeats 5] [--long-repeats 3] [--out-dir bench/results]
+Usage: .venv/bin/python bench/peers.py [--repeats 5] [--long-repeats 3] [--rounds 21] [--quick]
+       [--out-dir bench/results]      (about 3 minutes on 2 shared cores; --quick about 75 s)
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: scipy, rebound, heyoka); a
 peer that cannot be imported is skipped with a message.
@@ -14,6 +15,15 @@ peer that cannot be imported is skipped with a message.
    default and at tight tolerances. Max error in H, angular momentum L and the LRL
    vector A over the run, whether it drifts, the error of y at t = 1000 against the
    exact solution (Kepler's equation), and the wall time.
+3. Kepler e = 0.9 and e = 0.99 (issue 11): over 10 periods, adaptive elimfast (HBVM(2s,s)
+   s = 4, 5, 6 and EHBVM(8,4) imposing L and lrl_y at rtol 1e-9..1e-14; the time_scale
+   controller at several epsilon) beside fixed-step HBVM(12,4)/EHBVM(12,4), IAS15 and
+   heyoka: error against wall time and against grad H evaluations (elimfast's stats;
+   fixed step: k x iterations; IAS15: force evaluations, counted by a zero additional
+   force in an untimed run; heyoka: not comparable). For e = 0.9 the acceptance question
+   (error <= 1e-10: fastest adaptive elimfast against fastest IAS15) is timed again,
+   interleaved for --rounds rounds. Over 1000 periods: H, L and A errors from samples
+   (adaptive elimfast stores every 10th step), the final error against Kepler's equation.
 
 Fairness: every integrator is timed in this one process, the configurations
 interleaved round by round, and the median kept (the machine is shared). Timed runs
@@ -59,8 +69,23 @@ HEYOKA_TOLS = (1e-4, 1e-6, 1e-8, 1e-10, 1e-12, 1e-14, None)  # None: heyoka's de
 ROUND_OFF = 1e-13                 # an invariant error below this over the run is round-off
 TWO_PI = "6.2831853071795864769252867665590057683943387987502"
 
-PROBLEM = kepler(ECCENTRICITY)
-Y0 = PROBLEM.y0.copy()
+
+
+class Orbit:
+    """Kepler with eccentricity e (a = 1, period 2 pi, pericentre at t = 0)."""
+
+    def __init__(self, e):
+        self.e = e
+        self.problem = kepler(e)
+        self.y0 = self.problem.y0.copy()
+
+    def exact(self, t):
+        return exact_state(t, self.e)
+
+
+E06 = Orbit(ECCENTRICITY)
+PROBLEM = E06.problem
+Y0 = E06.y0
 
 
 def optional_import(name):
@@ -78,13 +103,15 @@ heyoka = optional_import("heyoka")
 
 
 # --- the exact solution and the invariants (one NumPy formula for every integrator) -----
-def exact_state(t):
-    """Kepler e = 0.6, a = 1, perihelion at t = 0: solve E - e sin E = t (mod 2 pi) by Newton."""
+def exact_state(t, e=ECCENTRICITY):
+    """Kepler with eccentricity e, a = 1, perihelion at t = 0: solve E - e sin E = t (mod 2 pi)
+    by Newton. t is reduced mod 2 pi in 50 digits from its exact binary value (Decimal(t),
+    not repr: at t = 2000 pi half an ulp of t moves the state of e = 0.99 at pericentre by
+    1e-9)."""
     getcontext().prec = 50
     two_pi = Decimal(TWO_PI)
-    turns = int(Decimal(repr(t)) / two_pi)
-    mean_anomaly = float(Decimal(repr(t)) - turns * two_pi)
-    e = ECCENTRICITY
+    turns = int(Decimal(t) / two_pi)
+    mean_anomaly = float(Decimal(t) - turns * two_pi)
     E = mean_anomaly if e < 0.8 else math.pi
     for _ in range(50):
         step = (E - e * math.sin(E) - mean_anomaly) / (1.0 - e * math.cos(E))
@@ -113,13 +140,17 @@ def kepler_rhs(t, y):
 
 
 # --- the integrators: final(T) is timed; trajectory(T) records every step ---------------
+def imposed(conserve):
+    return f" + {', '.join('L' if c == 'angular_momentum' else c for c in conserve)}" if conserve else ""
+
+
 class ElimfastRun:
     family = "elimfast"
 
-    def __init__(self, method, h, conserve=()):
-        self.method, self.h, self.conserve = method, h, tuple(conserve)
-        imposed = f" + {', '.join('L' if c == 'angular_momentum' else c for c in conserve)}" if conserve else ""
-        self.label = f"{method.name}{imposed}"
+    def __init__(self, method, h, conserve=(), orbit=E06):
+        self.method, self.h, self.conserve, self.orbit = method, h, tuple(conserve), orbit
+        self.label = f"{method.name}{imposed(conserve)}"
+        self.iterations = None
 
     def setting(self):
         return f"h = {self.h:.4g}"
@@ -129,11 +160,20 @@ class ElimfastRun:
 
     def final(self, T):
         n = self.n_steps(T)
-        return elimfast.integrate(PROBLEM, self.method, self.h, n_steps=n, conserve=self.conserve,
-                                  store_every=n).y_final
+        r = elimfast.integrate(self.orbit.problem, self.method, self.h, n_steps=n, conserve=self.conserve,
+                               store_every=n)
+        self.iterations = r.iterations
+        return r.y_final
 
-    def trajectory(self, T):
-        r = elimfast.integrate(PROBLEM, self.method, self.h, n_steps=self.n_steps(T), conserve=self.conserve)
+    def work(self):
+        """After final(): steps and grad H evaluations (k per iteration of every step)."""
+        iterations = int(self.iterations.sum())
+        return {"steps": int(self.iterations.size), "grad_H": self.method.k * iterations, "hessians": None,
+                "detail": f"{iterations} iterations"}
+
+    def trajectory(self, T, store_every=1):
+        r = elimfast.integrate(self.orbit.problem, self.method, self.h, n_steps=self.n_steps(T),
+                               conserve=self.conserve, store_every=store_every)
         return r.t, r.y, f"{r.n_steps} steps, {int(r.iterations.sum())} iterations"
 
 
@@ -161,18 +201,20 @@ class Dop853Run:
 class Ias15Run:
     family = "REBOUND IAS15"
 
-    def __init__(self, epsilon, note=""):
-        self.epsilon = epsilon
+    def __init__(self, epsilon, note="", orbit=E06):
+        self.epsilon, self.orbit = epsilon, orbit
         self.label = "REBOUND IAS15" + note
+        self.steps = self.forces = None
 
     def setting(self):
         return f"epsilon = {self.epsilon:.0e}"
 
     def _simulation(self):
+        y0 = self.orbit.y0
         sim = rebound.Simulation()
         sim.G = 1.0
         sim.add(m=1.0)
-        sim.add(m=0.0, x=Y0[0], y=Y0[1], vx=Y0[2], vy=Y0[3])
+        sim.add(m=0.0, x=y0[0], y=y0[1], vx=y0[2], vy=y0[3])
         sim.integrator = "ias15"
         sim.integrator.epsilon = self.epsilon
         return sim
@@ -185,13 +227,42 @@ class Ias15Run:
     def final(self, T):
         sim = self._simulation()
         sim.integrate(T, exact_finish_time=1)
+        self.steps = sim.steps_done
         return self._state(sim)
+
+    def force_evaluations(self, T):
+        """Untimed: REBOUND does not count force evaluations, so count the calls of a zero
+        additional force, which IAS15 makes at every evaluation of the acceleration (it does
+        not change the run: same steps, bit for bit the same final state)."""
+        sim = self._simulation()
+        calls = [0]
+
+        def count(_):
+            calls[0] += 1
+
+        sim.additional_forces = count
+        sim.force_is_velocity_dependent = 0
+        sim.integrate(T, exact_finish_time=1)
+        return calls[0], self._state(sim)
+
+    def work(self):
+        return {"steps": self.steps, "grad_H": self.forces, "hessians": None, "detail": "force calls counted"}
+
+    def step_trajectory(self, T):
+        """Every step until the first step end at or past T (invariants only)."""
+        sim = self._simulation()
+        times, states = [0.0], [self.orbit.y0.copy()]
+        while sim.t < T:
+            sim.steps(1)
+            times.append(sim.t)
+            states.append(self._state(sim))
+        return np.array(times), np.array(states), f"{sim.steps_done} steps"
 
     def trajectory(self, T):
         # exact_finish_time=0: each call stops at the first step end past the sample time,
         # so sampling does not change the step sequence.
         sim = self._simulation()
-        times, states = [0.0], [Y0.copy()]
+        times, states = [0.0], [self.orbit.y0.copy()]
         for sample in np.arange(1, int(round(T / H_LONG)) + 1) * H_LONG:
             if sim.t < sample:
                 sim.integrate(sample, exact_finish_time=0)
@@ -204,36 +275,43 @@ class HeyokaRun:
     family = "heyoka Taylor"
     _cache = {}
 
-    def __init__(self, tol, note=""):
-        self.tol = tol
+    def __init__(self, tol, note="", orbit=E06):
+        self.tol, self.orbit = tol, orbit
         self.label = "heyoka Taylor" + note
         self.build_seconds = None
+        self.steps = None
 
     def setting(self):
         return "tol = eps (default)" if self.tol is None else f"tol = {self.tol:.0e}"
 
     def integrator(self):
-        if self.tol not in HeyokaRun._cache:
+        key = (self.tol, self.orbit.e)
+        if key not in HeyokaRun._cache:
             x, y, vx, vy = heyoka.make_vars("x", "y", "vx", "vy")
             r3 = heyoka.sqrt(x * x + y * y) ** 3
             system = [(x, vx), (y, vy), (vx, -x / r3), (vy, -y / r3)]
             options = {} if self.tol is None else {"tol": self.tol}
             start = time.perf_counter()
-            HeyokaRun._cache[self.tol] = (heyoka.taylor_adaptive(system, Y0.copy(), **options),
-                                          time.perf_counter() - start)
-        ta, self.build_seconds = HeyokaRun._cache[self.tol]
+            HeyokaRun._cache[key] = (heyoka.taylor_adaptive(system, self.orbit.y0.copy(), **options),
+                                     time.perf_counter() - start)
+        ta, self.build_seconds = HeyokaRun._cache[key]
         ta.time = 0.0
-        ta.state[:] = Y0
+        ta.state[:] = self.orbit.y0
         return ta
 
     def final(self, T):
         ta = self.integrator()
-        ta.propagate_until(T)
+        outcome = ta.propagate_until(T)
+        self.steps = int(outcome[3])
         return ta.state.copy()
+
+    def work(self):
+        return {"steps": self.steps, "grad_H": None, "hessians": None,
+                "detail": f"order {self.integrator().order}"}
 
     def trajectory(self, T):
         ta = self.integrator()
-        times, states = [0.0], [Y0.copy()]
+        times, states = [0.0], [self.orbit.y0.copy()]
         while ta.time < T:
             ta.step(T - ta.time)     # never past T
             times.append(ta.time)
@@ -242,17 +320,20 @@ class HeyokaRun:
 
 
 # --- timing ---------------------------------------------------------------------------
-def median_times(runs, T, repeats):
-    """Median wall time of run.final(T) per run; the runs interleaved round by round."""
+def median_times(runs, T, repeats, warm_up=True):
+    """Median wall time of run.final(T) per run; the runs interleaved round by round.
+    warm_up=False: the caller has warmed the runs up (the first timed round gives the finals)."""
     times = {id(run): [] for run in runs}
     finals = {}
-    for run in runs:                       # warm-up: caches, JIT builds, first-call costs
-        finals[id(run)] = run.final(T)
+    if warm_up:
+        for run in runs:                   # warm-up: caches, JIT builds, first-call costs
+            finals[id(run)] = run.final(T)
     for _ in range(repeats):
         for run in runs:
             start = time.perf_counter()
-            run.final(T)
+            y = run.final(T)
             times[id(run)].append(time.perf_counter() - start)
+            finals.setdefault(id(run), y)
     return {key: statistics.median(values) for key, values in times.items()}, finals
 
 
@@ -358,6 +439,197 @@ def long_time(repeats):
     return rows
 
 
+# --- eccentric orbits: adaptive elimfast (issue 11, item 8) ------------------------------
+ECCENTRIC = (0.9, 0.99)
+PERIODS_SHORT, PERIODS_LONG = 10, 1000
+ADAPTIVE_METHODS = ((hbvm(8, 4), ()), (hbvm(10, 5), ()), (hbvm(12, 6), ()), (ehbvm(8, 4), CONSERVE))
+ADAPTIVE_RTOLS = (1e-9, 1e-10, 1e-11, 1e-12, 1e-13, 1e-14)
+TIME_SCALE_METHODS = ((hbvm(8, 4), ()), (ehbvm(8, 4), CONSERVE))
+TIME_SCALE_EPSILONS = (0.1, 0.05, 0.02, 0.01)
+FIXED_METHODS = ((hbvm(12, 4), ()), (ehbvm(12, 4), CONSERVE))
+FIXED_DIVISORS = {0.9: (240, 480, 960, 1920), 0.99: (2000, 4000)}      # h = pi / N
+ECCENTRIC_IAS15 = (1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9)
+ECCENTRIC_HEYOKA = (1e-6, 1e-8, 1e-10, 1e-12, 1e-14, None)
+STORE_EVERY_LONG = 10              # adaptive elimfast over 1000 periods: a sample every 10 steps
+FIXED_LONG_DIVISOR = 480           # fixed-step EHBVM(12,4) over 1000 periods of e = 0.9 only
+TARGET = 1e-10                     # the acceptance question: e = 0.9, 10 periods, error <= 1e-10
+SUMMARY_TARGETS = {0.9: 1e-10, 0.99: 1e-7}   # nothing reaches 1e-10 at e = 0.99 (|p| = 14 at pericentre)
+FAMILIES = ("elimfast adaptive", "elimfast fixed", "REBOUND IAS15", "heyoka Taylor")
+
+
+class AdaptiveRun:
+    """elimfast with adaptive steps: rtol (error controller) or epsilon (time_scale)."""
+    family = "elimfast adaptive"
+
+    def __init__(self, method, conserve=(), rtol=None, epsilon=None, orbit=E06):
+        self.method, self.conserve, self.rtol, self.epsilon, self.orbit = method, tuple(conserve), rtol, epsilon, orbit
+        self.label = f"{method.name}{imposed(conserve)}" + (" time_scale" if epsilon is not None else "")
+        self.stats = None
+
+    def setting(self):
+        return f"rtol = {self.rtol:.0e}" if self.epsilon is None else f"epsilon = {self.epsilon:g}"
+
+    def _integrate(self, T, store_every):
+        control = {"rtol": self.rtol} if self.epsilon is None else {"step_control": "time_scale",
+                                                                    "epsilon": self.epsilon}
+        return elimfast.integrate(self.orbit.problem, self.method, t_end=T, conserve=self.conserve,
+                                  store_every=store_every, **control)
+
+    def final(self, T):
+        r = self._integrate(T, 2 ** 62)      # only the final state is kept
+        self.stats = r.stats
+        return r.y_final
+
+    def work(self):
+        s = self.stats
+        return {"steps": s["steps"], "grad_H": s["grad_H_evaluations"], "hessians": s["hessian_evaluations"],
+                "detail": f"{s['rejected_steps']} rejected, {s['iterations']} iterations"
+                          + (f", {s['grad_L_evaluations']} grad L" if s["grad_L_evaluations"] else "")
+                          + (f", {s['failed_solves']} failed solves" if s["failed_solves"] else "")}
+
+    def trajectory(self, T):
+        r = self._integrate(T, STORE_EVERY_LONG)
+        self.stats = r.stats
+        return r.t, r.y, r.y_final
+
+
+def labelled(run, family):
+    run.family = family
+    return run
+
+
+def eccentric_runs(orbit):
+    runs = []
+    for method, conserve in ADAPTIVE_METHODS:
+        runs += [AdaptiveRun(method, conserve, rtol=rtol, orbit=orbit) for rtol in ADAPTIVE_RTOLS]
+    for method, conserve in TIME_SCALE_METHODS:
+        runs += [AdaptiveRun(method, conserve, epsilon=eps, orbit=orbit) for eps in TIME_SCALE_EPSILONS]
+    for method, conserve in FIXED_METHODS:
+        runs += [labelled(ElimfastRun(method, math.pi / n, conserve, orbit), "elimfast fixed")
+                 for n in FIXED_DIVISORS[orbit.e]]
+    if rebound is not None:
+        runs += [Ias15Run(epsilon, orbit=orbit) for epsilon in ECCENTRIC_IAS15]
+    if heyoka is not None:
+        runs += [HeyokaRun(tol, orbit=orbit) for tol in ECCENTRIC_HEYOKA]
+    return runs
+
+
+def usable(runs, T):
+    """The runs that complete (each tried once, which also warms it up); the failures, described."""
+    ok, failed = [], []
+    for run in runs:
+        try:
+            run.final(T)
+        except elimfast.ConvergenceError as error:
+            failed.append(f"{run.label}, {run.setting()}: {error.reason} at t = {error.time:.6g}")
+            continue
+        ok.append(run)
+    return ok, failed
+
+
+def eccentric_work_precision(orbit, repeats):
+    T = PERIODS_SHORT * 2.0 * math.pi
+    runs, failed = usable(eccentric_runs(orbit), T)
+    seconds, finals = median_times(runs, T, repeats, warm_up=False)
+    exact = orbit.exact(T)
+    rows = []
+    for run in runs:
+        if isinstance(run, Ias15Run):
+            run.forces, y = run.force_evaluations(T)
+            assert np.array_equal(y, finals[id(run)]), "counting force calls changed the IAS15 run"
+        rows.append({"run": run, "family": run.family, "label": run.label, "setting": run.setting(),
+                     "error": float(np.max(np.abs(finals[id(run)] - exact))), "seconds": seconds[id(run)],
+                     **run.work()})
+    return rows, failed
+
+
+def head_to_head(rows, rounds):
+    """The acceptance question, measured again: the two fastest adaptive elimfast runs and the two
+    fastest IAS15 runs with error <= TARGET (by the work-precision medians), interleaved for
+    `rounds` rounds; the medians and the ratio of the best of each."""
+    candidates = {}
+    for family in ("elimfast adaptive", "REBOUND IAS15"):
+        reached = sorted((r for r in rows if r["family"] == family and r["error"] <= TARGET),
+                         key=lambda r: r["seconds"])
+        candidates[family] = reached[:2]
+    if not all(candidates.values()):
+        return None
+    chosen = [r for family in candidates for r in candidates[family]]
+    T = PERIODS_SHORT * 2.0 * math.pi
+    seconds, _ = median_times([r["run"] for r in chosen], T, rounds)
+    result = {"rounds": rounds, "runs": []}
+    for family, members in candidates.items():
+        timed = [(seconds[id(r["run"])], r) for r in members]
+        result["runs"] += [(family, s, r) for s, r in timed]
+        result[family] = min(timed, key=lambda pair: pair[0])
+    result["ratio"] = result["elimfast adaptive"][0] / result["REBOUND IAS15"][0]
+    return result
+
+
+def eccentric_long_runs(orbit):
+    runs = [AdaptiveRun(ehbvm(8, 4), CONSERVE, rtol=1e-14, orbit=orbit),
+            AdaptiveRun(hbvm(8, 4), (), rtol=1e-14, orbit=orbit),
+            AdaptiveRun(hbvm(12, 6), (), rtol=1e-14, orbit=orbit),
+            AdaptiveRun(hbvm(8, 4), (), epsilon=0.05, orbit=orbit),
+            AdaptiveRun(ehbvm(8, 4), CONSERVE, epsilon=0.05, orbit=orbit)]
+    if orbit.e == 0.9:
+        runs.append(labelled(ElimfastRun(ehbvm(12, 4), math.pi / FIXED_LONG_DIVISOR, CONSERVE, orbit),
+                             "elimfast fixed"))
+    if rebound is not None:
+        runs += [Ias15Run(1e-9, " (default)", orbit=orbit)]
+    if heyoka is not None:
+        runs += [HeyokaRun(1e-10, "", orbit=orbit), HeyokaRun(None, " (default)", orbit=orbit)]
+    return runs
+
+
+def samples(run, T):
+    """Untimed: the states the invariants are taken from (this also warms the run up)."""
+    if isinstance(run, AdaptiveRun):
+        t, Y, _ = run.trajectory(T)
+        return t, Y, f"every {STORE_EVERY_LONG}th step"
+    if isinstance(run, ElimfastRun):
+        store = 100
+        t, Y, _ = run.trajectory(T, store_every=store)
+        return t, Y, f"every {store}th step"
+    if isinstance(run, Ias15Run):
+        t, Y, _ = run.step_trajectory(T)
+        return t, Y, "every step"
+    t, Y, _ = run.trajectory(T)
+    return t, Y, "every step"
+
+
+def eccentric_long_time(orbit, repeats):
+    T = PERIODS_LONG * 2.0 * math.pi
+    runs, failed = [], []
+    traces = {}
+    for run in eccentric_long_runs(orbit):
+        try:
+            traces[id(run)] = samples(run, T)
+        except elimfast.ConvergenceError as error:
+            failed.append(f"{run.label}, {run.setting()}: {error.reason} at t = {error.time:.6g}")
+            continue
+        runs.append(run)
+    seconds, finals = median_times(runs, T, repeats, warm_up=False)
+    exact = orbit.exact(T)
+    H0, L0, Ax0, Ay0 = (v[0] for v in invariants(orbit.y0[None, :]))
+    rows = []
+    for run in runs:
+        if isinstance(run, Ias15Run):
+            run.forces, _ = run.force_evaluations(T)
+        t, Y, where = traces[id(run)]
+        H, L, Ax, Ay = invariants(Y)
+        errors = {"H": np.abs(H - H0), "L": np.abs(L - L0),
+                  "A": np.maximum(np.abs(Ax - Ax0), np.abs(Ay - Ay0))}
+        row = {"run": run, "family": run.family, "label": run.label, "setting": run.setting(),
+               "seconds": seconds[id(run)], "y_error": float(np.max(np.abs(finals[id(run)] - exact))),
+               "samples": f"{len(t)} ({where})", **run.work()}
+        for name, error in errors.items():
+            maxima, p = growth(t, error, T)
+            row[name] = (float(error.max()), p, verdict(float(error.max()), maxima, p))
+        rows.append(row)
+    return rows, failed
+
+
 # --- output ---------------------------------------------------------------------------
 MARKERS = {"GAUSS": "o", "HBVM": "s", "EHBVM": "D", "scipy DOP853": "v", "REBOUND IAS15": "^",
            "heyoka Taylor": "P"}
@@ -389,6 +661,160 @@ def plot(rows, path):
     plt.close(fig)
 
 
+ECCENTRIC_MARKERS = {"HBVM(8,4)": "s", "HBVM(10,5)": "p", "HBVM(12,6)": "h", "EHBVM(8,4)": "D",
+                     "HBVM(12,4)": "x", "EHBVM(12,4)": "+", "REBOUND IAS15": "^", "heyoka Taylor": "P"}
+
+
+def plot_eccentric(rows, e, path):
+    """Error against wall time and against gradient evaluations, one panel each."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(13.0, 6.0), sharey=True)
+    series = {}
+    for row in rows:
+        series.setdefault(row["label"], []).append(row)
+    for label, points in series.items():
+        family = points[0]["family"]
+        marker = ECCENTRIC_MARKERS.get(label.split(" ")[0], "o")
+        style = {"elimfast adaptive": "-", "elimfast fixed": ":"}.get(family, "--")
+        if label.endswith("time_scale"):
+            style = "-."
+        errors = [max(r["error"], 1e-17) for r in points]
+        axes[0].loglog([r["seconds"] for r in points], errors, style, marker=marker, label=label, markersize=5)
+        if points[0]["grad_H"] is not None:
+            axes[1].loglog([r["grad_H"] for r in points], errors, style, marker=marker, label=label, markersize=5)
+    axes[0].set_xlabel("wall time (s), median")
+    axes[1].set_xlabel("grad H evaluations (IAS15: force evaluations; heyoka: not comparable, left out)")
+    axes[0].set_ylabel(f"max-norm error of y after {PERIODS_SHORT} periods")
+    for ax in axes:
+        ax.axhline(TARGET, color="grey", lw=0.8)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7, ncol=2)
+    fig.suptitle(f"Kepler e = {e}, {PERIODS_SHORT} periods: adaptive elimfast (solid; time_scale dash-dot), "
+                 "fixed-step elimfast (dotted), peers (dashed)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def count(value):
+    return "N/A" if value is None else f"{value:,}"
+
+
+def eccentric_markdown(e, short_rows, short_failed, long_rows, long_failed, h2h, args, figure):
+    lines = ["", f"# Eccentric orbit e = {e} (issue 11, adaptive steps)", ""]
+    if figure:
+        lines += [f"![work-precision e = {e}]({figure})", ""]
+    lines += [
+        f"## e = {e}: work-precision over {PERIODS_SHORT} periods",
+        "",
+        f"Error: max-norm of y(20 pi) minus the exact state (Kepler's equation at the floating-point "
+        "t = 20 pi; the orbit is at pericentre, where the momentum is largest, "
+        f"|p| = {math.sqrt((1 + e) / (1 - e)):.3g}). Adaptive elimfast: HBVM(2s,s) and EHBVM(8,4) imposing L "
+        "and lrl_y with the error controller at rtol = "
+        f"{', '.join(f'{r:.0e}' for r in ADAPTIVE_RTOLS)} (atol = rtol), and the time_scale controller at "
+        f"epsilon = {', '.join(map(str, TIME_SCALE_EPSILONS))}; fixed-step elimfast at h = pi/N, "
+        f"N = {', '.join(map(str, FIXED_DIVISORS[e]))}. 'grad H' is elimfast's count of grad H evaluations "
+        "(adaptive: `stats['grad_H_evaluations']`; fixed step: k x the iterations of every step); "
+        "the Hessians (adaptive: one per error estimate and per Newton factorisation) and EHBVM's "
+        "grad L evaluations (as many as grad H) come on top. IAS15: its force evaluations, counted with "
+        "a zero additional force in a separate, untimed run (REBOUND has no counter; the counting run "
+        "ends in the same state bit for bit). heyoka: N/A, a Taylor step of order p computes the Taylor "
+        "coefficients of the right-hand side to order p by automatic differentiation, not p evaluations "
+        "of it; its steps and order are given instead.",
+        "",
+        "| integrator | setting | error | wall time | grad H | Hessians | steps | notes |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in short_rows:
+        lines.append(f"| {row['label']} | {row['setting']} | {row['error']:.2e} | {row['seconds'] * 1e3:.2f} ms | "
+                     f"{count(row['grad_H'])} | {count(row['hessians'])} | {count(row['steps'])} | "
+                     f"{row['detail']} |")
+    if short_failed:
+        lines += ["", "Failed (left out): " + "; ".join(short_failed) + "."]
+    lines += ["", "Fastest run of each kind reaching a given error (wall time; grad H evaluations of that run):",
+              "", "| error <= | " + " | ".join(FAMILIES) + " |", "|---|" + "---|" * len(FAMILIES)]
+    for target in (1e-6, 1e-7, 1e-8, 1e-10):
+        best = fastest_to(short_rows, target)
+        cells = []
+        for family in FAMILIES:
+            row = best.get(family)
+            if row:
+                cells.append(f"{row['seconds'] * 1e3:.2f} ms ({row['label']}, {row['setting']}; "
+                             f"{count(row['grad_H'])})")
+            else:
+                cells.append("not reached" if any(r["family"] == family for r in short_rows) else "skipped")
+        lines.append(f"| {target:.0e} | " + " | ".join(cells) + " |")
+    if h2h is not None:
+        mine, peer = h2h["elimfast adaptive"], h2h["REBOUND IAS15"]
+        verdict_text = ("yes: no slower" if h2h["ratio"] <= 1.0 else
+                        f"no: {h2h['ratio']:.2f}x slower")
+        lines += [
+            "", f"## e = {e}: the acceptance question, measured side by side", "",
+            f"\"Kepler e = {e} over {PERIODS_SHORT} periods to an error <= {TARGET:.0e}: is the fastest adaptive "
+            "elimfast run no slower than the fastest IAS15 run?\" The two fastest runs of each reaching the "
+            f"error in the table above, timed again interleaved, {h2h['rounds']} rounds, medians:", "",
+            "| integrator | setting | error | median wall time | grad H / force evaluations |",
+            "|---|---|---|---|---|"]
+        for family, seconds, row in h2h["runs"]:
+            lines.append(f"| {row['label']} | {row['setting']} | {row['error']:.2e} | {seconds * 1e3:.2f} ms | "
+                         f"{count(row['grad_H'])} |")
+        lines += ["", f"Answer: **{verdict_text}** (elimfast {mine[0] * 1e3:.2f} ms, {mine[1]['label']} "
+                      f"{mine[1]['setting']}, against IAS15 {peer[0] * 1e3:.2f} ms, {peer[1]['setting']}; "
+                      f"ratio {h2h['ratio']:.2f})."]
+    T = PERIODS_LONG * 2.0 * math.pi
+    lines += [
+        "", f"## e = {e}: long run, {PERIODS_LONG} periods (t = {T:.1f})", "",
+        "Invariant errors abs(I - I(0)) over the run, from samples (adaptive elimfast: every "
+        f"{STORE_EVERY_LONG}th step; fixed step: every 100th step; IAS15 and heyoka: every step), with the "
+        "drift verdict of the e = 0.6 table; 'y error': max-norm error at t_end against Kepler's equation. "
+        "Wall times: the final state only, median of "
+        f"{args.long_repeats}.", "",
+        "| integrator | setting | wall time | steps per period | grad H | samples | H error | L error | A error "
+        "| y error |",
+        "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in long_rows:
+        cells = [f"{row[name][0]:.1e} ({row[name][2]})" for name in ("H", "L", "A")]
+        per_period = "N/A" if row["steps"] is None else f"{row['steps'] / PERIODS_LONG:.1f}"
+        lines.append(f"| {row['label']} | {row['setting']} | {row['seconds'] * 1e3:.0f} ms | {per_period} | "
+                     f"{count(row['grad_H'])} | {row['samples']} | " + " | ".join(cells)
+                     + f" | {row['y_error']:.1e} |")
+    if e == 0.99:
+        lines += ["", "No fixed-step elimfast run over 1000 periods of e = 0.99: over 10 periods h = pi/4000 "
+                      "(80,000 steps) still leaves the error in the table above; 1000 periods would take "
+                      "minutes per run."]
+    if long_failed:
+        lines += ["", "Failed (left out): " + "; ".join(long_failed) + "."]
+    return lines
+
+
+def eccentric_summary(results):
+    """A few sentences from the measured numbers (for the README as well)."""
+    parts = []
+    for e, (short_rows, _, long_rows, _, h2h) in results.items():
+        target = SUMMARY_TARGETS[e]
+        best = fastest_to(short_rows, target)
+        cells = [f"{family} {best[family]['seconds'] * 1e3:.1f} ms ({best[family]['label']}, "
+                 f"{best[family]['setting']})" if family in best else f"{family} not reached"
+                 for family in FAMILIES]
+        sentence = f"Kepler e = {e}, {PERIODS_SHORT} periods, error <= {target:.0e}, fastest: {'; '.join(cells)}."
+        if h2h is not None:
+            sentence += (f" Measured again side by side ({h2h['rounds']} interleaved rounds): adaptive elimfast "
+                         f"{h2h['elimfast adaptive'][0] * 1e3:.2f} ms against IAS15 "
+                         f"{h2h['REBOUND IAS15'][0] * 1e3:.2f} ms, ratio {h2h['ratio']:.2f}.")
+        parts.append(sentence)
+        imposing = [r for r in long_rows if r["family"] == "elimfast adaptive" and r["label"].startswith("EHBVM")
+                    and r["setting"].startswith("rtol")]
+        ias = [r for r in long_rows if r["family"] == "REBOUND IAS15"]
+        for r in imposing + ias:
+            parts.append(f"Over {PERIODS_LONG} periods {r['label']} ({r['setting']}): "
+                         f"{r['seconds']:.2f} s, H {r['H'][0]:.0e}, L {r['L'][0]:.0e}, A {r['A'][0]:.0e}, "
+                         f"y {r['y_error']:.0e}.")
+    return " ".join(parts)
+
+
 def fastest_to(rows, target):
     """Per family (elimfast counts as one), the fastest run with error <= target."""
     best = {}
@@ -408,7 +834,7 @@ def markdown(short_rows, long_rows, heyoka_builds, args, load):
     missing = [name for name, module in (("scipy", scipy_integrate), ("REBOUND", rebound), ("heyoka", heyoka))
                if module is None]
     lines = [
-        "# elimfast beside other integrators: Kepler e = 0.6",
+        "# elimfast beside other integrators: Kepler e = 0.6, 0.9 and 0.99",
         "",
         f"Generated by `bench/peers.py` (`{' '.join(sys.argv[1:]) or 'defaults'}`): {', '.join(versions)}; "
         f"{os.cpu_count()} cores shared with other work, {platform.machine()}, load average "
@@ -421,6 +847,8 @@ def markdown(short_rows, long_rows, heyoka_builds, args, load):
         lines += [f"**Skipped (could not be imported): {', '.join(missing)}.**", ""]
     lines += [
         "![work-precision](peers_work_precision.png)",
+        "",
+        "# Kepler e = 0.6 (fixed-step elimfast)",
         "",
         "## Work-precision over 10 periods",
         "",
@@ -541,9 +969,15 @@ def summary(short_rows, long_rows):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per configuration (work-precision)")
-    parser.add_argument("--long-repeats", type=int, default=3, help="timed runs per configuration on [0, 1000]")
+    parser.add_argument("--long-repeats", type=int, default=3, help="timed runs per configuration on [0, 1000] "
+                                                                    "and over 1000 periods")
+    parser.add_argument("--rounds", type=int, default=21, help="interleaved rounds of the e = 0.9 head-to-head")
+    parser.add_argument("--quick", action="store_true", help="fewer repeats: --repeats 2 --long-repeats 1 "
+                                                             "--rounds 7")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "bench" / "results")
     args = parser.parse_args()
+    if args.quick:
+        args.repeats, args.long_repeats, args.rounds = 2, 1, 7
     warnings.filterwarnings("ignore", message=".*predictor corrector loops in IAS15.*")
     load_start = os.getloadavg()[0]
     short_rows = work_precision(args.repeats)
@@ -553,12 +987,38 @@ def main():
     for row in long_rows:
         print(f"{row['label']:32s} {row['setting']:28s} {row['seconds'] * 1e3:9.1f} ms  "
               + "  ".join(f"{n} {row[n][0]:.1e} {row[n][2]}" for n in ("H", "L", "A")) + f"  y {row['y_error']:.1e}")
-    heyoka_builds = [build for _, build in HeyokaRun._cache.values()]
+    heyoka_builds = [build for (_, e), (_, build) in HeyokaRun._cache.items() if e == ECCENTRICITY]
+    eccentric = {}
+    for e in ECCENTRIC:
+        orbit = Orbit(e)
+        rows, failed = eccentric_work_precision(orbit, args.repeats)
+        for row in rows:
+            print(f"e = {e} {row['label']:34s} {row['setting']:20s} error {row['error']:.2e}  "
+                  f"{row['seconds'] * 1e3:9.2f} ms  grad H {count(row['grad_H'])}")
+        h2h = head_to_head(rows, args.rounds) if e == 0.9 else None
+        if h2h is not None:
+            print(f"e = {e} head-to-head at error <= {TARGET:.0e}: elimfast {h2h['elimfast adaptive'][0] * 1e3:.2f} ms,"
+                  f" IAS15 {h2h['REBOUND IAS15'][0] * 1e3:.2f} ms, ratio {h2h['ratio']:.2f}")
+        long_e, long_failed = eccentric_long_time(orbit, args.long_repeats)
+        for row in long_e:
+            print(f"e = {e} {row['label']:34s} {row['setting']:20s} {row['seconds']:7.2f} s  "
+                  + "  ".join(f"{n} {row[n][0]:.1e} {row[n][2]}" for n in ("H", "L", "A"))
+                  + f"  y {row['y_error']:.1e}")
+        eccentric[e] = (rows, failed, long_e, long_failed, h2h)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     plot(short_rows, args.out_dir / "peers_work_precision.png")
+    figure = "peers_work_precision_e09.png"
+    if 0.9 in eccentric:
+        plot_eccentric(eccentric[0.9][0], 0.9, args.out_dir / figure)
     text = markdown(short_rows, long_rows, heyoka_builds, args, (load_start, os.getloadavg()[0]))
+    for e, (rows, failed, long_e, long_failed, h2h) in eccentric.items():
+        text += "\n".join(eccentric_markdown(e, rows, failed, long_e, long_failed, h2h, args,
+                                             figure if e == 0.9 else None)) + "\n"
+    text += "\n## Summary, eccentric orbits\n\n" + eccentric_summary(eccentric) + "\n"
     (args.out_dir / "peers.md").write_text(text)
-    print(f"wrote {args.out_dir / 'peers.md'} and {args.out_dir / 'peers_work_precision.png'}")
+    print(eccentric_summary(eccentric))
+    print(f"wrote {args.out_dir / 'peers.md'}, {args.out_dir / 'peers_work_precision.png'} and "
+          f"{args.out_dir / figure}")
 
 
 if __name__ == "__main__":
