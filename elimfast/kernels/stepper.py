@@ -18,6 +18,7 @@ import warnings
 
 import numpy as np
 from numba import njit, types
+from numba.extending import overload
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
@@ -81,13 +82,28 @@ def extrapolate(tables, work, offset, theta, base, out):
             out[i, p] = acc
 
 
-@njit(cache=True, inline="always", error_model="numpy")
 def _copy(source, target):
-    """target[...] = source, element by element over the flat (C-contiguous) data: np.ndindex
-    built an index tuple per element and cost ~3 us per step in six copies."""
-    flat_source, flat_target = source.reshape(-1), target.reshape(-1)
-    for i in range(flat_source.shape[0]):
-        flat_target[i] = flat_source[i]
+    """target[...] = source for the kernels' 1-D and 2-D C arrays, element by element (the
+    interpreter's version, for NUMBA_DISABLE_JIT=1). Compiled, an explicit loop per rank:
+    np.ndindex built an index tuple per element (~3 us per step in six copies), and
+    reshape(-1) calls Numba's runtime helper numba_attempt_nocopy_reshape (3% of a
+    GAUSS(4) run at small h)."""
+    target[...] = source
+
+
+@overload(_copy, jit_options={"cache": True, "error_model": "numpy"}, inline="always")
+def _copy_overload(source, target):
+    if isinstance(source, types.Array) and source.ndim == 1:
+        def copy_1d(source, target):
+            for i in range(source.shape[0]):
+                target[i] = source[i]
+        return copy_1d
+    if isinstance(source, types.Array) and source.ndim == 2:
+        def copy_2d(source, target):
+            for i in range(source.shape[0]):
+                for j in range(source.shape[1]):
+                    target[i, j] = source[i, j]
+        return copy_2d
 
 
 @internal
