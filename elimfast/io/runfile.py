@@ -192,13 +192,18 @@ def _format_of(path) -> str:
         return ""
 
 
-def _cut_back(f, n_samples: int, steps_done: int) -> None:
+def _cut_back(f, n_samples: int, steps_done: int, event_counts=()) -> None:
+    """Drop the rows written after the saved state: samples, steps, and events found."""
     for d in _sample_datasets(f):
         if d.shape[0] > n_samples:
             d.resize(n_samples, axis=0)
     for d in _step_datasets(f):
         if d.shape[0] > steps_done:
             d.resize(steps_done, axis=0)
+    for name, count in zip(_event_names(f), event_counts):
+        for member in ("t", "y"):
+            if f["events"][name][member].shape[0] > int(count):
+                f["events"][name][member].resize(int(count), axis=0)
 
 
 _RECORD_HEADER = ("sequence", "steps_done", "n_samples", "wall_time_s", "kernel_time_s")
@@ -458,13 +463,7 @@ class RunWriter:
         try:
             attrs = {key: _plain(value) for key, value in f.attrs.items()}
             # Drop rows of the chunk that was being written when the run stopped.
-            for d in _sample_datasets(f):
-                d.resize(saved["n_samples"], axis=0)
-            for d in _step_datasets(f):
-                d.resize(saved["steps_done"], axis=0)
-            for name, count in zip(_event_names(f), saved.get("event_counts", ())):
-                for member in ("t", "y"):
-                    f["events"][name][member].resize(int(count), axis=0)
+            _cut_back(f, saved["n_samples"], saved["steps_done"], saved.get("event_counts", ()))
             f.attrs["status"] = STATUS_RUNNING
             if config_text is not None:
                 history = list(_plain(f.attrs.get("solver_history", [])) or [])
@@ -564,12 +563,7 @@ class RunWriter:
         try:
             with h5py.File(self.path, "r+", libver=LIBVER) as f:
                 if cut_short:
-                    for d in _sample_datasets(f):
-                        if d.shape[0] > saved_samples:
-                            d.resize(saved_samples, axis=0)
-                    for d in _step_datasets(f):
-                        if d.shape[0] > saved_steps:
-                            d.resize(saved_steps, axis=0)
+                    _cut_back(f, saved_samples, saved_steps, self.saved.get("event_counts", ()))
                 f.attrs["status"] = status
                 f.attrs["steps_done"] = min(steps_done, saved_steps)
                 f.attrs["wall_time_s"] = wall_time_s

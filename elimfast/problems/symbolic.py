@@ -326,16 +326,7 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
     printer = _NumbaPrinter({s: f"v_{s.name}" for s in symbols.values()})
 
     def body(exprs, targets, key):
-        for expr in exprs:
-            _check_printable(expr, key)
-        temporaries, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols("t"), order="none")
-        used = set()
-        for expr in [e for _, e in temporaries] + list(reduced):
-            used |= expr.free_symbols
-        lines = [f"    v_{s.name} = {local[s]}" for s in symbols.values() if s in used and s in local]
-        lines += [f"    {printer.doprint(t)} = {printer.doprint(e)}" for t, e in temporaries]
-        lines += [f"    {target}{printer.doprint(e)}" for target, e in zip(targets, reduced)]
-        return lines
+        return _body_lines(exprs, targets, key, symbols, local, printer)
 
     h_body = body([H], ["return "], "hamiltonian")
     g_body = body(grad_H, [f"out[{i}] = " for i in range(n)], "hamiltonian")
@@ -451,6 +442,23 @@ def _derivative_sizes(exprs, variables) -> list[dict]:
         return result
 
     return [visit(expr)[1] for expr in exprs]
+
+
+def _body_lines(exprs, targets, key, symbols, local, printer) -> list[str]:
+    """The lines of a generated function's body: the inputs it uses (local: symbol -> y[i] or
+    params[i]), common subexpressions (sympy.cse), then ``<target><expression>`` each."""
+    import sympy
+
+    for expr in exprs:
+        _check_printable(expr, key)
+    temporaries, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols("t"), order="none")
+    used = set()
+    for expr in [e for _, e in temporaries] + list(reduced):
+        used |= expr.free_symbols
+    lines = [f"    v_{s.name} = {local[s]}" for s in symbols.values() if s in used and s in local]
+    lines += [f"    {printer.doprint(t)} = {printer.doprint(e)}" for t, e in temporaries]
+    lines += [f"    {target}{printer.doprint(e)}" for target, e in zip(targets, reduced)]
+    return lines
 
 
 def _check_printable(expr, key) -> None:
@@ -572,17 +580,9 @@ def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gr
         if gradient:
             exprs = exprs[:1] + [sympy.diff(exprs[0], symbols[c]) for c in coordinate_names]
             targets = [f"out[{i}] = " for i in range(len(exprs))]
-        for expr in exprs:
-            _check_printable(expr, f"{key_prefix}.{trees[0][0] if trees else ''}")
         printer = _NumbaPrinter({s: f"v_{s.name}" for s in symbols.values()})
         local = {symbols[n]: f"y[{i}]" for i, n in enumerate(coordinate_names)}
-        temporaries, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols("t"), order="none")
-        used = set()
-        for expr in [e for _, e in temporaries] + list(reduced):
-            used |= expr.free_symbols
-        body = [f"    v_{s.name} = {local[s]}" for s in symbols.values() if s in used and s in local]
-        body += [f"    {printer.doprint(t)} = {printer.doprint(e)}" for t, e in temporaries]
-        body += [f"    {target}{printer.doprint(e)}" for target, e in zip(targets, reduced)]
+        body = _body_lines(exprs, targets, f"{key_prefix}.{trees[0][0] if trees else ''}", symbols, local, printer)
         source = "\n".join([
             f'"""elimfast: {what} functions generated from expressions; do not edit. Key {key}."""',
             "import math", "", "from numba import njit", "",
