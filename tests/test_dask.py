@@ -119,8 +119,8 @@ def test_block_sizes_keep_the_overhead_small_and_cover_every_trajectory():
 
 
 def test_a_worker_killed_mid_sweep_does_not_lose_the_sweep(tmp_path, client):
-    # Eight runs of ~0.2-0.5 s each on two workers: when the first arrives, both workers are busy.
-    path = grid_sweep(tmp_path, steps=[f"2*pi/{n}" for n in (200, 240, 280, 320)], t_end="200*pi")
+    # Eight runs of ~0.3-0.6 s each on two workers: when the first arrives, both workers are busy.
+    path = grid_sweep(tmp_path, steps=[f"2*pi/{n}" for n in (200, 240, 280, 320)], t_end="80*pi")
     pids = client.run(os.getpid)
     killed = []
 
