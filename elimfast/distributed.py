@@ -89,7 +89,7 @@ def connect(scheduler: str, workers: int | None = None, on_message: Callable[[st
         if scheduler == "local":
             n = default_workers() if workers is None else int(workers)
             cluster = stack.enter_context(distributed.LocalCluster(
-                n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+                n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0"))
             client = stack.enter_context(distributed.Client(cluster))
             say(f"dask: a local cluster of {n} worker process(es) at {cluster.scheduler_address}")
         else:

@@ -541,7 +541,7 @@ def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
     outcome.initial_invariants = {name: float(values[0]) for name, values in result.invariants.items()}
 
 
-def stored_outcome(path, run: SweepRun, group_name: str, wall_time_s: float = 0.0) -> RunOutcome:
+def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = False) -> RunOutcome:
     """The outcome of a run a sweep file already holds complete (``--resume`` skips it): the
     numbers of the table, from the stored run, as ``_execute`` computed them."""
     from .archive import load
@@ -550,7 +550,7 @@ def stored_outcome(path, run: SweepRun, group_name: str, wall_time_s: float = 0.
 
     with RunFile(Path(path), run=f"/runs/{group_name}") as stored:
         config_text = str(stored.attrs.get("config", ""))
-        wall_time_s = float(stored.attrs.get("wall_time_s", wall_time_s))
+        wall_time_s = float(stored.attrs.get("wall_time_s", 0.0))
     result = load(path, run=f"/runs/{group_name}")
     resolved = load_run_from_dict(parse_yaml(config_text, str(path)), source=str(path),
                                   base_dir=Path(path).parent)
@@ -559,6 +559,8 @@ def stored_outcome(path, run: SweepRun, group_name: str, wall_time_s: float = 0.
                          h=resolved.h, wall_time=wall_time_s, y_initial=result.y[0].copy(),
                          y_final=result.y_final.copy(), t_final=result.t_final)
     _summarise(outcome, result, resolved.solver.rhs)
+    if keep_result:
+        outcome.result = result
     return outcome
 
 
@@ -903,7 +905,11 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
             if writer is not None and writer.complete:
                 for run in spec.runs:
                     if run.label in writer.complete:
-                        done_before[run.label] = stored_outcome(path, run, writer.complete[run.label])
+                        try:
+                            done_before[run.label] = stored_outcome(path, run, writer.complete[run.label],
+                                                                    keep_result=keep_results)
+                        except ElimfastError:   # cannot be read back (its python: file moved): run it again
+                            writer.forget(run.label)
                 say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}; "
                     f"running the other {len(spec.runs) - len(done_before)}")
 

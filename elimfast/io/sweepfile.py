@@ -128,6 +128,14 @@ class SweepWriter:
             raise OutputError(f"{self.path}: cannot resume: the file is damaged ({_one_line(err)[:160]}); start "
                               "again with --overwrite") from None
 
+    def forget(self, label: str) -> None:
+        """Remove a stored run of a resumed file, so that it runs (and is stored) again."""
+        name = self.complete.pop(label, None)
+        if name is not None:
+            with self._writing():
+                del self._runs[name]
+                self._file.flush()
+
     def _writing(self):
         """HDF5 failing a write (a full disk): abandon the file (see _ABANDONED) and say so."""
         return _SweepWriting(self)
