@@ -32,6 +32,7 @@ bench: $(VENV)/.installed-test
 	$(BIN)/python bench/kernel.py
 	$(BIN)/python bench/end_to_end.py
 	$(BIN)/python bench/sweep.py
+	$(BIN)/python bench/sweep.py --dask
 	$(BIN)/python bench/user_problem.py
 	$(BIN)/python bench/ensemble.py
 

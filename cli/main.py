@@ -556,8 +556,12 @@ def _format_tableau(method, A, b, c, eta) -> str:
 @click.option("--format", "table_format", type=click.Choice(["markdown", "csv"]), default="markdown",
               show_default=True, help="Format of the printed table.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
+@click.option("--resume", is_flag=True, help="OUT.h5 holds part of this sweep: run only the runs not complete in it.")
+@click.option("--scheduler", metavar="ADDRESS", default=None,
+              help="Run on a Dask cluster: its scheduler (tcp://host:8786), or 'local' for a LocalCluster of "
+                   "--workers processes (docs/dask.md; pip install 'elimfast[dask]').")
 @click.option("-q", "--quiet", is_flag=True, help="No progress lines (the table is still printed).")
-def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
+def sweep(sweep_file, output, workers, table_format, overwrite, resume, scheduler, quiet):
     """Run a grid of configs in parallel and print the error, order, iteration and invariant table.
 
     SWEEP.yaml names a base config and the axes of the grid (see elimfast/sweep.py or the
@@ -574,12 +578,19 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
       elimfast sweep configs/paper/table1.yaml
       elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
+      elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --resume   # after a kill: the rest
+      elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --scheduler tcp://node1:8786
     """
     from elimfast import sweep as sweeps
     from elimfast.streaming import StopOnSignals
 
     if output is not None:
         output = Path(output).expanduser()
+    if resume and output is None:
+        fail("--resume continues the sweep file given with -o OUT.h5; add it", EXIT_USAGE)
+    if resume and overwrite:
+        fail("--resume and --overwrite exclude each other: --resume keeps the runs in OUT.h5, --overwrite "
+             "replaces them", EXIT_USAGE)
 
     def hard_stop(signal_name):
         kept = f"; the finished runs are in {output}" if output is not None else ""
@@ -587,7 +598,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
 
     def on_start(n_trajectories):
         if not quiet:
-            click.echo(f"ensemble: running {n_trajectories:,} trajectories on {workers or 'all'} thread(s)", err=True)
+            where = f"the Dask cluster ({scheduler})" if scheduler else f"{workers or 'all'} thread(s)"
+            click.echo(f"ensemble: running {n_trajectories:,} trajectories on {where}", err=True)
 
     def on_done(outcome, done, total):
         if not quiet:
@@ -597,7 +609,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
     # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
     with StopOnSignals(raising=True, hard_stop=hard_stop):
         outcome = sweeps.run_to_file(sweep_file, output, workers=workers, overwrite=overwrite, on_start=on_start,
-                                     on_done=on_done)
+                                     on_done=on_done, resume=resume, scheduler=scheduler,
+                                     on_message=None if quiet else (lambda line: click.echo(line, err=True)))
     if outcome.ensemble is not None:
         result = outcome.ensemble
         click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "

@@ -394,8 +394,23 @@ def _check_ensemble(source, ensemble) -> dict:
 def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Callable[[int], None] | None = None):
     """Run an ensemble sweep in the parallel kernel: returns (RunSpec, Y0, EnsembleResult).
     ``on_start(n_trajectories)`` is called once the states are drawn, before the kernel."""
-    from .config import load_run_from_dict
     from .ensemble import integrate_ensemble
+
+    run, states = ensemble_states(spec)
+    if on_start is not None:
+        on_start(states.shape[0])
+    try:
+        result = integrate_ensemble(run.problem, run.method, run.h, states, n_steps=run.n_steps,
+                                    conserve=run.conserve, solver=run.solver, n_threads=threads, t0=run.t0)
+    except (ValueError, TypeError) as error:
+        raise SweepError(f"{spec.source}: ensemble: {error}") from None
+    return run, states, result
+
+
+def ensemble_states(spec: SweepSpec):
+    """(RunSpec of the base, Y0 (n_traj, 2m)) of an ensemble sweep: its explicit states, or
+    ``n`` seeded perturbations of the base's initial state."""
+    from .config import load_run_from_dict
     from .integrate import Integration
 
     run = load_run_from_dict(copy.deepcopy(spec.base), source=spec.source, base_dir=Path(spec.source).parent)
@@ -415,14 +430,7 @@ def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Ca
                        "into several sweeps with different seeds", spec.source, "ensemble.n")
         rng = np.random.default_rng(spec.ensemble["seed"])
         states = y0 + spec.ensemble["spread"] * rng.standard_normal((n, y0.size))
-    if on_start is not None:
-        on_start(states.shape[0])
-    try:
-        result = integrate_ensemble(run.problem, run.method, run.h, states, n_steps=run.n_steps,
-                                    conserve=run.conserve, solver=run.solver, n_threads=threads, t0=run.t0)
-    except (ValueError, TypeError) as error:
-        raise SweepError(f"{spec.source}: ensemble: {error}") from None
-    return run, states, result
+    return run, states
 
 
 def ensemble_table(result, fmt: str = "markdown") -> tuple[list[str], list[list[str]]]:
@@ -513,17 +521,45 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     result = run.result(chunks) if run.adaptive_kernel else collect_result(run, chunks)
     if run.status != 0:
         outcome.status = result.status = "failed: " + run.failure_message()
-    outcome.iterations_total = int(result.iterations.sum())
+    _summarise(outcome, result, spec.solver.rhs)
+    if store_arrays:
+        outcome.result = result
+    return outcome
+
+
+def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
+    """The table's numbers of one run, from its Result (fresh, or read back from a sweep file)."""
     from .adaptive import evaluations_per_iteration
+    outcome.iterations_total = int(result.iterations.sum())
     outcome.grad_H_evaluations = int(result.stats.get("grad_H_evaluations", outcome.iterations_total * (
-        evaluations_per_iteration(spec.method, len(spec.conserve), spec.solver.rhs == "stable")[0])))
+        evaluations_per_iteration(result.method, len(result.conserve), rhs == "stable")[0])))
     outcome.n_steps = result.n_steps
     multipliers = result.alpha if result.alpha is not None else result.lam
     if multipliers is not None and multipliers.size:
         outcome.max_multiplier = float(np.max(np.abs(multipliers)))
     outcome.invariant_errors = result.invariant_errors()
     outcome.initial_invariants = {name: float(values[0]) for name, values in result.invariants.items()}
-    if store_arrays:
+
+
+def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = False) -> RunOutcome:
+    """The outcome of a run a sweep file already holds complete (``--resume`` skips it): the
+    numbers of the table, from the stored run, as ``_execute`` computed them."""
+    from .archive import load
+    from .config import load_run_from_dict, parse_yaml
+    from .io.runfile import RunFile
+
+    with RunFile(Path(path), run=f"/runs/{group_name}") as stored:
+        config_text = str(stored.attrs.get("config", ""))
+        wall_time_s = float(stored.attrs.get("wall_time_s", 0.0))
+    result = load(path, run=f"/runs/{group_name}")
+    resolved = load_run_from_dict(parse_yaml(config_text, str(path)), source=str(path),
+                                  base_dir=Path(path).parent)
+    outcome = RunOutcome(label=run.label, coordinates=run.coordinates, status="complete",
+                         resolved=resolved.resolved, n_steps=result.n_steps, steps_done=result.steps_done,
+                         h=resolved.h, wall_time=wall_time_s, y_initial=result.y[0].copy(),
+                         y_final=result.y_final.copy(), t_final=result.t_final)
+    _summarise(outcome, result, resolved.solver.rhs)
+    if keep_result:
         outcome.result = result
     return outcome
 
@@ -558,14 +594,25 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
+def sweep_jobs(spec: SweepSpec, skip=frozenset()) -> list[tuple[str, dict, dict]]:
+    """(label, coordinates, config) of every run to do: the grid's points not in ``skip``
+    (runs a resumed file holds), then the reference run, if any."""
+    jobs = [(run.label, run.coordinates, run.config) for run in spec.runs if run.label not in skip]
+    if spec.reference is not None:
+        jobs.append((REFERENCE_LABEL, {}, spec.reference))
+    return jobs
+
+
 def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = True,
-              on_done: Callable[[RunOutcome, int, int], None] | None = None) -> tuple[list[RunOutcome], RunOutcome | None]:
+              on_done: Callable[[RunOutcome, int, int], None] | None = None,
+              skip=frozenset()) -> tuple[list[RunOutcome], RunOutcome | None]:
     """Run every point (and the reference run, if any) in ``workers`` processes.
 
     Returns the outcomes in grid order and the reference outcome. ``on_done(outcome,
     done, total)`` is called in the parent as each run finishes (progress, writing).
     Workers are forked where the platform allows it: they inherit the loaded kernels
-    instead of importing and loading them again.
+    instead of importing and loading them again. Runs labelled in ``skip`` are not run
+    (nor returned).
     """
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
@@ -573,12 +620,12 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
     if workers > MAX_WORKERS_PER_CORE * default_workers():
         raise SweepError(f"--workers {workers}: at most {MAX_WORKERS_PER_CORE * default_workers()} ("
                          f"{MAX_WORKERS_PER_CORE} per core; each worker is a process running one kernel at a time)")
-    jobs = [(run.label, run.coordinates, run.config) for run in spec.runs]
-    if spec.reference is not None:
-        jobs.append((REFERENCE_LABEL, {}, spec.reference))
+    jobs = sweep_jobs(spec, skip)
     total = len(jobs)
     results: dict[str, RunOutcome] = {}
-    if workers == 1:
+    if total == 0:
+        pass
+    elif workers == 1:
         for done, (label, coordinates, config) in enumerate(jobs, start=1):
             outcome = _execute(label, coordinates, config, spec.source, store_arrays)
             results[label] = outcome
@@ -610,7 +657,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
             raise
         pool.shutdown(wait=True)
     reference = results.pop(REFERENCE_LABEL, None) if spec.reference is not None else None
-    return [results[run.label] for run in spec.runs], reference
+    return [results[run.label] for run in spec.runs if run.label in results], reference
 
 
 # --- tables -------------------------------------------------------------------------
@@ -788,8 +835,10 @@ def _config_text(resolved: dict) -> str:
 
 
 def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool = False,
-                keep_results: bool = False, on_start: Callable[[int], None] | None = None,
-                on_done: Callable[[RunOutcome, int, int], None] | None = None) -> SweepOutcome:
+                resume: bool = False, keep_results: bool = False, client=None, scheduler: str | None = None,
+                on_start: Callable[[int], None] | None = None,
+                on_done: Callable[[RunOutcome, int, int], None] | None = None,
+                on_message: Callable[[str], None] | None = None) -> SweepOutcome:
     """Run a sweep (a SweepSpec or the path of a sweep file) and store every run in the HDF5
     file ``path`` (None: store nothing), one /runs/<label> group per run as each finishes.
 
@@ -799,13 +848,30 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
     as in run_sweep, after the run is stored. The Results are dropped once stored, unless
     ``keep_results``. Raises SweepError for a bad sweep file, OutputError for an output
     that cannot be written; the runs' own failures are in the outcome (``failures()``).
+
+    ``resume``: ``path`` may exist and hold some of this sweep's runs (a sweep that was
+    stopped or killed); those that are complete there are read back, not run again, and
+    the others run and are added. (An ensemble sweep is run again whole.)
+
+    On a Dask cluster (docs/dask.md): ``client`` (a ``dask.distributed.Client``) runs the
+    runs as Dask tasks, an ensemble as blocks of trajectories; or ``scheduler``, an
+    address (``tcp://host:8786``) to connect to, or ``"local"`` for a LocalCluster of
+    ``workers`` processes (default: one per core). Results are the same, bit for bit;
+    this process stays the only writer of ``path``. ``on_message(line)``: what is being
+    done (cluster, resume), for the progress display.
     """
     from .io.sweepfile import SweepWriter
 
+    if client is not None and scheduler is not None:
+        raise SweepError("give either a Dask client or a scheduler address, not both")
+    if scheduler is not None:
+        from .distributed import check_scheduler
+        check_scheduler(scheduler, workers)   # before any work: dask installed, address well formed
     if path is not None:   # before reading the sweep: an unwritable output is reported before any work
         from .io.safety import check_output_path
-        path = check_output_path(Path(path).expanduser(), overwrite=overwrite)
+        path = check_output_path(Path(path).expanduser(), overwrite=overwrite and not resume, resume=resume)
     spec = sweep if isinstance(sweep, SweepSpec) else load_sweep(sweep)
+    say = on_message or (lambda line: None)
     writer = None
 
     def open_writer():
@@ -813,34 +879,68 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
         if path is not None:
             writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
                                  attributes={"source": spec.source, "axes": list(spec.axes) or [""]},
-                                 overwrite=overwrite)
+                                 overwrite=overwrite or resume, resume=resume and spec.ensemble is None)
 
-    try:
-        if spec.ensemble is not None:
-            def started(n_trajectories):
-                open_writer()
-                if on_start is not None:
-                    on_start(n_trajectories)
-            run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=started)
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:
+            from .distributed import connect
+            client = stack.enter_context(connect(scheduler, workers, on_message=say))
+        try:
+            if spec.ensemble is not None:
+                def started(n_trajectories):
+                    open_writer()
+                    if on_start is not None:
+                        on_start(n_trajectories)
+                if client is not None:
+                    from .distributed import run_ensemble_on
+                    run_spec, states, result = run_ensemble_on(client, spec, on_start=started, on_message=say)
+                else:
+                    run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=started)
+                if writer is not None:
+                    writer.add_ensemble(result, states, run_spec.resolved)
+                return SweepOutcome(spec=spec, path=path, ensemble=result)
+
+            open_writer()
+            done_before: dict[str, RunOutcome] = {}
+            if writer is not None and writer.complete:
+                for run in spec.runs:
+                    if run.label in writer.complete:
+                        try:
+                            done_before[run.label] = stored_outcome(path, run, writer.complete[run.label],
+                                                                    keep_result=keep_results)
+                        except ElimfastError:   # cannot be read back (its python: file moved): run it again
+                            writer.forget(run.label)
+                say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}; "
+                    f"running the other {len(spec.runs) - len(done_before)}")
+
+            def stored(outcome, done, total):
+                if writer is not None and outcome.label != REFERENCE_LABEL:
+                    writer.add_run(outcome.label, outcome.result, status=outcome.status,
+                                   config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
+                                   wall_time_s=outcome.wall_time)
+                if not keep_results:
+                    outcome.result = None   # stored: the parent keeps only the summary of each run
+                if on_done is not None:
+                    on_done(outcome, done, total)
+
+            store_arrays = writer is not None or keep_results
+            if client is not None:
+                from .distributed import run_sweep_on
+                outcomes, reference = run_sweep_on(client, spec, on_done=stored, store_arrays=store_arrays,
+                                                   skip=set(done_before), on_message=say)
+            else:
+                outcomes, reference = run_sweep(spec, workers=workers, on_done=stored, store_arrays=store_arrays,
+                                                skip=set(done_before))
+            ran = {outcome.label: outcome for outcome in outcomes}
+            outcomes = [done_before.get(run.label) or ran[run.label] for run in spec.runs]
+            return SweepOutcome(spec=spec, path=path, outcomes=outcomes, reference=reference)
+        finally:
             if writer is not None:
-                writer.add_ensemble(result, states, run_spec.resolved)
-            return SweepOutcome(spec=spec, path=path, ensemble=result)
+                writer.close()
 
-        open_writer()
 
-        def stored(outcome, done, total):
-            if writer is not None and outcome.label != REFERENCE_LABEL:
-                writer.add_run(outcome.label, outcome.result, status=outcome.status,
-                               config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
-                               wall_time_s=outcome.wall_time)
-            if not keep_results:
-                outcome.result = None   # stored: the parent keeps only the summary of each run
-            if on_done is not None:
-                on_done(outcome, done, total)
-
-        outcomes, reference = run_sweep(spec, workers=workers, on_done=stored,
-                                        store_arrays=writer is not None or keep_results)
-        return SweepOutcome(spec=spec, path=path, outcomes=outcomes, reference=reference)
-    finally:
-        if writer is not None:
-            writer.close()
+def run(spec, path=None, *, client=None, **options) -> SweepOutcome:
+    """Run a sweep (a SweepSpec or a sweep file's path), storing it in ``path`` if given;
+    on the Dask cluster of ``client`` (a ``dask.distributed.Client``) if given, else in
+    local worker processes. The options are those of ``run_to_file``."""
+    return run_to_file(spec, path, client=client, **options)

@@ -22,8 +22,8 @@ from ..errors import DiskFullError, ElimfastError
 from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _set_attributes, _small_dataset, append_rows,
                      _string_dataset, attach, create_run_group, dimension, version_attributes, write_method)
 from .runfile import SWEEP_FORMAT, _now, run_attributes
-from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _publish,
-                     _temporary_path, ensure_not_busy)
+from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
+                     _publish, _temporary_path, clear_consistency_flags, consistency_flags, ensure_not_busy)
 
 
 def sweep_group_name(label: str) -> str:
@@ -45,8 +45,13 @@ class SweepWriter:
     name and renamed into place (an existing file another process uses is refused).
     """
 
-    def __init__(self, path, *, sweep_text: str, attributes: dict | None = None, overwrite: bool = True):
+    def __init__(self, path, *, sweep_text: str, attributes: dict | None = None, overwrite: bool = True,
+                 resume: bool = False):
         self.path = Path(path)
+        self.complete: dict[str, str] = {}   # label -> group name of the runs a resumed file already holds
+        if resume and self.path.exists():
+            self._reopen(sweep_text)
+            return
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -77,6 +82,59 @@ class SweepWriter:
         except BaseException:
             _close_quietly(self._file, self._guard, temporary)
             raise
+
+    def _reopen(self, sweep_text: str) -> None:
+        """Open an existing sweep file to add the runs it lacks (``--resume``): the file must
+        hold the same sweep (its stored text), and every run that is not marked stored and
+        complete (failed, or cut off by a kill) is removed so that it runs again."""
+        ensure_not_busy(self.path)
+        if consistency_flags(self.path):   # a writer killed before closing it (HDF5 refuses such a file)
+            try:
+                clear_consistency_flags(self.path)
+            except (OSError, ElimfastError) as err:
+                raise OutputError(f"{self.path}: cannot resume ({_one_line(err)}); start again with "
+                                  "--overwrite") from None
+        try:
+            self._file = h5py.File(self.path, "a", libver=LIBVER)
+        except OSError as err:
+            raise OutputError(f"{self.path}: cannot resume: HDF5 cannot open it ({_one_line(err)[:160]}); start "
+                              "again with --overwrite") from None
+        self._guard = None
+        try:
+            self._guard = _FileGuard(self.path)
+            if not self._guard.lock():
+                raise OutputError(f"{self.path}: is being written by another process; stop it first or choose "
+                                  "another output file")
+            if str(_plain(self._file.attrs.get("format", ""))) != SWEEP_FORMAT or "runs" not in self._file:
+                raise OutputError(f"{self.path}: not an elimfast sweep file, so --resume cannot continue it; "
+                                  "choose another output file or pass --overwrite")
+            if str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text:
+                raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
+                                  "differs); pass --overwrite to start again, or choose another output file")
+            self._runs = self._file["runs"]
+            for name in list(self._runs):
+                attributes = self._runs[name].attrs
+                label = str(_plain(attributes.get("label", "")))
+                if label and attributes.get("stored", False) and str(_plain(attributes.get("status"))) == "complete":
+                    self.complete[label] = name
+                else:
+                    del self._runs[name]
+            self._file.flush()
+        except OutputError:
+            _close_quietly(self._file, self._guard, None)
+            raise
+        except (OSError, RuntimeError, KeyError) as err:
+            _close_quietly(self._file, self._guard, None)
+            raise OutputError(f"{self.path}: cannot resume: the file is damaged ({_one_line(err)[:160]}); start "
+                              "again with --overwrite") from None
+
+    def forget(self, label: str) -> None:
+        """Remove a stored run of a resumed file, so that it runs (and is stored) again."""
+        name = self.complete.pop(label, None)
+        if name is not None:
+            with self._writing():
+                del self._runs[name]
+                self._file.flush()
 
     def _writing(self):
         """HDF5 failing a write (a full disk): abandon the file (see _ABANDONED) and say so."""
@@ -109,7 +167,7 @@ class SweepWriter:
         attributes = {"label": label, "status": status, "wall_time_s": float(wall_time_s), "config": config_text,
                       **{f"axis_{axis}": value for axis, value in coordinates.items()}}
         if result is None:
-            _set_attributes(group, {**attributes, "steps_done": 0})
+            _set_attributes(group, {**attributes, "steps_done": 0, "stored": True})
             self._file.flush()
             return
         try:
@@ -139,6 +197,9 @@ class SweepWriter:
                     step_t=result.step_t, step_h=result.step_h, **_event_rows(result))
         if result.iterations.size > done:
             group.attrs["failed_step_iterations"] = int(result.iterations[done])
+        self._file.flush()
+        # Written only once the run's data are on disk: --resume keeps the runs marked so.
+        group.attrs["stored"] = True
         self._file.flush()
 
     def add_ensemble(self, result, states, resolved: dict) -> None:

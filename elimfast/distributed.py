@@ -1,0 +1,345 @@
+"""Sweeps and ensembles on a Dask cluster (``dask.distributed``); docs/dask.md.
+
+    from dask.distributed import Client
+    import elimfast.sweep
+    with Client("tcp://scheduler:8786") as client:
+        elimfast.sweep.run("configs/paper/table1.yaml", "out/table1.h5", client=client)
+
+A grid sweep's runs are Dask tasks (``sweep._execute``, the function the local process
+pool runs, so the numbers are the same bit for bit); an ensemble is split into blocks of
+trajectories, each run in the parallel Numba kernel on a worker (``integrate_ensemble``:
+each trajectory is bit for bit the same whatever the block or thread count). Workers
+only compute and return arrays; this process is the only writer of the HDF5 file and
+stores each run as it arrives (``distributed.as_completed``, results released once
+stored, so memory stays bounded).
+
+Faults: a task whose worker dies is run again elsewhere by the scheduler (up to its
+``distributed.scheduler.allowed-failures``, then the run is reported failed with
+KilledWorker); a task that raises an unexpected exception is retried ``RETRIES``
+times. A run that fails numerically is not an exception (``_execute`` returns its
+status), so it is reported as in a local sweep and never retried.
+
+Compilation: a worker builds a problem from its config as a local run does, so
+generated code and Numba's cache are found by content hash in the worker's cache
+directory (``ELIMFAST_CACHE_DIR``; shared or not). Before the runs, ``_warm`` runs on
+every worker (``Client.run``): it loads the kernels and each distinct problem of the
+sweep, so that no two tasks of one worker compile the same thing. A ``python:`` problem
+file is shipped with the tasks; a worker that cannot see the file at its path writes
+the shipped copy into its cache directory (``shipped/<hash>/``) and loads that.
+
+dask is imported only here, and this module only when a client or scheduler is given.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import hashlib
+import math
+import os
+import re
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .sweep import REFERENCE_LABEL, RunOutcome, SweepError, SweepSpec, _execute, default_workers, sweep_jobs
+
+INSTALL_HINT = "pip install 'elimfast[dask]'"
+CONNECT_TIMEOUT_S = 10            # a scheduler that does not answer within this is reported unreachable
+WORKER_WAIT_S = 60                # how long to wait for a cluster's first worker
+RETRIES = 2                       # retries of a task that raised an unexpected exception (not a numerical failure)
+BLOCKS_PER_THREAD = 4             # ensemble blocks per worker thread: load balance against per-task overhead
+MIN_BLOCK = 100                   # trajectories per block, at least (a block's overhead is ~10 ms; an orbit ~1 ms+)
+MAX_BLOCK = 50_000                # and at most (a block's arrays in flight stay a few MB)
+MAX_WARM_PROBLEMS = 8             # distinct problems warmed on each worker before the runs
+_ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc|ws|wss)://[^\s/]+(:\d+)?/?$|^[A-Za-z0-9_.\-\[\]:]+:\d+$")
+_KERNEL_LOCK = threading.Lock()   # one parallel kernel at a time per worker process (Numba's workqueue
+                                  # threading layer aborts on concurrent launches from two threads)
+
+
+def _distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise SweepError(f"--scheduler needs dask.distributed, which is not installed: {INSTALL_HINT}") from None
+    return distributed
+
+
+def check_scheduler(scheduler: str, workers: int | None = None) -> None:
+    """SweepError unless ``scheduler`` is 'local' or an address (tcp://host:port) and dask is installed."""
+    if not isinstance(scheduler, str) or not (scheduler == "local" or _ADDRESS.match(scheduler)):
+        raise SweepError(f"--scheduler {scheduler!r}: give the address of a Dask scheduler (tcp://host:8786) or "
+                         "'local' for a cluster on this machine")
+    if workers is not None and scheduler != "local":
+        raise SweepError(f"--workers applies to the local pool and --scheduler local; the cluster at {scheduler} "
+                         "has the workers it was started with (dask worker --nworkers N)")
+    _distributed()
+
+
+@contextlib.contextmanager
+def connect(scheduler: str, workers: int | None = None, on_message: Callable[[str], None] | None = None):
+    """A Client of the cluster at ``scheduler``, or of a new LocalCluster ('local': ``workers``
+    processes, default one per core, one thread each); closed (and the cluster stopped) after."""
+    check_scheduler(scheduler, workers)
+    distributed = _distributed()
+    say = on_message or (lambda line: None)
+    with contextlib.ExitStack() as stack:
+        if scheduler == "local":
+            n = default_workers() if workers is None else int(workers)
+            cluster = stack.enter_context(distributed.LocalCluster(
+                n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0"))
+            client = stack.enter_context(distributed.Client(cluster))
+            say(f"dask: a local cluster of {n} worker process(es) at {cluster.scheduler_address}")
+        else:
+            try:
+                client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError, ValueError) as error:
+                text = " ".join(str(error).split())[:160] or type(error).__name__
+                raise SweepError(f"--scheduler {scheduler}: cannot connect ({text}); start one with `dask scheduler` "
+                                 "and `dask worker ADDRESS`, or check the address") from None
+            stack.enter_context(client)
+            say(f"dask: connected to {scheduler}, {len(client.scheduler_info().get('workers', {}))} worker(s)")
+        yield client
+
+
+def _wait_for_workers(client) -> dict:
+    try:
+        client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+    except (TimeoutError, OSError):
+        raise SweepError(f"the Dask cluster at {client.scheduler.address} has no workers after {WORKER_WAIT_S} s; "
+                         "start some (dask worker ADDRESS)") from None
+    return client.scheduler_info().get("workers", {})
+
+
+# --- shipping python: problem files, warming the workers -------------------------------------
+def _python_files(configs: list[dict], source: str) -> dict[str, str]:
+    """{path as the config writes it: text} of the python: problem files the configs name, read
+    here (relative paths are relative to the sweep file's folder, as sweep._execute reads them)."""
+    shipped = {}
+    for config in configs:
+        problem = config.get("problem") if isinstance(config, dict) else None
+        name = problem.get("python") if isinstance(problem, dict) else None
+        if isinstance(name, str) and name not in shipped:
+            path = Path(source).parent / name
+            with contextlib.suppress(OSError, UnicodeDecodeError):
+                shipped[name] = path.read_text(encoding="utf-8")   # unreadable: the worker reports it as locally
+    return shipped
+
+
+def _localise(config: dict, source: str, shipped: dict[str, str]) -> dict:
+    """On a worker: a config whose python: file is not visible here (or differs) points at the
+    shipped copy, written into this machine's cache under its content hash."""
+    problem = config.get("problem") if isinstance(config, dict) else None
+    name = problem.get("python") if isinstance(problem, dict) else None
+    if not isinstance(name, str) or name not in shipped:
+        return config
+    text = shipped[name]
+    with contextlib.suppress(OSError, UnicodeDecodeError):
+        if (Path(source).parent / name).read_text(encoding="utf-8") == text:
+            return config
+    from . import cache
+    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()
+    copy_path = cache.cache_dir() / "shipped" / digest / Path(name).name
+    if not copy_path.is_file():
+        cache.write_atomic(copy_path, text)
+    config = copy.deepcopy(config)
+    config["problem"]["python"] = str(copy_path)
+    return config
+
+
+def _task(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool,
+          shipped: dict[str, str]) -> RunOutcome:
+    """A sweep run on a worker: sweep._execute, after making a shipped python: file visible."""
+    return _execute(label, coordinates, _localise(config, source, shipped), source, store_arrays)
+
+
+def _warm(configs: list[dict], source: str, shipped: dict[str, str]) -> dict:
+    """On every worker, before the runs: load the kernels and build each problem once (generated
+    code and Numba's cache by content hash), and take one step of each; report what was found."""
+    import elimfast
+
+    start = time.perf_counter()
+    for config in configs:
+        config = copy.deepcopy(config)
+        integration = config.get("integration")
+        if isinstance(integration, dict) and "h" in integration:   # fixed steps: two of them (an adaptive
+            integration.pop("t_end", None)                          # run is only loaded: its length is unknown)
+            integration["n_steps"] = 2
+            _task("warm", {}, config, source, True, shipped)   # a failure is the run's to report, later
+        else:
+            from .config import load_run_from_dict
+            with contextlib.suppress(Exception):
+                load_run_from_dict(_localise(config, source, shipped), source=source, base_dir=Path(source).parent)
+    return {"version": elimfast.__version__, "seconds": time.perf_counter() - start, "pid": os.getpid()}
+
+
+def warm_workers(client, configs: list[dict], source: str, shipped: dict[str, str],
+                 on_message: Callable[[str], None] | None = None) -> None:
+    """Run ``_warm`` on every worker (concurrently); SweepError if a worker cannot import elimfast
+    or runs another version of it."""
+    import elimfast
+    workers = _wait_for_workers(client)
+    distinct, seen = [], set()
+    for config in configs:
+        key = repr(config.get("problem")) + repr(config.get("method")) if isinstance(config, dict) else ""
+        if key not in seen and len(distinct) < MAX_WARM_PROBLEMS:
+            seen.add(key)
+            distinct.append(config)
+    try:
+        reports = client.run(_warm, distinct, source, shipped)
+    except ImportError as error:   # the workers' environment lacks elimfast (or a dependency)
+        raise SweepError(f"the Dask workers cannot import elimfast ({error}); install elimfast in the "
+                         "workers' environment") from None
+    other = {address: report["version"] for address, report in reports.items()
+             if report["version"] != elimfast.__version__}
+    if other:
+        address, version = next(iter(other.items()))
+        raise SweepError(f"the Dask worker {address} runs elimfast {version}, this process {elimfast.__version__}; "
+                         "install the same version on every worker")
+    if on_message is not None and reports:
+        slowest = max(report["seconds"] for report in reports.values())
+        on_message(f"dask: {len(workers)} worker(s) ready (kernels and problems loaded in {slowest:.1f} s at most)")
+
+
+# --- a grid sweep ------------------------------------------------------------------------------
+def run_sweep_on(client, spec: SweepSpec, store_arrays: bool = True,
+                 on_done: Callable[[RunOutcome, int, int], None] | None = None, skip=frozenset(),
+                 on_message: Callable[[str], None] | None = None) -> tuple[list[RunOutcome], RunOutcome | None]:
+    """sweep.run_sweep on the Dask cluster of ``client``: the same outcomes, in grid order, and
+    the reference outcome; ``on_done(outcome, done, total)`` here as each run arrives."""
+    distributed = _distributed()
+    jobs = sweep_jobs(spec, skip)
+    total = len(jobs)
+    results: dict[str, RunOutcome] = {}
+    if total:
+        shipped = _python_files([config for _, _, config in jobs], spec.source)
+        warm_workers(client, [config for _, _, config in jobs], spec.source, shipped, on_message)
+        futures = {}
+        for index, (label, coordinates, config) in enumerate(jobs):
+            future = client.submit(_task, label, coordinates, config, spec.source, store_arrays, shipped,
+                                   key=f"elimfast-run-{index}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
+                                   retries=RETRIES)
+            futures[future] = (label, coordinates)
+        try:
+            for done, future in enumerate(distributed.as_completed(futures), start=1):
+                label, coordinates = futures[future]
+                try:
+                    outcome = future.result()
+                except Exception as error:   # noqa: BLE001 -- the task's failure, not this process's
+                    outcome = RunOutcome(label=label, coordinates=coordinates, status=_task_failure(error))
+                future.release()             # stored next: the worker may drop it
+                results[label] = outcome
+                if on_done:
+                    on_done(outcome, done, total)
+        except BaseException:
+            client.cancel(list(futures))   # Ctrl-C, SIGTERM, a write that failed: drop the rest
+            raise
+    reference = results.pop(REFERENCE_LABEL, None) if spec.reference is not None else None
+    return [results[run.label] for run in spec.runs if run.label in results], reference
+
+
+def _task_failure(error: BaseException) -> str:
+    """A run's status when its task did not return: its worker died too often, or it raised
+    (after RETRIES retries) something sweep._execute does not turn into a status."""
+    text = " ".join(str(error).split())[:200]
+    if type(error).__name__ == "KilledWorker":
+        return ("failed: the Dask workers running it died repeatedly (KilledWorker; out of memory, or killed); "
+                "run it alone with elimfast run to see why")
+    return f"failed: on a Dask worker: {type(error).__name__}: {text}"
+
+
+# --- an ensemble -------------------------------------------------------------------------------
+def block_bounds(n_trajectories: int, threads: int) -> list[tuple[int, int]]:
+    """[start, stop) of each block: about BLOCKS_PER_THREAD blocks per worker thread (so that a
+    slow block or a lost worker costs little), each of MIN_BLOCK..MAX_BLOCK trajectories."""
+    blocks = max(1, BLOCKS_PER_THREAD * max(1, threads))
+    size = min(MAX_BLOCK, max(MIN_BLOCK, math.ceil(n_trajectories / blocks)))
+    return [(start, min(start + size, n_trajectories)) for start in range(0, n_trajectories, size)]
+
+
+_BLOCK_ARRAYS = ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps",
+                 "diagnostics")
+
+
+def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict[str, str]) -> dict:
+    """On a worker: one block of an ensemble in the parallel kernel, on the worker's threads (one
+    block at a time per process); the arrays of its EnsembleResult and the run's settings."""
+    import numba
+
+    from .config import load_run_from_dict
+    from .ensemble import integrate_ensemble
+
+    spec = load_run_from_dict(_localise(copy.deepcopy(config), source, shipped), source=source,
+                              base_dir=Path(source).parent)
+    threads = 1
+    with contextlib.suppress(Exception):
+        from distributed import get_worker
+        threads = get_worker().state.nthreads
+    threads = max(1, min(threads, numba.config.NUMBA_NUM_THREADS))
+    with _KERNEL_LOCK:
+        result = integrate_ensemble(spec.problem, spec.method, spec.h, states, n_steps=spec.n_steps,
+                                    conserve=spec.conserve, solver=spec.solver, n_threads=threads, t0=spec.t0)
+    block = {name: getattr(result, name) for name in _BLOCK_ARRAYS}
+    block.update(invariant_errors=result.invariant_errors, h=result.h, conserve=result.conserve,
+                 n_steps=result.n_steps, max_iter=result.max_iter, solver=result.solver, n_threads=threads)
+    return block
+
+
+def run_ensemble_on(client, spec: SweepSpec, on_start: Callable[[int], None] | None = None,
+                    on_message: Callable[[str], None] | None = None):
+    """sweep.run_ensemble_sweep on the Dask cluster of ``client``: (RunSpec, Y0, EnsembleResult),
+    the result equal, array for array, to the local kernel's."""
+    from .ensemble import EnsembleResult
+    from .kernels.stepper import STATUS_OK
+    from .sweep import ensemble_states
+
+    distributed = _distributed()
+    run, states = ensemble_states(spec)
+    if on_start is not None:
+        on_start(states.shape[0])
+    shipped = _python_files([spec.base], spec.source)
+    warm_workers(client, [spec.base], spec.source, shipped, on_message)
+    threads = sum(worker.get("nthreads", 1) for worker in client.scheduler_info().get("workers", {}).values())
+    bounds = block_bounds(states.shape[0], threads)
+    if on_message is not None:
+        on_message(f"dask: {states.shape[0]:,} trajectories in {len(bounds)} block(s) of up to "
+                   f"{bounds[0][1] - bounds[0][0]:,}")
+    n = states.shape[0]
+    arrays: dict[str, np.ndarray] = {}
+    errors: dict[str, np.ndarray] = {}
+    settings: dict = {}
+    futures = {client.submit(_ensemble_block, spec.base, spec.source, states[start:stop], shipped,
+                             key=f"elimfast-block-{start}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
+                             retries=RETRIES): (start, stop) for start, stop in bounds}
+    try:
+        for done, future in enumerate(distributed.as_completed(futures), start=1):
+            start, stop = futures[future]
+            try:
+                block = future.result()
+            except Exception as error:   # noqa: BLE001
+                raise SweepError(f"{spec.source}: ensemble: trajectories {start}-{stop - 1} could not be run on "
+                                 f"the cluster ({_task_failure(error)[len('failed: '):]})") from None
+            future.release()
+            if not arrays:
+                arrays = {name: np.empty((n,) + block[name].shape[1:], dtype=block[name].dtype)
+                          for name in _BLOCK_ARRAYS}
+                errors = {name: np.empty(n, dtype=values.dtype) for name, values in block["invariant_errors"].items()}
+                settings = {key: block[key] for key in ("h", "conserve", "n_steps", "max_iter", "solver", "n_threads")}
+            for name in _BLOCK_ARRAYS:
+                arrays[name][start:stop] = block[name]
+            for name, values in block["invariant_errors"].items():
+                errors[name][start:stop] = values
+            if on_message is not None:
+                failed = int(np.count_nonzero(block["status"] != STATUS_OK))
+                on_message(f"[{done}/{len(bounds)}] trajectories {start}-{stop - 1}: {failed} failed")
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+    result = EnsembleResult(problem=run.problem, method=run.method, y0=states, invariant_errors=errors,
+                            **settings, **arrays)
+    return run, states, result
+
+
+__all__ = ["block_bounds", "check_scheduler", "connect", "run_ensemble_on", "run_sweep_on", "warm_workers"]
