@@ -37,6 +37,7 @@ warnings.filterwarnings("ignore", message="First-class function type feature is 
 # The Newton matrix of an earlier step is reused while the solves need at most this many
 # iterations (_newton_matrix).
 REUSE_ITERATIONS = 6
+REUSE_ITERATIONS_FULL = 3
 
 # Diagnostics of a failed step (the kernels' ``diagnostics`` output, in this order).
 DIAG_TIME, DIAG_STEP, DIAG_INCREMENT, DIAG_CONDITION, DIAG_DEPTH, DIAG_ITERATIONS = range(6)
@@ -173,12 +174,17 @@ def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, forc
     newton_base records where. Returns (status, fresh): fresh when factorised now.
     Measured: the solar system (n = 36, GHBVM(12,3)) took 126 us per step refactorising
     every step, 101 us keeping the matrix (6.6 iterations per step either way); Kepler
-    (n = 4) is better off refactorising (5.36 iterations instead of 6.30, 10% faster).
+    (n = 4) is better off refactorising at h = 0.1 (5.36 iterations instead of 6.30, 10%
+    faster), but not at small steps, where its solves take at most 3 iterations: GAUSS(4),
+    h = pi/120, 2400 steps, 16.0 -> 12.8 ms; EHBVM(12,4), h = pi/480, 78 -> 71 ms (h = 0.1:
+    unchanged, no solve there is that easy).
     """
     n = y.shape[0]
-    reusable = work.newton_blocks.shape[0] > 0   # only the block form's factorisation is worth keeping
-    if (reusable and not force and newton_base[0] != 0.0 and newton_base[1] == h
-            and newton_base[2] <= REUSE_ITERATIONS):
+    # The block form's factorisation is kept while solves stay easy; the full form's (small
+    # systems) only while they take at most REUSE_ITERATIONS_FULL iterations: small steps,
+    # where refactorising every step cost more than the iterations it saved.
+    limit = REUSE_ITERATIONS if work.newton_blocks.shape[0] > 0 else REUSE_ITERATIONS_FULL
+    if not force and newton_base[0] != 0.0 and newton_base[1] == h and newton_base[2] <= limit:
         return STATUS_OK, False
     status = newton_factor(grad_H, hess_H, params, y, h, tables, work)
     newton_base[0] = 1.0 if status == STATUS_OK else 0.0
