@@ -432,24 +432,15 @@ def problems():
       elimfast problems
       then in a config:  problem: {builtin: kepler, parameters: {eccentricity: 0.6}}
     """
-    import inspect as pyinspect
-
-    from elimfast.problems import PROBLEMS
+    from elimfast.problems.catalogue import LISTING   # the listing as data: no problem is compiled
 
     blocks = []
-    for name, constructor in PROBLEMS.items():
-        defaults = {p.name: p.default for p in pyinspect.signature(constructor).parameters.values()}
-        try:
-            problem = constructor()
-        except Exception as err:   # a library bug should not hide the other problems
-            blocks.append(f"{name}\n    (cannot be built with its defaults: {one_line(err)})")
-            continue
-        description = problem.description or one_line((constructor.__doc__ or "").strip().split("\n")[0])
-        params = ", ".join(f"{k} = {v!r}" for k, v in defaults.items()) or "none"
-        invariants = ", ".join(["H"] + ([_abbreviate(problem.invariant_names)] if problem.invariant_names else []))
-        blocks.append(f"{name}: {description}\n"
+    for name, entry in LISTING.items():
+        params = ", ".join(f"{k} = {v!r}" for k, v in entry.parameters) or "none"
+        invariants = ", ".join(["H"] + ([_abbreviate(entry.invariants)] if entry.invariants else []))
+        blocks.append(f"{name}: {entry.description}\n"
                       f"    parameters:  {params}\n"
-                      f"    coordinates: {_abbreviate(problem.coordinate_names)}\n"
+                      f"    coordinates: {_abbreviate(entry.coordinates)}\n"
                       f"    invariants:  {invariants}")
     click.echo("\n".join(blocks))
     return EXIT_OK
