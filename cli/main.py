@@ -622,8 +622,10 @@ def sweep(sweep_file, output, workers, table_format, overwrite, quiet):
       elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
     """
-    from elimfast import sweep as sweeps
-    from elimfast.streaming import StopOnSignals
+    with start_up():   # what every sweep loads (the config machinery, the kernels), with the GC paused
+        from elimfast import sweep as sweeps
+        from elimfast import config, integrate  # noqa: F401
+        from elimfast.streaming import StopOnSignals
 
     if output is not None:
         output = Path(output).expanduser()

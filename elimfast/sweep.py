@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import gc
 import itertools
 import math
 import multiprocessing
@@ -558,6 +559,24 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
+def _expected_work(config: dict) -> float:
+    """A rough measure of a run's work for ordering a pool's jobs: steps x quadrature nodes,
+    from the raw config; infinite when it cannot tell (adaptive steps, n_steps from
+    elsewhere, an expression it cannot read), so that such runs start first."""
+    from .problems.expressions import evaluate_number
+    try:
+        integration = config.get("integration") or {}
+        if integration.get("rtol") is not None or integration.get("step_control") is not None:
+            return math.inf
+        steps = abs(evaluate_number(integration["t_end"]) - evaluate_number(integration.get("t0", 0.0)))
+        steps /= abs(evaluate_number(integration["h"]))
+        method = config.get("method") or {}
+        nodes = max(int(method.get(key) or 0) for key in ("k", "r", "s"))
+        return steps * max(nodes, 1)
+    except Exception:   # noqa: BLE001 -- only an ordering hint; the worker reports real errors
+        return math.inf
+
+
 def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = True,
               on_done: Callable[[RunOutcome, int, int], None] | None = None) -> tuple[list[RunOutcome], RunOutcome | None]:
     """Run every point (and the reference run, if any) in ``workers`` processes.
@@ -591,10 +610,18 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         from .kernels import stepper  # noqa: F401
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         context = multiprocessing.get_context(method)
+        # Freeze what is loaded while the workers fork: a worker's garbage collector then never
+        # walks (and so never copies, page by page) the parent's Numba objects.
+        gc.freeze()
         pool = ProcessPoolExecutor(max_workers=min(workers, total), mp_context=context, initializer=_worker_init)
+        # Longest runs first: the pool hands out the next job as a worker frees up, so the
+        # long runs no longer come last and leave one worker busy while the other idles
+        # (Table 1 in grid order ended with its two longest runs).
+        jobs = sorted(jobs, key=lambda job: -_expected_work(job[2]))
         try:
             futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
                        for label, coordinates, config in jobs}
+            gc.unfreeze()   # the workers are forked (all at the first submit)
             for done, future in enumerate(as_completed(futures), start=1):
                 outcome = future.result()
                 results[outcome.label] = outcome
