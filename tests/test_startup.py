@@ -147,3 +147,43 @@ def test_cache_warm_is_listed_and_runs_on_a_warm_cache():
     assert "kernels ready in" in result.output
     from elimfast import warm
     assert [what for what, _ in warm.STEPS][0] == "fixed-step kernel"
+
+
+SMALL_SWEEP = """
+description: start-up test sweep
+base:
+  problem: {builtin: kepler, parameters: {eccentricity: 0.6}}
+  method: {name: gauss, s: 2}
+  integration: {h: pi/30, t_end: 2*pi}
+  output: {every: 10}
+grid:
+  - name: method
+    values:
+      - {label: GAUSS2, set: {method: {name: gauss, s: 2}}}
+      - {label: "EHBVM(6,3) L1", set: {method: {name: ehbvm, k: 6, s: 3}, conserve: [angular_momentum]}}
+  - name: h
+    key: integration.h
+    values: [pi/30, pi/60, pi/120]
+error: {exact: initial}
+order_axis: h
+"""
+
+
+def test_sweep_pool_runs_the_shortest_first_longest_next_and_matches_one_worker(tmp_path):
+    """2 workers: the shortest run in the parent first (the warm pool), the rest longest first;
+    outcomes in grid order and bit for bit those of 1 worker."""
+    from elimfast.sweep import _expected_work, load_sweep, run_sweep
+    path = tmp_path / "sweep.yaml"
+    path.write_text(SMALL_SWEEP)
+    spec = load_sweep(path)
+    order = []
+    pooled, _ = run_sweep(spec, workers=2, on_done=lambda outcome, done, total: order.append(outcome.label))
+    alone, _ = run_sweep(spec, workers=1)
+    assert order[0] == "GAUSS2/pi/30" and sorted(order) == sorted(run.label for run in spec.runs)
+    assert [o.label for o in pooled] == [o.label for o in alone] == [run.label for run in spec.runs]
+    for a, b in zip(pooled, alone):
+        assert a.status == b.status == "complete" and a.iterations_total == b.iterations_total
+        assert a.y_final.tobytes() == b.y_final.tobytes()
+    work = {run.label: _expected_work(run.config) for run in spec.runs}
+    assert max(work, key=work.get) == "EHBVM(6,3) L1/pi/120" and min(work, key=work.get) == "GAUSS2/pi/30"
+    assert _expected_work({"integration": {"rtol": 1e-8, "t_end": 1}}) == float("inf")
