@@ -8,7 +8,8 @@ machine hits both alike; medians (min-max) and the median of the per-repeat rati
 - the whole command: a fresh ``elimfast sweep configs/paper/table1.yaml --workers N -q``
   process, start-up included (warm caches); wall clock, and the CPU time of the process
   and its workers (user + system, getrusage of the children);
-- the grid itself: elimfast.sweep.run_sweep in this process (kernels already loaded).
+- the same with ``-o OUT.h5`` (each run's arrays travel back from the workers and are stored);
+- the grid itself: elimfast.sweep.run_sweep in this process (kernels already loaded, results kept).
 """
 import argparse
 import os
@@ -17,6 +18,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -26,14 +28,20 @@ SWEEP = ROOT / "configs/paper/table1.yaml"
 TARGET = 0.6
 
 
-def command(workers: int) -> tuple[float, float]:
+def command(workers: int, *extra) -> tuple[float, float]:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    subprocess.run([str(ELIMFAST), "sweep", str(SWEEP), "--workers", str(workers), "-q"], check=True,
+    subprocess.run([str(ELIMFAST), "sweep", str(SWEEP), "--workers", str(workers), "-q", *extra], check=True,
                    capture_output=True)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def command_to_file(workers: int) -> tuple[float, float]:
+    """The same with -o OUT.h5: every run's arrays come back from the workers and are stored."""
+    with tempfile.TemporaryDirectory(prefix="elimfast-sweep-") as work:
+        return command(workers, "-o", str(Path(work) / "table1.h5"))
 
 
 def grid(workers: int) -> tuple[float, float]:
@@ -62,7 +70,8 @@ def main():
              "each repeat runs 1 worker then 2 workers; medians (min-max).", "",
              "| measurement | 1 worker | 2 workers | ratio 2/1 (median of per-repeat ratios) | target |",
              "|---|---|---|---|---|"]
-    for name, measure in (("whole command, wall", command), ("grid in process, wall", grid)):
+    for name, measure in (("whole command, wall", command), ("whole command with -o OUT.h5, wall", command_to_file),
+                          ("grid in process (results kept), wall", grid)):
         times = {1: [], 2: []}
         cpu = {1: [], 2: []}
         for _ in range(args.repeats):
