@@ -177,7 +177,24 @@ def test_sweep_pool_runs_the_shortest_first_longest_next_and_matches_one_worker(
     path.write_text(SMALL_SWEEP)
     spec = load_sweep(path)
     order = []
-    pooled, _ = run_sweep(spec, workers=2, on_done=lambda outcome, done, total: order.append(outcome.label))
+    from numba.core import event
+
+    class Count(event.Listener):
+        compiled = 0
+
+        def on_start(self, ev):
+            Count.compiled += 1
+
+        def on_end(self, ev):
+            pass
+
+    counter = Count()
+    event.register("numba:compile", counter)
+    try:   # the results' problem functions unpickle onto the loaded ones: nothing is recompiled here
+        pooled, _ = run_sweep(spec, workers=2, on_done=lambda outcome, done, total: order.append(outcome.label))
+    finally:
+        event.unregister("numba:compile", counter)
+    assert Count.compiled == 0
     alone, _ = run_sweep(spec, workers=1)
     assert order[0] == "GAUSS2/pi/30" and sorted(order) == sorted(run.label for run in spec.runs)
     assert [o.label for o in pooled] == [o.label for o in alone] == [run.label for run in spec.runs]
