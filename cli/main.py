@@ -230,7 +230,8 @@ def _resolved_yaml(spec, output_path=None) -> str:
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
 @click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
 @click.option("--resume", is_flag=True, help="Continue the interrupted or killed run stored in OUT.h5.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress and no summary line (errors only).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress and no summary line (errors only, and the "
+              "one line saying that Numba compiles, on a cold cache).")
 def run(config, output, overrides, overwrite, resume, quiet):
     """Run the integration described by CONFIG into an HDF5 file.
 
