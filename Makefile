@@ -9,13 +9,19 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# pip's output goes to a log, shown only if the install fails.
+# pip's output goes to a log, shown only if the install fails. Then, as pip does for a
+# regular install, the bytecode is compiled, and so is every Numba kernel (`elimfast cache
+# warm`, one to a few minutes), so that the first `make run` loads them and starts at once.
+WARM = $(BIN)/python -m compileall -q elimfast cli && $(BIN)/elimfast cache warm
+
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e . > $(VENV)/install.log 2>&1 || (cat $(VENV)/install.log; exit 1)
+	$(WARM)
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]' > $(VENV)/install.log 2>&1 || (cat $(VENV)/install.log; exit 1)
+	$(WARM)
 	touch $(VENV)/.installed $@
 
 run: $(VENV)/.installed
@@ -32,7 +38,7 @@ bench: $(VENV)/.installed-test
 	$(BIN)/python bench/kernel.py
 	$(BIN)/python bench/end_to_end.py
 	$(BIN)/python bench/sweep.py
-	$(BIN)/python bench/sweep.py --dask
+	$(BIN)/python bench/dask.py --dask
 	$(BIN)/python bench/user_problem.py
 	$(BIN)/python bench/ensemble.py
 

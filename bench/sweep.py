@@ -1,24 +1,20 @@
-"""The paper's Table 1 sweep (30 runs) with 1 worker and with 2 workers (issue 5: at most 0.6x).
+"""The paper's Table 1 sweep (30 runs) with 1 worker and with 2 workers (issue 12, item 5: the
+whole command with 2 workers within 0.6x of 1 worker, start-up included).
 
-Usage: .venv/bin/python bench/sweep.py [--repeats 5]
+Usage: .venv/bin/python bench/sweep.py [--repeats 7] [--out bench/results/sweep.md]
 
-Two measurements, alternating 1 and 2 workers so that load on the shared machine hits
-both alike; medians reported:
-- the grid itself: elimfast.sweep.run_sweep in this process (kernels already loaded);
-- the whole command: a fresh `elimfast sweep` process, start-up included (warm cache).
-
-With --dask (issue 13; needs `pip install 'elimfast[dask]'`), instead: the local pool of 2
-processes against a 2-worker dask.distributed LocalCluster (one thread each), alternating,
-medians side by side, written to bench/results/dask.md:
-- a 100-run sweep (Kepler, 10 eccentricities x 10 step sizes, EHBVM(12,3) imposing L),
-  stored in an HDF5 file as `elimfast sweep -o` does; the cluster's time with the cluster
-  already running (a long-lived cluster) and with its start included (--scheduler local);
-- a Henon-Heiles ensemble of --orbits orbits (1e5), the local kernel on 2 threads against
-  blocks on the cluster.
+Side by side: each repeat runs 1 worker then 2 workers, so that load on the shared
+machine hits both alike; medians (min-max) and the median of the per-repeat ratios.
+- the whole command: a fresh ``elimfast sweep configs/paper/table1.yaml --workers N -q``
+  process, start-up included (warm caches); wall clock, and the CPU time of the process
+  and its workers (user + system, getrusage of the children);
+- the same with ``-o OUT.h5`` (each run's arrays travel back from the workers and are stored);
+- the grid itself: elimfast.sweep.run_sweep in this process (kernels already loaded, results kept).
 """
 import argparse
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -26,139 +22,75 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
-
 ROOT = Path(__file__).resolve().parents[1]
 ELIMFAST = Path(sys.executable).with_name("elimfast")
 SWEEP = ROOT / "configs/paper/table1.yaml"
+TARGET = 0.6
 
 
-def command(workers: int) -> float:
+def command(workers: int, *extra) -> tuple[float, float]:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    subprocess.run([str(ELIMFAST), "sweep", str(SWEEP), "--workers", str(workers), "-q"], check=True,
+    subprocess.run([str(ELIMFAST), "sweep", str(SWEEP), "--workers", str(workers), "-q", *extra], check=True,
                    capture_output=True)
-    return time.perf_counter() - start
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def grid(workers: int) -> float:
+def command_to_file(workers: int) -> tuple[float, float]:
+    """The same with -o OUT.h5: every run's arrays come back from the workers and are stored."""
+    with tempfile.TemporaryDirectory(prefix="elimfast-sweep-") as work:
+        return command(workers, "-o", str(Path(work) / "table1.h5"))
+
+
+def grid(workers: int) -> tuple[float, float]:
     from elimfast.sweep import load_sweep, run_sweep
     spec = load_sweep(SWEEP)
     start = time.perf_counter()
     run_sweep(spec, workers=workers)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, float("nan")
 
 
-KEPLER_GRID = {
-    "description": "100 Kepler runs: 10 eccentricities x 10 step sizes (bench/sweep.py --dask)",
-    "base": {"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}},
-             "method": {"name": "ehbvm", "k": 12, "s": 3}, "conserve": ["angular_momentum"],
-             "integration": {"h": "pi/30", "t_end": "40*pi"}, "output": {"every": 10}},
-    "grid": [{"name": "e", "key": "problem.parameters.eccentricity",
-              "values": [round(0.1 + 0.06 * i, 2) for i in range(10)]},
-             {"name": "h", "key": "integration.h", "values": [f"2*pi/{100 + 10 * i}" for i in range(10)]}],
-    "error": {"exact": "initial"}, "order_axis": "h",
-}
-
-
-def henon_heiles_ensemble(orbits: int, t_end: float) -> dict:
-    return {"description": f"{orbits} Henon-Heiles orbits (bench/sweep.py --dask)",
-            "base": {"problem": {"builtin": "henon_heiles"}, "method": {"name": "hbvm", "k": 6, "s": 3},
-                     "integration": {"h": 0.1, "t_end": t_end}},
-            "ensemble": {"n": orbits, "seed": 1, "spread": 0.01}}
-
-
-def dask_comparison(args):
-    import distributed
-
-    from elimfast.sweep import run_to_file
-    folder = Path(tempfile.mkdtemp(prefix="elimfast-bench-dask-"))
-    grid_file = folder / "grid.yaml"
-    grid_file.write_text(yaml.safe_dump(KEPLER_GRID, sort_keys=False))
-    ensemble_file = folder / "ensemble.yaml"
-    ensemble_file.write_text(yaml.safe_dump(henon_heiles_ensemble(args.orbits, args.t_end), sort_keys=False))
-    out = folder / "out.h5"
-
-    def timed(function):
-        start = time.perf_counter()
-        result = function()
-        return time.perf_counter() - start, result
-
-    rows = []
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) \
-            as cluster, distributed.Client(cluster) as client:
-        for name, sweep_file, repeats in (("100-run sweep", grid_file, args.repeats),
-                                          (f"{args.orbits:,}-orbit ensemble", ensemble_file, args.ensemble_repeats)):
-            local = "local pool, 2 processes" if name.startswith("100") else "local kernel, 2 threads"
-            modes = {local: lambda f=sweep_file: run_to_file(f, out, workers=2, overwrite=True),
-                     "LocalCluster, 2 workers (running)":
-                         lambda f=sweep_file: run_to_file(f, out, client=client, overwrite=True)}
-            if name.startswith("100"):
-                modes["--scheduler local (start included)"] = \
-                    lambda f=sweep_file: run_to_file(f, out, scheduler="local", workers=2, overwrite=True)
-            for function in modes.values():
-                function()   # warm: kernels, problems, the workers
-            times = {mode: [] for mode in modes}
-            tables = {}
-            for _ in range(repeats):
-                for mode, function in modes.items():
-                    seconds, outcome = timed(function)
-                    times[mode].append(seconds)
-                    tables[mode] = outcome.table()
-                    print(f"{name}: {mode}: {seconds:.2f} s", file=sys.stderr)
-            same = all(table == tables[local] for table in tables.values())
-            pool = statistics.median(times[local])
-            for mode, values in times.items():
-                median = statistics.median(values)
-                rows.append(f"| {name} | {mode} | {median:.2f} s | {min(values):.2f}-{max(values):.2f} s | "
-                            f"{median / pool:.2f} | {'yes' if same else 'NO'} |")
-    lines = [
-        "# Sweeps and ensembles: local pool vs a 2-worker Dask LocalCluster",
-        "",
-        f"Generated by `bench/sweep.py --dask` (`{' '.join(sys.argv[1:])}`), dask.distributed "
-        f"{distributed.__version__}; machine: {os.cpu_count()} cores shared with other work, "
-        f"{platform.machine()}; load average {os.getloadavg()[0]:.2f} at the end.",
-        "",
-        f"- 100-run sweep: {KEPLER_GRID['description']}, t in [0, 40 pi], every run stored in an HDF5 file "
-        "(the client streams them in as they arrive).",
-        f"- Ensemble: HBVM(6,3), h = 0.1, t in [0, {args.t_end:g}], {args.orbits:,} orbits near E = 1/8; the local "
-        "kernel on 2 threads, the cluster in blocks (elimfast.distributed.block_bounds) of 1 thread each.",
-        "- Modes alternate within each repeat; medians (and ranges). Ratio: median / the local pool's median.",
-        "",
-        "| workload | mode | median | range | ratio to local | same table |",
-        "|---|---|---|---|---|---|",
-        *rows,
-        "",
-        "Target (issue 13): the cluster within 1.2x of the local pool's time.",
-        "",
-    ]
-    text = "\n".join(lines)
-    print(text)
-    target = ROOT / "bench" / "results" / "dask.md"
-    target.write_text(text)
-    print(f"wrote {target.relative_to(ROOT)}")
+def fmt(values) -> str:
+    return f"{statistics.median(values):.2f} s ({min(values):.2f}-{max(values):.2f})"
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--dask", action="store_true", help="compare the local pool with a Dask LocalCluster")
-    parser.add_argument("--orbits", type=int, default=100_000, help="--dask: orbits of the ensemble")
-    parser.add_argument("--t-end", type=float, default=20.0, help="--dask: the ensemble's t_end")
-    parser.add_argument("--ensemble-repeats", type=int, default=3, help="--dask: repeats of the ensemble")
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--out", type=Path, help="also write the results as markdown to this file")
     args = parser.parse_args()
-    if args.dask:
-        dask_comparison(args)
-        return
+    load_before = os.getloadavg()[0]
     grid(1)
     command(1)  # warm the caches
-    for name, measure in (("grid (in process)", grid), ("whole command", command)):
+    lines = ["# Table 1 sweep: 1 worker vs 2 workers", "",
+             f"Generated by `bench/sweep.py --repeats {args.repeats}`: `elimfast sweep configs/paper/table1.yaml` "
+             f"(30 runs). {os.cpu_count()} cores shared with other work ({platform.machine()}); "
+             "each repeat runs 1 worker then 2 workers; medians (min-max).", "",
+             "| measurement | 1 worker | 2 workers | ratio 2/1 (median of per-repeat ratios) | target |",
+             "|---|---|---|---|---|"]
+    for name, measure in (("whole command, wall", command), ("whole command with -o OUT.h5, wall", command_to_file),
+                          ("grid in process (results kept), wall", grid)):
         times = {1: [], 2: []}
+        cpu = {1: [], 2: []}
         for _ in range(args.repeats):
             for workers in (1, 2):
-                times[workers].append(measure(workers))
-        one, two = statistics.median(times[1]), statistics.median(times[2])
-        print(f"Table 1 sweep, {name:18s}: 1 worker {one:.2f} s, 2 workers {two:.2f} s, ratio {two / one:.2f} "
-              f"(target <= 0.6); medians of {args.repeats}")
+                wall, used = measure(workers)
+                times[workers].append(wall)
+                cpu[workers].append(used)
+        ratios = [b / a for a, b in zip(times[1], times[2])]
+        target = f"<= {TARGET}" if measure is command else ""
+        lines.append(f"| {name} | {fmt(times[1])} | {fmt(times[2])} | {statistics.median(ratios):.2f} "
+                     f"({min(ratios):.2f}-{max(ratios):.2f}) | {target} |")
+        if measure is command:
+            lines.append(f"| whole command, CPU (parent + workers) | {fmt(cpu[1])} | {fmt(cpu[2])} | "
+                         f"{statistics.median([b / a for a, b in zip(cpu[1], cpu[2])]):.2f} | |")
+    lines += ["", f"Load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after."]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text)
 
 
 if __name__ == "__main__":

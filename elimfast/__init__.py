@@ -6,6 +6,8 @@
     result = elimfast.integrate(kepler(0.6), ehbvm(12, 3), h=0.1, t_end=1000.0,
                                 conserve=["angular_momentum", "lrl_y"])
 """
+import sys
+import types
 from importlib.metadata import PackageNotFoundError, version as _version
 
 try:
@@ -15,8 +17,37 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 
 from . import methods, problems
 from .errors import ConvergenceError, ElimfastError
-from .archive import load
-from .integrate import Integration, Result, integrate
 
 __all__ = ["__version__", "integrate", "load", "Integration", "Result", "ConvergenceError", "ElimfastError",
            "methods", "problems"]
+
+# Imported on first use: they import the Numba kernels (about 0.2-0.4 s with a warm cache),
+# which `import elimfast`, the CLI's listings and --help never need.
+_LAZY = {"integrate": "integrate", "Integration": "integrate", "Result": "integrate", "load": "archive"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
+
+class _Package(types.ModuleType):
+    """Keeps ``elimfast.integrate`` the function (as the eager import of before made it): importing
+    the submodule elimfast.integrate (elimfast.config does) would otherwise set the package's
+    attribute to the module."""
+
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and _LAZY.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -13,9 +13,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..kernels.quadrature import gauss_legendre, legendre_integral_table, legendre_table
 from ..errors import ParameterError
-from ..kernels.codes import FAMILY_ELIM, FAMILY_LIM
+
+# elimfast.kernels (Numba) is imported only where a table is computed or a kernel code is
+# asked for: the registry, the listings and `elimfast methods` import no Numba.
 
 MAX_NODES = 64  # the quadrature is verified to a few ulp up to here
 
@@ -25,6 +26,8 @@ def quadrature(n: int) -> tuple[np.ndarray, np.ndarray]:
     n = _positive_int("n", n)
     if n > MAX_NODES:
         raise ParameterError("n", f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified up to there), got {n}")
+    from ..kernels.quadrature import gauss_legendre
+
     nodes = np.empty(n)
     weights = np.empty(n)
     gauss_legendre(n, nodes, weights)
@@ -33,6 +36,8 @@ def quadrature(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
     """(Ps, Is) of docs/methods.md#notation: Ps[i, j] = P_j(c_i), j < n_values; Is[i, j] = int_0^{c_i} P_j, j < n_integrals."""
+    from ..kernels.quadrature import legendre_integral_table, legendre_table
+
     nodes = np.ascontiguousarray(nodes, dtype=np.float64)
     values = np.empty((nodes.size, n_values))
     integrals = np.empty((nodes.size, n_integrals))
@@ -66,7 +71,8 @@ class Family:
 
     name: the registry name ('ehbvm'); parameters: the constructor's, in order (('k', 's'));
     constructor: the function that builds one (``ehbvm(k, s)``);
-    kernel_family: the kernels' code of its map (FAMILY_ELIM or FAMILY_LIM); imposes:
+    kernel_map: the name of its map in the kernels, "elim" or "lim" (``kernel_family`` is
+    its code, kernels.codes.FAMILY_ELIM or FAMILY_LIM); imposes:
     IMPOSES_NONE, IMPOSES_FEWER_THAN_S or IMPOSES_ANY; multiplier: the name of the
     per-step multipliers ('alpha', 'lambda') or None; multiplier_counts_H: the
     multipliers include one for H (LIM's lambda: nu + 1 of them, H first);
@@ -80,7 +86,7 @@ class Family:
     name: str
     parameters: tuple[str, ...]
     constructor: Callable[..., "Method"]
-    kernel_family: int
+    kernel_map: str
     imposes: str
     multiplier: str | None
     multiplier_counts_H: bool
@@ -91,6 +97,12 @@ class Family:
     description: str
     notes: str
     docs: str
+
+    @property
+    def kernel_family(self) -> int:
+        """The kernels' code of its map: codes.FAMILY_ELIM or FAMILY_LIM (imports the kernels)."""
+        from ..kernels import codes
+        return getattr(codes, f"FAMILY_{self.kernel_map.upper()}")
 
     def signature(self) -> str:
         """'ehbvm(k, s)'."""

@@ -1,5 +1,4 @@
 """ELIM(r,k,s) and EHBVM(k,s) = ELIM(k,k,s): docs/methods.md#elim (the paper's new methods)."""
-from ..kernels.codes import FAMILY_ELIM
 from .base import IMPOSES_FEWER_THAN_S, Family, Method, build, register
 
 
@@ -14,7 +13,7 @@ def ehbvm(k: int, s: int) -> Method:
 
 
 _ELIM = dict(
-    kernel_family=FAMILY_ELIM, imposes=IMPOSES_FEWER_THAN_S, multiplier="alpha", multiplier_counts_H=False,
+    kernel_map="elim", imposes=IMPOSES_FEWER_THAN_S, multiplier="alpha", multiplier_counts_H=False,
     imposes_linear=False, scales_tableau=True, has_runge_kutta_form=True, docs="docs/methods.md#elim",
     linear_refusal=("every Runge-Kutta method keeps linear invariants exactly, {method} included, and ELIM cannot "
                     "impose one (its column of Gamma vanishes, docs/methods.md#linear-invariants); leave it out of "

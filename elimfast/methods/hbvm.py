@@ -1,5 +1,4 @@
 """GAUSS(s) and HBVM(k,s): docs/methods.md#hbvm."""
-from ..kernels.codes import FAMILY_ELIM
 from .base import IMPOSES_NONE, Family, Method, build, register
 
 
@@ -14,7 +13,7 @@ def gauss(s: int) -> Method:
 
 
 # The kernels run both as ELIM imposing nothing: with nu = 0 its map is HBVM's.
-_NO_INVARIANTS = dict(kernel_family=FAMILY_ELIM, imposes=IMPOSES_NONE, multiplier=None, multiplier_counts_H=False,
+_NO_INVARIANTS = dict(kernel_map="elim", imposes=IMPOSES_NONE, multiplier=None, multiplier_counts_H=False,
                       imposes_linear=False, linear_refusal="", scales_tableau=False, has_runge_kutta_form=True)
 
 register(Family(

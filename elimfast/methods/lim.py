@@ -1,5 +1,4 @@
 """LIM(r,k,s) and GHBVM(k,s) = LIM(k,k,s): docs/methods.md#lim (Brugnano & Iavernaro 2012)."""
-from ..kernels.codes import FAMILY_LIM
 from .base import IMPOSES_ANY, Family, Method, build, register
 
 
@@ -15,7 +14,7 @@ def ghbvm(k: int, s: int) -> Method:
 
 # lambda has one entry for H and one per imposed invariant: LIM treats H as one more invariant.
 _LIM = dict(
-    kernel_family=FAMILY_LIM, imposes=IMPOSES_ANY, multiplier="lambda", multiplier_counts_H=True,
+    kernel_map="lim", imposes=IMPOSES_ANY, multiplier="lambda", multiplier_counts_H=True,
     imposes_linear=True, linear_refusal="", scales_tableau=False, has_runge_kutta_form=False,
     docs="docs/methods.md#lim",
     notes="Imposes H and any number of invariants through one correction of gamma_0; lambda = O(h^(2s)). "
