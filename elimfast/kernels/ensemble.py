@@ -24,9 +24,8 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 from numba.extending import intrinsic
 
 from .codes import STATUS_EXCEPTION, STATUS_OK, internal
-from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
-                         INVARIANTS_TYPE, MATRIX, VECTOR)
-from .stepper import N_DIAGNOSTICS, try_step
+from .signatures import INT_VECTOR, MATRIX, VECTOR
+from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, try_step
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
@@ -163,13 +162,7 @@ def _fetch_add(typingctx, counter, increment):
 
 
 ENSEMBLE_SIGNATURE = types.void(
-    H_TYPE, GRAD_H_TYPE, HESS_H_TYPE, INVARIANTS_TYPE, GRAD_INVARIANTS_TYPE, VECTOR,   # problem
-    types.int64, types.int64, types.int64, types.int64, types.int64,                   # family, solver, stable_rhs,
-    types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
-    #                                                                                    max_iter, max_halvings
-    types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h and the method's tables
-    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,                            # (workspace.Tables)
-    INT_VECTOR,                                                                        # conserve_idx
+    *RUN_ARGUMENT_TYPES,                                                               # as time_loop's
     MATRIX, types.float64, types.int64, types.int64, types.int64,                      # Y0, t0, n_steps, n_mult,
     #                                                                                    n_workers
     MATRIX, VECTOR, MATRIX, INT_VECTOR, VECTOR, INT_VECTOR, INT_VECTOR, INT_VECTOR,    # outputs

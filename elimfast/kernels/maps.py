@@ -360,12 +360,19 @@ def elim_rounding(h, alpha, stable_rhs, tables, nu, s, work):
         for c in range(nu):
             acc += h_powers[c] * _dot_rounding(S, phi[a], gamma, s - nu + c, sizes, a) * abs(alpha[c])
         d_rhs[a] = acc
-    for c in range(nu):
-        acc = 0.0
-        for a in range(nu):
-            acc += abs(inverse[c, a]) * d_rhs[a]
-        rounding[0, c] = acc
+    _abs_times(inverse, d_rhs, nu, rounding[0])
     return cond
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _abs_times(matrix, vector, n, out):
+    """out = |matrix| vector over the leading n x n block: how the rounding of a small
+    system's right-hand side reaches its solution (spec 8's |Gamma^-1| db)."""
+    for a in range(n):
+        acc = 0.0
+        for b in range(n):
+            acc += abs(matrix[a, b]) * vector[b]
+        out[a] = acc
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -382,9 +389,5 @@ def lim_rounding(tables, n_tilde, s, work):
         for j in range(s):
             acc += _dot_rounding(S, phi[a], gamma, j, sizes, a)
         d_rhs[a] = acc
-    for a in range(n_tilde):
-        acc = 0.0
-        for b in range(n_tilde):
-            acc += abs(inverse[a, b]) * d_rhs[b]
-        rounding[0, a] = acc
+    _abs_times(inverse, d_rhs, n_tilde, rounding[0])
     return cond

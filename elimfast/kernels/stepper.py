@@ -293,7 +293,9 @@ def _sample(H, invariants, params, y, t, index, t_out, y_out, inv_out, inv_value
         inv_out[index, 1 + a] = inv_values[a]
 
 
-TIME_LOOP_SIGNATURE = types.int64(
+# The arguments every run kernel starts with (time_loop here, ensemble_loop): the problem's
+# functions and parameters, the solver settings, h and the method's tables, conserve_idx.
+RUN_ARGUMENT_TYPES = (
     H_TYPE, GRAD_H_TYPE, HESS_H_TYPE, INVARIANTS_TYPE, GRAD_INVARIANTS_TYPE, VECTOR,   # problem
     types.int64, types.int64, types.int64, types.int64, types.int64,                   # family, solver, stable_rhs,
     types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
@@ -301,6 +303,10 @@ TIME_LOOP_SIGNATURE = types.int64(
     types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h and the method's tables
     COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,                            # (workspace.Tables)
     INT_VECTOR,                                                                        # conserve_idx
+)
+
+TIME_LOOP_SIGNATURE = types.int64(
+    *RUN_ARGUMENT_TYPES,
     VECTOR, VECTOR, VECTOR, MATRIX, VECTOR, VECTOR, VECTOR,                            # y, y_comp, clock, coef,
     #                                                                                    multipliers, last_h,
     #                                                                                    newton_base
