@@ -51,6 +51,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ConvergenceError, ElimfastError
+from .io.safety import _size   # the one size formatter of the disk and memory messages
 
 
 REFERENCE_LABEL = "\0reference"  # the reference run's label: no grid label can hold a NUL, so none collides
@@ -183,14 +184,6 @@ def memory_available() -> int | None:
             values.append(max(int(limit) - usage, 0))
         break
     return min(values) if values else None
-
-
-def _size(n_bytes: float) -> str:
-    for unit in ("bytes", "KB", "MB", "GB", "TB"):
-        if n_bytes < 1000 or unit == "TB":
-            return f"{n_bytes:.0f} {unit}" if unit == "bytes" else f"{n_bytes:.3g} {unit}"
-        n_bytes /= 1000
-    return f"{n_bytes:.3g} TB"
 
 
 def require_memory(needed: float, what: str, fix: str, source: str, key: str) -> None:
