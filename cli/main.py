@@ -735,11 +735,8 @@ def cache():
 
 
 def _size(n_bytes: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n_bytes < 1024 or unit == "GiB":
-            return f"{n_bytes:.0f} {unit}" if unit == "B" else f"{n_bytes:.1f} {unit}"
-        n_bytes /= 1024
-    return f"{n_bytes} B"
+    from elimfast.io.safety import _size as size   # the one size formatter of the messages
+    return size(n_bytes)
 
 
 @cache.command("info", context_settings=CONTEXT)
