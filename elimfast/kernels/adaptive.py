@@ -105,16 +105,19 @@ def _apply_jacobian(hessian, v, out):
 
 @internal
 def stage_at(tau, y, h, coef, integrals, out):
-    """u(tau h) = y + h sum_j coef_j int_0^tau P_j: the stage polynomial of a step (docs/methods.md)."""
+    """u(tau h) = y + h sum_j coef_j int_0^tau P_j: the stage polynomial of a step (docs/methods.md).
+    integrals (2, s) scratch: row 0 the integrals, row 1 holds tau (no allocation here:
+    the kernels' internal functions run without reference counting, codes.internal)."""
     s = coef.shape[0]
     n = y.shape[0]
-    point = np.empty(1)
+    point = integrals[1, :1]
     point[0] = tau
-    legendre_integral_table(point, s, integrals)
+    table = integrals[:1]
+    legendre_integral_table(point, s, table)
     for p in range(n):
         acc = 0.0
         for j in range(s):
-            acc += integrals[0, j] * coef[j, p]
+            acc += table[0, j] * coef[j, p]
         out[p] = y[p] + h * acc
 
 
@@ -123,7 +126,7 @@ def error_estimate(hess_H, params, tables, work, y0, y1, h, coef, rtol, atol, sc
     """E = C_s h || (h J(u(h/2)))^s gamma_s || (docs/adaptive.md), the last step's
     local error estimate in the weighted max norm. gamma_s = J sum_l b_l P_s(c_l) grad H(u_l)
     from the gradients of the last iteration (work.grads, no new evaluation); needs k > s.
-    scratch (3, n); hessian (n, n); integrals (1, s)."""
+    scratch (3, n); hessian (n, n); integrals (2, s) (stage_at)."""
     n = y0.shape[0]
     s = coef.shape[0]
     m = n // 2
@@ -312,7 +315,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     y_end_state, comp_end_state = np.empty(n), np.empty(n)
     y_half, half_comp, half_clock = np.empty(n), np.empty(n), np.empty(2)
     half_coef, half_mult, half_last_h = np.empty((s, n)), np.empty(n_mult), np.empty(1)
-    scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((1, s))
+    scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((2, s))
     scale_scratch = np.zeros((2, n + 1))
     g_old, g_new, g_side = np.empty(n_events), np.empty(n_events), np.empty(n_events)
     poly_state = np.empty(n)

@@ -23,7 +23,7 @@ from numba import njit, prange, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 from numba.extending import intrinsic
 
-from .codes import STATUS_EXCEPTION, STATUS_OK, internal
+from .codes import STATUS_EXCEPTION, STATUS_OK, internal_allocating
 from .signatures import INT_VECTOR, MATRIX, VECTOR
 from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, try_step
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
@@ -32,7 +32,7 @@ warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, modu
 warnings.filterwarnings("ignore", message="First-class function type feature is experimental")
 
 
-@internal
+@internal_allocating
 def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables, conserve_idx,
                     h, y0, t0, n_steps, n_mult, y, errors, counts, reals, diagnostics):
     """One trajectory from y0 (n,): ``stepper.time_loop`` with store_every = 1, reduced on the fly.
