@@ -52,7 +52,7 @@ def kahan_add(value, compensation, increment):
     return new_value, (value - new_value) + corrected
 
 
-@internal
+@njit(cache=True, inline="always", error_model="numpy")
 def extrapolate(tables, work, offset, theta, base, out):
     """The predictor of docs/solver.md: out_i = sum_j E_ij base_j,
     E_ij = int_0^1 P_i(tau) P_j(offset + theta tau) dtau by (s+1)-point Gauss (exact:
@@ -163,7 +163,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     return status, iterations
 
 
-@internal
+@njit(cache=True, inline="always", error_model="numpy")
 def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, force):
     """Keep or refactorise the simplified Newton matrix for a solve from y with step h.
 
