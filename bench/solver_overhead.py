@@ -4,14 +4,12 @@
 
 GAUSS(4) on Kepler at h = pi/120, the fixed point from a cold start: the ELIM map called
 alone from a small loop, against whole solves (kernels/solver.py) at two tolerances.
-Measured (this machine, shared): the map alone 61-66 ns per call; a solve 2.7 us for 6
-iterations (tol 1e-8) and 4.0 us for 11 (tol eps): about 260 ns per iteration and 1 us per
-solve, so the solver's own work is 3-4x the map's. An rdtsc-instrumented copy of solve()
-put the map itself at ~600 cycles per iteration inside solve() against ~170 alone: the same
-inlined code runs slower there (its arrays arrive in the Workspace struct as arguments; in
-the small loop they are fresh allocations LLVM can see). This is the first thing to cut
-for small problems at small steps (a GAUSS(4) run of 2400 steps: 3.4 ms before the step
-engine, ~10-13 ms now).
+Measured (this machine, shared), before and after the kernels' internal functions lost
+their reference counting (kernels/codes.py): the map alone 61-68 ns per call; a solve of
+6 iterations (tol 1e-8) 2.7 -> 1.7 us, of 11 iterations (tol eps) 4.0 -> 2.4 us. What is
+left is about 140 ns per iteration and 0.8 us per solve beyond the map: the stopping
+rule's bookkeeping and the call itself (the Tables and Workspace structs, ~60 arrays,
+passed by value). The next thing to cut for small problems at small steps.
 """
 import math
 import time
