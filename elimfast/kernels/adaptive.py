@@ -34,7 +34,7 @@ from numba import njit, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK
-from .quadrature import legendre_integral_table
+from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
@@ -106,18 +106,27 @@ def _apply_jacobian(hessian, v, out):
 @internal
 def stage_at(tau, y, h, coef, integrals, out):
     """u(tau h) = y + h sum_j coef_j int_0^tau P_j: the stage polynomial of a step (docs/methods.md).
-    integrals (2, s) scratch: row 0 the integrals, row 1 holds tau (no allocation here:
-    the kernels' internal functions run without reference counting, codes.internal)."""
+
+    int_0^tau P_0 = tau; for j >= 1, (P_{j+1}(tau)/sqrt(2j+3) - P_{j-1}(tau)/sqrt(2j-1)) /
+    (2 sqrt(2j+1)) (quadrature.legendre_integral_table's closed form, without its allocation:
+    the kernels' internal functions run without reference counting, codes.internal).
+    integrals (3, s + 1) scratch: row 0 the integrals, row 1 holds tau, row 2 P_0..P_s(tau).
+    """
     s = coef.shape[0]
     n = y.shape[0]
     point = integrals[1, :1]
     point[0] = tau
-    table = integrals[:1]
-    legendre_integral_table(point, s, table)
+    values = integrals[2:3]
+    legendre_table(point, s + 1, values)
+    table = integrals[0]
+    table[0] = tau
+    for j in range(1, s):
+        table[j] = (values[0, j + 1] / math.sqrt(2.0 * j + 3.0) - values[0, j - 1] / math.sqrt(2.0 * j - 1.0)) \
+            / (2.0 * math.sqrt(2.0 * j + 1.0))
     for p in range(n):
         acc = 0.0
         for j in range(s):
-            acc += table[0, j] * coef[j, p]
+            acc += table[j] * coef[j, p]
         out[p] = y[p] + h * acc
 
 
@@ -126,7 +135,7 @@ def error_estimate(hess_H, params, tables, work, y0, y1, h, coef, rtol, atol, sc
     """E = C_s h || (h J(u(h/2)))^s gamma_s || (docs/adaptive.md), the last step's
     local error estimate in the weighted max norm. gamma_s = J sum_l b_l P_s(c_l) grad H(u_l)
     from the gradients of the last iteration (work.grads, no new evaluation); needs k > s.
-    scratch (3, n); hessian (n, n); integrals (2, s) (stage_at)."""
+    scratch (3, n); hessian (n, n); integrals (3, s + 1) (stage_at)."""
     n = y0.shape[0]
     s = coef.shape[0]
     m = n // 2
@@ -315,7 +324,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     y_end_state, comp_end_state = np.empty(n), np.empty(n)
     y_half, half_comp, half_clock = np.empty(n), np.empty(n), np.empty(2)
     half_coef, half_mult, half_last_h = np.empty((s, n)), np.empty(n_mult), np.empty(1)
-    scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((2, s))
+    scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((3, s + 1))
     scale_scratch = np.zeros((2, n + 1))
     g_old, g_new, g_side = np.empty(n_events), np.empty(n_events), np.empty(n_events)
     poly_state = np.empty(n)
