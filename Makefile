@@ -38,7 +38,7 @@ bench: $(VENV)/.installed-test
 	$(BIN)/python bench/kernel.py
 	$(BIN)/python bench/end_to_end.py
 	$(BIN)/python bench/sweep.py
-	$(BIN)/python bench/dask.py --dask
+	$(BIN)/python bench/sweep_dask.py --dask
 	$(BIN)/python bench/user_problem.py
 	$(BIN)/python bench/ensemble.py
 
