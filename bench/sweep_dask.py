@@ -86,13 +86,15 @@ def dask_comparison(args):
     rows = []
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) \
             as cluster, distributed.Client(cluster) as client:
-        for name, sweep_file, repeats in (("100-run sweep", grid_file, args.repeats),
-                                          (f"{args.orbits:,}-orbit ensemble", ensemble_file, args.ensemble_repeats)):
-            local = "local pool, 2 processes" if name.startswith("100") else "local kernel, 2 threads"
+        for name, sweep_file, repeats, is_grid in (
+                ("100-run sweep", grid_file, args.repeats, True),
+                (f"{args.orbits:,}-orbit ensemble", ensemble_file, args.ensemble_repeats, False)):
+            # (a flag, not the name: "100,000-orbit ensemble" starts with "100" too)
+            local = "local pool, 2 processes" if is_grid else "local kernel, 2 threads"
             modes = {local: lambda f=sweep_file: run_to_file(f, out, workers=2, overwrite=True),
                      "LocalCluster, 2 workers (running)":
                          lambda f=sweep_file: run_to_file(f, out, client=client, overwrite=True)}
-            if name.startswith("100"):
+            if is_grid:
                 modes["--scheduler local (start included)"] = \
                     lambda f=sweep_file: run_to_file(f, out, scheduler="local", workers=2, overwrite=True)
             for function in modes.values():
