@@ -18,6 +18,7 @@ import elimfast
 from elimfast.config import load_run, load_run_from_dict, ConfigError
 from elimfast.integrate import Integration
 from elimfast_cli.main import cli
+from runfiles import steps_on_disk
 
 ELIMFAST = str(Path(sys.executable).with_name("elimfast"))
 PERIOD = 2 * math.pi
@@ -104,14 +105,6 @@ def test_adaptive_run_file_layout_and_inspect(tmp_path, reference):
     assert tree["steps"].to_dataset(inherit=False)["h"].dims == ("step",)
 
 
-def _steps_on_disk(path: Path) -> int:
-    try:
-        with h5py.File(path, "r", swmr=True) as f:
-            return int(f["state/steps_done"][()])
-    except (OSError, KeyError):
-        return 0
-
-
 @pytest.mark.slow
 def test_kill_9_and_resume_equal_the_uninterrupted_run(tmp_path, reference):
     config = write_config(tmp_path)
@@ -119,13 +112,13 @@ def test_kill_9_and_resume_equal_the_uninterrupted_run(tmp_path, reference):
     process = subprocess.Popen([ELIMFAST, "run", str(config), "-o", str(out), "--quiet"], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 600   # a cold Numba cache compiles the kernels first
-    while _steps_on_disk(out) < 3000:
+    while steps_on_disk(out) < 3000:
         assert process.poll() is None, process.communicate()
         assert time.monotonic() < deadline
         time.sleep(0.01)
     process.send_signal(signal.SIGKILL)
     process.communicate(timeout=60)
-    done = _steps_on_disk(out)
+    done = steps_on_disk(out)
     assert 3000 <= done < reference["steps"]
     resumed = subprocess.run([ELIMFAST, "run", str(config), "-o", str(out), "--resume", "--quiet"],
                              capture_output=True, text=True, timeout=300)

@@ -28,6 +28,7 @@ from elimfast.config import ConfigError, load_run, load_run_from_dict
 from elimfast.io import hdf5
 from elimfast.sweep import SweepError, load_sweep
 from elimfast_cli.main import cli
+from runfiles import steps_on_disk
 
 ROOT = Path(__file__).resolve().parents[1]
 KEPLER = str(ROOT / "configs" / "kepler.yaml")
@@ -133,14 +134,6 @@ def assert_one_line(finished: Finished, code: int, fragment: str):
     assert "Traceback" not in finished.stderr, finished.stderr
     lines = finished.stderr.strip().splitlines()
     assert len(lines) == 1 and fragment in lines[0], finished.stderr
-
-
-def steps_on_disk(path: Path) -> int:
-    try:
-        with h5py.File(path, "r", swmr=True) as f:
-            return int(f["state/steps_done"][()])
-    except (OSError, KeyError):
-        return 0
 
 
 def wait_for_steps(process: Process, path: Path, steps: int, timeout: float = 120):

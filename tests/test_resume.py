@@ -16,6 +16,7 @@ from click.testing import CliRunner
 from elimfast.integrate import Integration
 from elimfast.config import load_run
 from elimfast_cli.main import cli
+from runfiles import steps_on_disk
 
 ROOT = Path(__file__).resolve().parents[1]
 KEPLER = str(ROOT / "configs" / "kepler.yaml")
@@ -35,15 +36,6 @@ def reference():
     return {"y_final": run.y.copy(), "clock": run.clock.copy(), "n_steps": spec.n_steps,
             "t": np.concatenate([c.t for c in chunks]), "y": np.concatenate([c.y for c in chunks]),
             "alpha": chunks[1].multipliers, "iterations": chunks[1].iterations}
-
-
-def steps_on_disk(path: Path) -> int:
-    """/state/steps_done as a reader sees it while the run is writing (0 before the file exists)."""
-    try:
-        with h5py.File(path, "r", swmr=True) as f:
-            return int(f["state/steps_done"][()])
-    except (OSError, KeyError):
-        return 0
 
 
 def start_and_signal(path: Path, sig: int):
