@@ -103,6 +103,33 @@ class StepControl:
                                                  "step_control = 'error' with rtol")
 
 
+MAX_OUTPUT_TIMES = 10_000_000   # samples at requested times (t_eval, output.times)
+
+
+def resolve_span(t0: float, t_end, n_steps=None) -> float:
+    """An adaptive run's t_end: given, finite and after t0 (n_steps does not apply)."""
+    if t_end is None or n_steps is not None:
+        raise ParameterError("t_end", "is needed for adaptive steps (and n_steps does not apply: the number of "
+                                      "steps is what the controller decides)")
+    t_end = float(t_end)
+    if not (math.isfinite(t_end) and t_end > t0):
+        raise ParameterError("t_end", f"must be a finite time after t0 = {t0:g}, got {t_end!r}")
+    return t_end
+
+
+def resolve_t_eval(times, t0: float, t_end: float) -> np.ndarray:
+    """Requested output times: 1 to MAX_OUTPUT_TIMES finite, strictly increasing times in [t0, t_end]."""
+    values = np.asarray(times, dtype=np.float64).ravel()
+    if values.size == 0 or values.size > MAX_OUTPUT_TIMES:
+        raise ParameterError("t_eval", f"must list 1 to {MAX_OUTPUT_TIMES} times")
+    if not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
+        raise ParameterError("t_eval", "must be finite and strictly increasing")
+    if values[0] < t0 or values[-1] > t_end * (1 + 1e-15) + 1e-300:
+        raise ParameterError("t_eval", f"must lie within the run, [{t0:.17g}, {t_end:.17g}], "
+                                       f"got [{values[0]:.17g}, {values[-1]:.17g}]")
+    return values
+
+
 def _positive(name: str, value, zero: bool = False) -> float:
     try:
         number = float(value)

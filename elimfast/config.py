@@ -222,7 +222,6 @@ PARAMETER_KEYS = {
     "epsilon": ("integration", "epsilon"), "verify": ("integration", "verify"), "h_max": ("integration", "h_max"),
     "method": ("method",), "t_eval": ("output", "times"), "events": ("events",),
 }
-MAX_OUTPUT_TIMES = 10_000_000   # samples at requested times (output.times)
 
 
 # --- the result -------------------------------------------------------------------------
@@ -450,12 +449,9 @@ class _Builder:
             if adaptive:
                 step_control = self.step_control(integration)
                 step_control.check_method(method)
-                if integration.t_end is None or integration.n_steps is not None:
-                    raise ParameterError("t_end", "is needed for adaptive steps (and n_steps does not apply: the "
-                                                  "number of steps is what the controller decides)")
-                t0, t_end = integration.t0, integration.t_end
-                if not t_end > t0:
-                    raise ParameterError("t_end", f"must be after t0 = {compact_number(t0)}")
+                from .adaptive import resolve_span
+                t0 = integration.t0
+                t_end = resolve_span(t0, integration.t_end, integration.n_steps)
                 h, n_steps = step_control.h, None
             else:
                 step_control = None
@@ -522,6 +518,8 @@ class _Builder:
 
         if times is None:
             return None
+        # Imported here: elimfast.adaptive loads the kernels, which a config need not.
+        from .adaptive import MAX_OUTPUT_TIMES, resolve_t_eval
         if isinstance(times, list):
             values = np.array(times, dtype=float)
         else:
@@ -539,14 +537,7 @@ class _Builder:
                 if not 1 <= count <= MAX_OUTPUT_TIMES:
                     raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")
                 values = times.start + times.step * np.arange(count)
-        if values.size == 0 or values.size > MAX_OUTPUT_TIMES:
-            raise ParameterError("t_eval", f"must list 1 to {MAX_OUTPUT_TIMES} times")
-        if not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
-            raise ParameterError("t_eval", "must be finite and strictly increasing")
-        if values[0] < t0 or values[-1] > t_end * (1 + 1e-15) + 1e-300:
-            raise ParameterError("t_eval", f"must lie within the run, [{compact_number(t0)}, {compact_number(t_end)}], "
-                                           f"got [{values[0]:.17g}, {values[-1]:.17g}]")
-        return values
+        return resolve_t_eval(values, t0, t_end)
 
     def events(self, problem: Problem, events):
         """The events section compiled for the problem (EventSpec owns the rules); None when absent."""

@@ -349,6 +349,16 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
     return h, int(steps)
 
 
+def resolve_initial_state(problem: Problem, y0=None) -> np.ndarray:
+    """The run's initial state: y0, or the problem's; 2m finite numbers (a fresh copy)."""
+    n = 2 * problem.degrees_of_freedom
+    y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
+    if y.shape != (n,) or not np.all(np.isfinite(y)):
+        raise ValueError(f"the initial state must be {n} finite numbers ({', '.join(problem.coordinate_names)}), "
+                         f"got {y!r}")
+    return y
+
+
 def resolve_store_every(store_every) -> int:
     """Validate the sampling interval (keep every n-th state): a whole number from 1 to MAX_STEPS."""
     return _whole_number("store_every", store_every, 1, MAX_STEPS,
@@ -389,10 +399,7 @@ class Integration:
         self.store_every = resolve_store_every(store_every)
 
         n = 2 * problem.degrees_of_freedom
-        self.y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
-        if self.y.shape != (n,) or not np.all(np.isfinite(self.y)):
-            raise ValueError(f"the initial state must be {n} finite numbers ({', '.join(problem.coordinate_names)}), "
-                             f"got {self.y!r}")
+        self.y = resolve_initial_state(problem, y0)
         self.y_comp = np.zeros(n)
         self.clock = np.array([float(t0), 0.0])
         self.t0 = float(t0)
@@ -663,7 +670,7 @@ def _step_control(step_control, rtol, atol, epsilon, verify, h, h_max):
 def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve, store_every, t0, y0, backward,
                                     chunk_steps, solver, control, t_eval, events) -> Result:
     """Adaptive steps, or fixed steps with output times or events (elimfast.adaptive)."""
-    from .adaptive import AdaptiveIntegration, EventSpec
+    from .adaptive import AdaptiveIntegration, EventSpec, resolve_span, resolve_t_eval
 
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
@@ -673,29 +680,17 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
         raise ValueError("backward runs take fixed steps without t_eval or events; integrate forwards with t_end")
     names, conserve_idx = resolve_conserve(problem, method, conserve)
     solver = solver.resolved_for(method, len(names))
-    store_every = _whole_number("store_every", store_every, 1, np.iinfo(np.int64).max)
+    store_every = resolve_store_every(store_every)
     if control is not None:
         control.check_method(method)
         control.check_problem(problem)
-        if t_end is None or n_steps is not None:
-            raise ValueError("adaptive runs take t_end (not n_steps)")
-        t_end = float(t_end)
-        if not (math.isfinite(t_end) and t_end > t0):
-            raise ValueError(f"t_end must be a finite time after t0 = {t0}, got {t_end!r}")
+        t_end = resolve_span(float(t0), t_end, n_steps)
     else:
         h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
         t_end = t0 + n_steps * h
-    n = 2 * problem.degrees_of_freedom
-    y_start = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
-    if y_start.shape != (n,) or not np.all(np.isfinite(y_start)):
-        raise ValueError(f"the initial state must be {n} finite numbers, got {y_start!r}")
+    y_start = resolve_initial_state(problem, y0)
     if t_eval is not None:
-        t_eval = np.asarray(t_eval, dtype=np.float64).ravel()
-        if t_eval.size == 0 or not np.all(np.isfinite(t_eval)) or np.any(np.diff(t_eval) <= 0):
-            raise ValueError("t_eval must be a non-empty list of finite, strictly increasing times")
-        if t_eval[0] < t0 or t_eval[-1] > t_end * (1 + 1e-15) + 1e-300:
-            raise ValueError(f"t_eval must lie in [t0, t_end] = [{t0:g}, {t_end:g}], "
-                             f"got [{t_eval[0]:g}, {t_eval[-1]:g}]")
+        t_eval = resolve_t_eval(t_eval, float(t0), t_end)
     event_spec = EventSpec.build(problem, events) if events else None
     run = AdaptiveIntegration(problem, method, conserve_idx, names, solver, control, t_end=t_end, t0=t0,
                               y0=y_start, t_eval=t_eval, events=event_spec, store_every=store_every, h=h,
