@@ -185,9 +185,10 @@ def _orbit(run_file, axes) -> None:
 
 
 def _invariants(run_file, axes, relative_axes=None) -> None:
-    """|I(t) - I(t0)| on ``axes``; on ``relative_axes`` |I(t) - I(t0)| / |I(t0)|, absolute
-    where I(t0) = 0 (say for the solar system's H0 = -3.2e-8 an absolute 1e-20 means little)."""
-    from elimfast.integrate import relative_error
+    """|I(t) - I(t0)| on ``axes``; on ``relative_axes`` |I(t) - I(t0)| / |I(t0)| (say for the solar
+    system's H0 = -3.2e-8 an absolute 1e-20 means little), relative to the size of I's terms
+    where I(t0) vanishes against them (integrate.relative_reference)."""
+    from elimfast.integrate import relative_reference
 
     n = run_file.n_samples
     if n < 2:
@@ -195,6 +196,7 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
     stride = _stride(n)
     t = run_file.t(stride)
     conserve = set(run_file.attrs.get("conserve") or [])
+    scales = run_file.invariant_scales()
     for name in run_file.invariant_names:
         values = run_file.invariant(name, stride)
         error = np.abs(values - values[0])
@@ -202,8 +204,10 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
         label = name + (" (imposed)" if name in conserve else "")
         axes.semilogy(t, error, lw=0.8, label=label)
         if relative_axes is not None:
-            scale = relative_error(1.0, float(values[0]))    # 1/|I0|, or 1 where I0 = 0
-            relative_label = label + ("" if values[0] != 0.0 else " (absolute: I(t0) = 0)")
+            reference, kind = relative_reference(float(values[0]), scales.get(name, 0.0))
+            scale = 1.0 / reference
+            relative_label = label + {"I(t0)": "", "terms": " (to the size of its terms: I(t0) ~ 0)",
+                                      "absolute": " (absolute: I(t0) = 0)"}[kind]
             relative_axes.semilogy(t, error * scale, lw=0.8, label=relative_label)
     axes.set_xlabel("t")
     axes.set_ylabel("|I(t) - I(t0)|")

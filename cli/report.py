@@ -127,17 +127,23 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("created", f"{a.get('created')} with elimfast {a.get('elimfast_version')}, numba {a.get('numba_version')}, "
                    f"numpy {a.get('numpy_version')}, h5py {a.get('h5py_version')}")
 
-    from elimfast.integrate import relative_error
+    from elimfast.integrate import relative_reference
 
     drift = run_file.invariant_drift()
     initial = run_file.initial_invariants()
+    scales = run_file.invariant_scales()
     rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples, and relative to |I(t0)|")
     width = max(len(n) for n in drift) if drift else 0
     for name, value in drift.items():
         tag = "  (imposed)" if name in conserve else ("  (H: kept by every HBVM/ELIM/LIM)" if name == "H" else "")
         first = initial.get(name, math.nan)
-        relative = (f"relative {relative_error(value, first):.3e}" if first != 0.0 and math.isfinite(first)
-                    else "(absolute: I(t0) = 0)" if first == 0.0 else "")
+        relative = ""
+        if math.isfinite(first):
+            reference, kind = relative_reference(first, scales.get(name, 0.0))
+            relative = {"I(t0)": f"relative {value / reference:.3e}",
+                        "terms": f"relative {value / reference:.3e} to the size of its terms ("
+                                 + ("I(t0) = 0)" if first == 0.0 else f"I(t0) = {first:.1e}, a cancellation)"),
+                        "absolute": "(absolute: I(t0) = 0)"}[kind]
         rows.append(f"  {name:<{width}}  {value:.3e}  {relative}{tag}".rstrip())
 
     stats = run_file.iteration_stats()

@@ -213,9 +213,17 @@ class Result:
         """max over samples of |I(t) - I(t0)| for H and every invariant."""
         return {name: float(np.max(np.abs(v - v[0]))) if v.size else 0.0 for name, v in self.invariants.items()}
 
+    def invariant_scales(self) -> dict[str, float]:
+        """The size of the terms of H and of every invariant at the first sample
+        (Problem.invariant_scales; empty without samples)."""
+        return self.problem.invariant_scales(self.y[0]) if self.y.shape[0] else {}
+
     def relative_invariant_errors(self) -> dict[str, float]:
-        """max over samples of |I(t) - I(t0)| / |I(t0)| (absolute where I(t0) = 0), see ``relative_error``."""
-        return {name: relative_error(error, float(self.invariants[name][0]) if self.invariants[name].size else 0.0)
+        """max over samples of |I(t) - I(t0)| / |I(t0)|, relative to the size of I's terms where
+        I(t0) vanishes against them, see ``relative_error``."""
+        scales = self.invariant_scales()
+        return {name: relative_error(error, float(self.invariants[name][0]) if self.invariants[name].size else 0.0,
+                                     scales.get(name, 0.0))
                 for name, error in self.invariant_errors().items()}
 
     def to_xarray(self):
@@ -243,11 +251,29 @@ class Result:
                 f"max |I - I0|: {errors}>")
 
 
-def relative_error(error: float, initial: float) -> float:
-    """|I - I0| / |I0|, or the absolute error where I0 = 0 (a relative error means nothing
-    there): the relative errors of inspect, the plots, the sweep tables and the energy note."""
-    reference = abs(float(initial))
-    return float(error) / reference if reference > 0 else float(error)
+# I(t0) counts as zero when it is below this fraction of the size of its terms
+# (Problem.invariant_scales): a cancellation, whose relative error would mean nothing.
+ZERO_FRACTION = 1e-10
+
+
+def relative_reference(initial: float, scale: float = 0.0) -> tuple[float, str]:
+    """What |I - I0| is divided by, and how to say it: (|I0|, "I(t0)") normally; (S, "terms")
+    where I0 vanishes against the size S of its terms (|I0| <= ZERO_FRACTION S, e.g. the solar
+    system's linear momenta, ~1e-21 from terms of 1e-5); (1.0, "absolute") where both are 0
+    or unknown (scale 0 or NaN: files and results from before the scales were stored)."""
+    initial, scale = abs(float(initial)), float(scale) if scale == scale else 0.0
+    if initial > ZERO_FRACTION * scale and initial > 0.0:
+        return initial, "I(t0)"
+    if scale > 0.0:
+        return scale, "terms"
+    return 1.0, "absolute"
+
+
+def relative_error(error: float, initial: float, scale: float = 0.0) -> float:
+    """|I - I0| / |I0|; where I0 is a cancellation to round-off, |I - I0| / S with S the size of
+    its terms; else the absolute error (see relative_reference): the relative errors of
+    inspect, the plots, the sweep tables and the energy note."""
+    return float(error) / relative_reference(initial, scale)[0]
 
 
 def energy_warning(method: Method, h: float, H_values) -> str | None:

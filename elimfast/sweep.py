@@ -95,13 +95,16 @@ class RunOutcome:
     max_multiplier: float = math.nan    # max |alpha| (ELIM) or |lambda| (LIM), nan otherwise
     invariant_errors: dict[str, float] = field(default_factory=dict)
     initial_invariants: dict[str, float] = field(default_factory=dict)   # I(t0), for the relative errors
+    invariant_scales: dict[str, float] = field(default_factory=dict)     # the size of each I's terms at t0
     result: Any = None                  # the Result integrate would return (kept when the runs are stored)
 
     @property
     def relative_invariant_errors(self) -> dict[str, float]:
-        """max |I - I0| / |I0| (absolute where I0 = 0), see integrate.relative_error."""
+        """max |I - I0| / |I0| (relative to the size of I's terms where I0 vanishes against them), see
+        integrate.relative_error."""
         from .integrate import relative_error
-        return {name: relative_error(error, self.initial_invariants.get(name, 0.0))
+        return {name: relative_error(error, self.initial_invariants.get(name, 0.0),
+                                     self.invariant_scales.get(name, 0.0))
                 for name, error in self.invariant_errors.items()}
 
     @property
@@ -534,6 +537,7 @@ def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
         outcome.max_multiplier = float(np.max(np.abs(multipliers)))
     outcome.invariant_errors = result.invariant_errors()
     outcome.initial_invariants = {name: float(values[0]) for name, values in result.invariants.items()}
+    outcome.invariant_scales = result.invariant_scales()
 
 
 def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = False) -> RunOutcome:
@@ -749,7 +753,8 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
     precision (repr: they read back exactly), a plain axis by its value, with the value
     as the sweep file writes it in a column ``<axis>_expression`` beside it (and the
     label in ``<axis>_label`` where the axis names its values otherwise). Each invariant's max |I - I0| comes
-    with its relative error max |I - I0| / |I0| (absolute where I0 = 0).
+    with its relative error max |I - I0| / |I0| (relative to the size of I's terms where I0 ~ 0,
+    integrate.relative_reference).
     """
     errors = errors_of(spec, outcomes, reference)
     orders = orders_of(spec, outcomes, errors)

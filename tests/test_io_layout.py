@@ -103,6 +103,51 @@ def test_sweep_run_to_file_is_the_library_entry_and_reports_failures_without_exi
 def test_relative_error_is_relative_unless_the_initial_value_is_zero():
     assert relative_error(1e-20, -3.2e-8) == pytest.approx(1e-20 / 3.2e-8)
     assert relative_error(1e-16, 0.0) == 1e-16
+    # a value that is a cancellation to round-off is measured against the size of its terms
+    assert relative_error(1e-20, -3.2e-8, 1e-7) == pytest.approx(1e-20 / 3.2e-8)
+    assert relative_error(1e-19, 8e-22, 2e-5) == pytest.approx(1e-19 / 2e-5)
+    assert relative_error(1e-16, 0.0, 0.5) == pytest.approx(2e-16)
+    assert relative_error(1e-16, 0.0, float("nan")) == 1e-16
+
+
+def test_invariant_scales_are_the_size_of_the_terms():
+    from elimfast.problems import kepler as kepler_problem, nbody
+    p = kepler_problem(0.6)
+    y = p.y0
+    scales = p.invariant_scales(y)
+    q1, q2, p1, p2 = y
+    r = math.hypot(q1, q2)
+    assert scales["H"] == pytest.approx(p1 ** 2 + p2 ** 2 + 1.0 / r, rel=1e-14)   # 2T + |V|
+    assert scales["angular_momentum"] == pytest.approx(2 * (abs(q1 * p2) + abs(q2 * p1)), rel=1e-14)
+    solar = nbody()
+    sizes = solar.invariant_scales(solar.y0)
+    values = solar.invariant_values(solar.y0)
+    momenta = solar.y0.reshape(2, -1, 3)[1]
+    assert sizes["linear_momentum_x"] == pytest.approx(momenta.shape[0] * np.max(np.abs(momenta)), rel=1e-14)
+    assert p.invariant_scales(y)["lrl_y"] > 0.5     # A_y(y0) = 0 with every y_j dA_y/dy_j = 0
+    assert abs(values["linear_momentum_x"]) < 1e-12 * sizes["linear_momentum_x"]   # a cancellation
+
+
+def test_inspect_measures_a_cancelled_invariant_against_its_terms(tmp_path):
+    """The solar system's linear momenta sum to ~1e-21 from terms of ~1e-5: their round-off
+    errors read as relative errors of 1e1..1e3 against I(t0), of ~1e-14 against the terms."""
+    from elimfast.problems import nbody
+    solar = nbody()
+    conserve = ("linear_momentum_x", "angular_momentum_z")
+    path = tmp_path / "solar.h5"
+    run = Integration(solar, methods.ghbvm(12, 3), 50.0, 200, conserve=conserve, store_every=20)
+    streaming.run_to_file(run, path, config_text="a: 1\n", handle_signals=False)
+    result = invoke("inspect", path)
+    assert result.exit_code == 0, result.output
+    lines = {line.split()[0]: line for line in result.output.splitlines() if line.startswith("  ")}
+    with h5py.File(path, "r") as f:
+        values = f["invariants/linear_momentum_x"][()]
+        scale = f["invariants/linear_momentum_x"].attrs["scale"]
+    absolute = float(np.max(np.abs(values - values[0])))
+    assert scale == pytest.approx(solar.invariant_scales(solar.y0)["linear_momentum_x"], rel=1e-15)
+    assert f"relative {absolute / scale:.3e} to the size of its terms" in lines["linear_momentum_x"]
+    assert absolute / scale < 1e-12
+    assert "size of its terms" not in lines["angular_momentum_z"]
 
 
 def test_inspect_shows_relative_errors_beside_absolute_ones(tmp_path, kepler):
@@ -116,7 +161,12 @@ def test_inspect_shows_relative_errors_beside_absolute_ones(tmp_path, kepler):
         H = f["invariants/H"][()]
     absolute = float(np.max(np.abs(H - H[0])))
     assert f"{absolute:.3e}" in lines["H"] and f"relative {absolute / abs(H[0]):.3e}" in lines["H"]
-    assert "(absolute: I(t0) = 0)" in lines["lrl_y"]    # lrl_y(0) = 0: no relative error
+    with h5py.File(path, "r") as f:
+        lrl_y = f["invariants/lrl_y"][()]
+        lrl_y_scale = f["invariants/lrl_y"].attrs["scale"]
+    assert lrl_y[0] == 0.0 and lrl_y_scale > 0.1   # lrl_y(0) = 0: measured against its terms
+    assert (f"relative {np.max(np.abs(lrl_y)) / lrl_y_scale:.3e} to the size of its terms (I(t0) = 0)"
+            in lines["lrl_y"])
     assert "relative" in lines["lrl_x"]
 
 
@@ -139,10 +189,11 @@ def test_the_invariants_plot_has_a_relative_panel(tmp_path, kepler, monkeypatch)
     assert result.exit_code == 0, result.output
     with h5py.File(path, "r") as f:
         first = {name: f[f"invariants/{name}"][0] for name in f["invariants"].attrs["order"]}
+        scales = {name: f[f"invariants/{name}"].attrs["scale"] for name in first}
     for name, absolute, relative, label in zip(first, drawn["absolute"], drawn["relative"], drawn["labels"]):
-        scale = abs(first[name]) if first[name] != 0 else 1.0
+        scale = abs(first[name]) if first[name] != 0 else scales[name]
         np.testing.assert_allclose(relative, absolute / scale, rtol=1e-15, equal_nan=True)
-        assert label.endswith("(absolute: I(t0) = 0)") == (first[name] == 0)
+        assert label.endswith("(to the size of its terms: I(t0) ~ 0)") == (first[name] == 0)
 
 
 def test_sweep_tables_carry_relative_errors_full_precision_csv_and_escaped_pipes(h_sweep):

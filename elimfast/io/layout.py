@@ -8,7 +8,8 @@ fletcher32 filter, and extended as the run goes:
     component              (2m,) strings        the state's component names, q then p; a dimension scale
     y                      (samples, 2m)        the state, on dimensions (t, component)
     invariants/H           (samples,)           the Hamiltonian at each sample, on dimension t
-    invariants/<name>      (samples,)           every invariant of the problem; attribute ``imposed``
+    invariants/<name>      (samples,)           every invariant of the problem; attributes ``imposed`` and
+                                                ``scale`` (the size of its terms at t0, Problem.invariant_scales)
     steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
     steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split
     steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
@@ -272,11 +273,13 @@ def unit_attributes(problem) -> dict:
 
 # --- the run group ------------------------------------------------------------------------------
 def create_run_group(group, *, problem, method, conserve, n_multipliers: int, multiplier: str | None,
-                     attributes: dict, adaptive_steps: bool = False, event_names=()) -> dict:
+                     attributes: dict, adaptive_steps: bool = False, event_names=(), scales=None) -> dict:
     """Create the layout of a run in ``group`` (the module doc) with its attributes; return
     the growing datasets {"t", "y", "invariants": [H, ...], "iterations", "substeps",
     "multipliers"} (empty, to be extended by ``append_rows``). The one writer of a run
-    group: the run file (``runfile.RunWriter``) and each run of a sweep file use it."""
+    group: the run file (``runfile.RunWriter``) and each run of a sweep file use it. scales:
+    {name: the size of the invariant's terms at t0} (Problem.invariant_scales), stored as each
+    invariant's attribute ``scale``, the reference of its relative error where I(t0) ~ 0."""
     units = dict(getattr(problem, "units", {}) or {})
     _set_attributes(group, {**attributes, **unit_attributes(problem)})
     names = list(problem.coordinate_names)
@@ -299,7 +302,9 @@ def create_run_group(group, *, problem, method, conserve, n_multipliers: int, mu
         attach(dataset, t_dataset)
         _set_attributes(h5py.Dataset(dataset.id), {"imposed": name in conserve,
                                                    "long_name": LONG_NAMES["H"] if name == "H" else
-                                                   f"invariant {name}"})
+                                                   f"invariant {name}",
+                                                   **({"scale": float(scales[name])}
+                                                      if scales and name in scales else {})})
         invariants.append(dataset)
     steps = group.create_group("steps")
     step = dimension(steps, "step")

@@ -365,7 +365,7 @@ class RunWriter:
             datasets = create_run_group(f, problem=problem, method=method, conserve=run.conserve,
                                         n_multipliers=run.multipliers.size, multiplier=mult,
                                         adaptive_steps=adaptive, event_names=run.event_names if adaptive else (),
-                                        attributes={
+                                        scales=problem.invariant_scales(run.y), attributes={
                 "config": config_text, **run_attributes(problem, method, h=run.h, t0=run.t0, n_steps=run.n_steps,
                                                         t_end=t_end, output_every=run.store_every,
                                                         conserve=run.conserve),
@@ -970,6 +970,13 @@ class RunFile:
                 first = float(block[0])
             values[name] = first
         return values
+
+    def invariant_scales(self) -> dict[str, float]:
+        """The size of the terms of H and of every invariant at t0 (attribute ``scale``,
+        Problem.invariant_scales); 0.0 for files written before it was stored."""
+        with self._reading("/invariants"):
+            group = self._root["invariants"]
+            return {name: float(group[name].attrs.get("scale", 0.0)) for name in self.invariant_names}
 
     def substep_stats(self) -> dict:
         """{"split": steps split into substeps (docs/solver.md), "max": the most substeps of

@@ -130,6 +130,29 @@ class Problem:
         self.invariants(_vector(y), self.params, values)
         return {"H": self.hamiltonian(y), **dict(zip(self.invariant_names, values.tolist()))}
 
+    def invariant_scales(self, y) -> dict[str, float]:
+        """{'H': S_H, name: S_i, ...}: the size of the terms whose sum is each invariant at y,
+        S = |grad_q I|_1 |q|_inf + |grad_p I|_1 |p|_inf (a bound of sum_j |y_j dI/dy_j| that
+        stays positive where the state has zeros, e.g. Kepler's A_y at pericentre; q and p are
+        each in one unit).
+
+        The reference of a relative error where I(y) is itself a cancellation to round-off
+        (``integrate.relative_error``): the solar system's linear momenta sum to ~1e-21
+        from terms of ~1e-5, and an error of 1e-19 is round-off there, not 100 times I.
+        """
+        y = _vector(y)
+        m = self.degrees_of_freedom
+        q_size, p_size = float(np.max(np.abs(y[:m]))), float(np.max(np.abs(y[m:])))
+
+        def size(gradient):
+            return float(np.sum(np.abs(gradient[:m])) * q_size + np.sum(np.abs(gradient[m:])) * p_size)
+
+        scales = {"H": size(self.gradient(y))}
+        if self.invariant_names:
+            for name, row in zip(self.invariant_names, self.invariant_gradients(y)):
+                scales[name] = size(row)
+        return scales
+
     @cached_property
     def linear_invariant_names(self) -> tuple[str, ...]:
         """Invariants whose gradient is the same at y0 and at two seeded points near it.
