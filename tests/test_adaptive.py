@@ -354,3 +354,14 @@ def test_expression_time_scale_matches_the_builtin():
     b = elimfast.integrate(kepler(e), hbvm(8, 4), t_end=4 * PERIOD, step_control="time_scale", epsilon=0.03)
     assert a.steps_done == b.steps_done
     assert np.max(np.abs(a.y_final - b.y_final)) <= 1e-9
+
+
+def test_lim_imposing_invariants_of_very_different_sizes_starts_at_a_pericentre():
+    """GHBVM at e = 0.999 from the pericentre: |grad H| ~ 1e6, |grad L| ~ 45, and the Gram
+    matrix's pivot test relative to its largest diagonal called it singular at every step size
+    (the run failed at step 1, t = 0 -> 1.8e-18). A pivot is now judged against its own diagonal."""
+    p = kepler(0.999)
+    r = elimfast.integrate(p, ghbvm(8, 4), t_end=5 * PERIOD, rtol=1e-12, conserve=(L1, AY), store_every=10)
+    assert r.status == "complete" and r.stats["failed_solves"] == 0
+    relative = r.relative_invariant_errors()
+    assert relative[L1] <= 1e-14 and relative[AY] <= 1e-14

@@ -54,3 +54,25 @@ def test_cholesky_solve_rejects_non_positive_definite():
     assert cholesky_solve(np.array([[1.0, 2.0], [2.0, 1.0]]), np.ones(2)) == 1
     assert cholesky_solve(np.array([[1.0, 1.0], [1.0, 1.0]]), np.ones(2)) == 1
     assert cholesky_solve(np.zeros((1, 1)), np.ones(1)) == 1
+
+
+def test_cholesky_accepts_a_badly_scaled_gram_matrix_and_rejects_by_angle():
+    """The singularity test is relative to each pivot's own diagonal entry (the squared sine
+    of the angle between a column and the earlier ones), so scaling the columns changes
+    nothing: Kepler e = 0.999 at pericentre has |grad H| ~ 1e6 beside |grad L| ~ 45."""
+    rng = np.random.default_rng(7)
+    columns = rng.normal(size=(4, 3))
+    columns[:, 1] = columns[:, 0] + 3e-5 * columns[:, 1]          # sin(angle) ~ 1e-5: well within eps^(-1/2)
+    for scales in ([1.0, 1.0, 1.0], [1e6, 45.0, 1e3], [1e-8, 1e8, 1.0]):
+        phi = columns * np.array(scales)
+        gram = phi.T @ phi
+        solution = np.array([1.0, -2.0, 0.5]) / np.array(scales)    # phi @ solution does not depend on the scales
+        out = gram @ solution
+        assert cholesky_solve(gram.copy(), out) == 0, scales
+        # accurate to cond(columns' Gram) * eps ~ 3e9 * 1e-16 in the scaled unknowns, whatever the scaling
+        np.testing.assert_allclose(out * np.array(scales), [1.0, -2.0, 0.5], rtol=1e-5)
+    parallel = columns.copy()
+    parallel[:, 1] = 2.0 * parallel[:, 0]                         # a multiple of the first: dependent
+    for scales in ([1.0, 1.0, 1.0], [1e-6, 1e6, 1.0]):
+        phi = parallel * np.array(scales)
+        assert cholesky_solve((phi.T @ phi).copy(), np.ones(3)) == 1, scales

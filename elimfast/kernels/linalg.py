@@ -101,20 +101,24 @@ def cholesky_factor(a):
     """Cholesky factorisation a = L L^T in place (L in the lower triangle).
 
     Spec section 4, "(phi_0^T phi_0) lambda = ..." (the LIM Gram matrix). a: (n, n).
-    Returns 0, or 1 if a is not (numerically) positive definite.
+    Returns 0, or 1 if a is not (numerically) positive definite: a pivot below
+    RELATIVE_PIVOT_FLOOR times its own diagonal entry (for a Gram matrix, the squared sine of
+    the angle between a gradient and the span of the earlier ones). Relative to its own
+    diagonal, not the largest one: Cholesky's rounding does not depend on the scaling of the
+    rows and columns (van der Sluis), so neither may the test. Kepler e = 0.999 at
+    pericentre, LIM imposing L and A_y: |grad H|^2 ~ 1e12, |grad L|^2 ~ 2e3, and L's pivot,
+    8e-7 (sin^2 = 4e-10), fell below 1e-13 * 1e12 at every step size.
     """
     n = a.shape[0]
-    scale = 0.0
     for i in range(n):
-        if a[i, i] > scale:
-            scale = a[i, i]
-    if not (scale > 0.0 and scale <= 1e308):
-        return 1
+        if not (a[i, i] > 0.0 and a[i, i] <= 1e308):
+            return 1
     for j in range(n):
-        d = a[j, j]
+        diagonal = a[j, j]
+        d = diagonal
         for p in range(j):
             d -= a[j, p] * a[j, p]
-        if d <= RELATIVE_PIVOT_FLOOR * scale:
+        if not (d > RELATIVE_PIVOT_FLOOR * diagonal):
             return 1
         d = math.sqrt(d)
         a[j, j] = d
