@@ -77,6 +77,19 @@ SAFETY = 0.9
 MIN_FACTOR = 0.2
 MAX_FACTOR = 2.0
 MAX_CONSECUTIVE_FAILURES = 40      # halvings of one step before the run fails
+# The solver's convergence limits the step too (docs/adaptive.md#controller): an accepted step
+# whose solve took more than this fraction of max_iter iterations makes the next one smaller
+# (SLOW_SOLVE_FACTOR), more than NO_GROWTH_FRACTION keeps it from growing. At loose
+# tolerances the error estimate allows steps at which simplified Newton on ELIM converges
+# linearly at rate ~0.5 (it does not see alpha's dependence on the stages): half the solves
+# failed at max_iter = 30 and were halved (Kepler e = 0.99, EHBVM(8,4) imposing L and A_y,
+# rtol 1e-6: 69 failed solves and 5169 iterations over 3 periods; with this, 19 and 3430).
+# Lower fractions cut more (1/3 and 1/4: 9 and 2920) but also held back steps at tight
+# tolerances, where up to 14 iterations occur at pericentres: the 1000-period e = 0.9 run
+# then ended 1.5e-8 from its start instead of 5e-9.
+SLOW_SOLVE_FRACTION = 0.5
+NO_GROWTH_FRACTION = 1.0 / 3.0
+SLOW_SOLVE_FACTOR = 0.8
 EVENT_NEWTON_STEPS = 6             # side steps to refine one event
 POLYNOMIAL_ROOT_ITERATIONS = 60
 
@@ -454,6 +467,10 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             if control_state[CS_REJECTED] != 0.0:
                 factor = min(factor, 1.0)
                 control_state[CS_REJECTED] = 0.0
+            if iterations > SLOW_SOLVE_FRACTION * settings.max_iter:
+                factor = min(factor, SLOW_SOLVE_FACTOR)
+            elif iterations > NO_GROWTH_FRACTION * settings.max_iter:
+                factor = min(factor, 1.0)
             if not last:
                 control_state[CS_H_PREV] = h
                 control_state[CS_ERR_PREV] = safe
