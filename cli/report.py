@@ -195,10 +195,9 @@ def ensemble_summary(ensemble_file) -> str:
     def row(key, value):
         rows.append(f"{key:<13}{value}")
 
-    row("file", f"{path}  (an ensemble sweep)" + ("  (opened in SWMR mode: its writer did not close it; other HDF5 "
-                                                   f"programs open it after 'elimfast repair {path}')"
-                                                   if ensemble_file.swmr else ""))
-    row("sweep", str(root.get("source", "?")))
+    row("file", f"{path}" + ("  (opened in SWMR mode: its writer did not close it; other HDF5 programs open it "
+                             f"after 'elimfast repair {path}')" if ensemble_file.swmr else ""))
+    row("sweep", f"{root.get('source', '?')} (an ensemble)")
     row("problem", _problem_text(ensemble_file))
     conserve = [name for name in (a.get("conserve") or []) if name]
     row("method", f"{a.get('method')}" + (f", imposing {', '.join(conserve)}" if conserve else ""))

@@ -267,7 +267,7 @@ def block_bounds(n_trajectories: int, threads: int, ranges=None) -> list[tuple[i
 
 def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict[str, str]) -> dict:
     """On a worker: one block of an ensemble in the parallel kernel, on the worker's threads (one
-    block at a time per process): its rows (ensemble.EnsembleRun.rows) and ``n_threads``."""
+    block at a time per process): (its rows, as ensemble.EnsembleRun.rows gives them, threads used)."""
     import numba
 
     from .config import load_run_from_dict
@@ -283,14 +283,14 @@ def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict
     states = check_states(spec.problem, states)
     with _KERNEL_LOCK:
         rows = EnsembleRun.from_spec(spec, states[0], n_threads=threads).rows(states)
-    return {**rows, "n_threads": threads}
+    return rows, threads
 
 
 def ensemble_blocks_on(client, spec: SweepSpec, states: np.ndarray, ranges,
-                       on_message: Callable[[str], None] | None = None) -> Iterator[tuple[int, int, dict]]:
+                       on_message: Callable[[str], None] | None = None) -> Iterator[tuple[int, int, dict, int]]:
     """The rows of ``states`` in ``ranges`` ([start, stop) pairs), run in blocks on the Dask
-    cluster of ``client``: yields (start, stop, block) as blocks arrive (block: the rows, as
-    ensemble.EnsembleRun.rows gives them, and ``n_threads``).
+    cluster of ``client``: yields (start, stop, rows, threads) as blocks arrive (rows as
+    ensemble.EnsembleRun.rows gives them; threads: the kernel threads of the worker).
 
     At most ``ensemble_window`` blocks are submitted and not yet taken back from here: the
     next block is submitted only when the caller asks for the next one, after storing the
@@ -328,12 +328,12 @@ def ensemble_blocks_on(client, spec: SweepSpec, states: np.ndarray, ranges,
         for future in arriving:
             start, stop = futures.pop(future)
             try:
-                block = future.result()
+                rows, threads = future.result()
             except Exception as error:   # noqa: BLE001
                 raise SweepError(f"{spec.source}: ensemble: trajectories {start}-{stop - 1} could not be run on "
                                  f"the cluster ({_task_failure(error)[len('failed: '):]})") from None
             future.release()
-            yield start, stop, block
+            yield start, stop, rows, threads
             following = submit_next()   # only now: the block yielded is stored (or dropped)
             if following is not None:
                 arriving.add(following)
@@ -361,14 +361,14 @@ def run_ensemble_on(client, spec: SweepSpec, on_start: Callable[[int], None] | N
     n = states.shape[0]
     if on_start is not None:
         on_start(n)
-    rows, threads, done = EnsembleRows(n), 1, 0
+    assembly, threads, done = EnsembleRows(n), 1, 0
     with contextlib.closing(ensemble_blocks_on(client, spec, states, [(0, n)], on_message)) as blocks:
-        for start, stop, block in blocks:
-            rows.put(start, stop, block)
-            threads, done = max(threads, block["n_threads"]), done + stop - start
+        for start, stop, rows, block_threads in blocks:
+            assembly.put(start, stop, rows)
+            threads, done = max(threads, block_threads), done + stop - start
             if on_message is not None:
-                on_message(block_line(block, start, stop, done, n))
-    return run, states, ensemble.result(states, rows.rows, n_threads=threads)
+                on_message(block_line(rows, start, stop, done, n))
+    return run, states, ensemble.result(states, assembly.rows, n_threads=threads)
 
 
 __all__ = ["block_bounds", "check_scheduler", "connect", "ensemble_blocks_on", "ensemble_window", "run_ensemble_on",

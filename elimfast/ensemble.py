@@ -216,17 +216,23 @@ class EnsembleRun:
         """The invariants whose errors each trajectory reports: H, then every invariant of the problem."""
         return ("H",) + tuple(self.problem.invariant_names)
 
+    def row_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+        """ROW_ARRAYS: the shape of one trajectory's entry and the dtype of each (what ``rows``
+        returns, and what an ensemble file holds per trajectory beside y0 and invariant_errors)."""
+        n, real, integer = 2 * self.problem.degrees_of_freedom, np.dtype(np.float64), np.dtype(np.int64)
+        layout = {"y_final": ((n,), real), "t_final": ((), real), "iterations": ((), integer),
+                  "max_multiplier": ((), real), "status": ((), integer), "steps_done": ((), integer),
+                  "split_steps": ((), integer), "diagnostics": ((self.n_diagnostics,), real)}
+        return {name: layout[name] for name in ROW_ARRAYS}
+
     def rows(self, states: np.ndarray) -> dict:
         """Run ``states`` (n_rows, 2m; checked by ``check_states``) in the kernel on n_threads
         threads (the previous Numba setting is restored afterwards): ROW_ARRAYS, each with
         n_rows rows, and invariant_errors {name: (n_rows,)}."""
         run, threads = self.integration, self.n_threads
-        n_rows, n = states.shape
-        rows = {"y_final": np.empty((n_rows, n)), "t_final": np.empty(n_rows),
-                "iterations": np.empty(n_rows, dtype=np.int64), "max_multiplier": np.empty(n_rows),
-                "status": np.empty(n_rows, dtype=np.int64), "steps_done": np.empty(n_rows, dtype=np.int64),
-                "split_steps": np.empty(n_rows, dtype=np.int64),
-                "diagnostics": np.zeros((n_rows, stepper.N_DIAGNOSTICS))}
+        n_rows = states.shape[0]
+        rows = {name: np.zeros((n_rows,) + shape, dtype) if name == "diagnostics" else np.empty((n_rows,) + shape, dtype)
+                for name, (shape, dtype) in self.row_layout().items()}   # the kernel sets diagnostics on failure only
         inv_error = np.empty((n_rows, len(self.invariant_names)))
         previous_threads = numba.get_num_threads()
         numba.set_num_threads(threads)
@@ -272,9 +278,9 @@ class EnsembleRows:
 
 
 def run_in_blocks(run: EnsembleRun, states: np.ndarray, ranges, target_seconds: float | None = None,
-                  first_rows: int | None = None) -> Iterator[tuple[int, int, dict]]:
+                  first_rows: int | None = None) -> Iterator[tuple[int, int, dict, int]]:
     """Run the rows of ``states`` in ``ranges`` ([start, stop) pairs) in consecutive blocks, one
-    kernel call each, on this process's threads: yields (start, stop, rows) as each block ends,
+    kernel call each, on this process's threads: yields (start, stop, rows, threads) as each block ends,
     and runs the next only when asked for it (so one block's rows are held at a time). Blocks
     take about ``target_seconds`` (default TARGET_BLOCK_SECONDS) each, from the measured
     speed; the first has ``first_rows`` (default FIRST_BLOCK_ROWS_PER_THREAD per thread). The
@@ -283,7 +289,8 @@ def run_in_blocks(run: EnsembleRun, states: np.ndarray, ranges, target_seconds: 
 
     target_seconds = TARGET_BLOCK_SECONDS if target_seconds is None else target_seconds
 
-    row_bytes = 8.0 * (states.shape[1] * 2 + len(run.invariant_names) + len(ROW_ARRAYS) + stepper.N_DIAGNOSTICS)
+    row_bytes = 8.0 * (states.shape[1] + len(run.invariant_names)) + sum(
+        dtype.itemsize * int(np.prod(shape)) for shape, dtype in run.row_layout().values())
     size = first_rows or FIRST_BLOCK_ROWS_PER_THREAD * run.n_threads
     measured = False
     for range_start, range_stop in ranges:
@@ -296,7 +303,7 @@ def run_in_blocks(run: EnsembleRun, states: np.ndarray, ranges, target_seconds: 
             began = time.perf_counter()
             rows = run.rows(states[start:stop])
             seconds, size, measured = time.perf_counter() - began, stop - start, True
-            yield start, stop, rows
+            yield start, stop, rows, run.n_threads
             start = stop
 
 

@@ -413,10 +413,10 @@ def ensemble_run(spec: SweepSpec, run, states: np.ndarray, threads: int | None =
         raise SweepError(f"{spec.source}: ensemble: {error}") from None
 
 
-def block_line(block: dict, start: int, stop: int, done: int, total: int) -> str:
+def block_line(rows: dict, start: int, stop: int, done: int, total: int) -> str:
     """The progress line of an ensemble block just stored (or put in place)."""
     from .kernels.stepper import STATUS_OK
-    failed = int(np.count_nonzero(block["status"] != STATUS_OK))
+    failed = int(np.count_nonzero(rows["status"] != STATUS_OK))
     return f"[{done:,}/{total:,}] trajectories {start}-{stop - 1}: {failed} failed"
 
 
@@ -1028,10 +1028,10 @@ def _stream_ensemble(spec: SweepSpec, writer, ensemble, states: np.ndarray, clie
         blocks = run_in_blocks(ensemble, states, todo)
     threads = 0   # of the blocks run now (0: none, a resumed file that held them all)
     with contextlib.closing(blocks):
-        for start, stop, block in blocks:
-            writer.add_ensemble_rows(start, stop, block)
-            threads, done = max(threads, block.get("n_threads", ensemble.n_threads)), done + stop - start
-            say(block_line(block, start, stop, done, n))
+        for start, stop, rows, block_threads in blocks:
+            writer.add_ensemble_rows(start, stop, rows)
+            threads, done = max(threads, block_threads), done + stop - start
+            say(block_line(rows, start, stop, done, n))
     if not writer.ensemble_complete:
         writer.finish_ensemble(threads=threads, status_names=STATUS_NAMES, ok_status=STATUS_OK)
 

@@ -39,9 +39,6 @@ from .layout import _set_attributes, _small_dataset, _string_dataset, attach, di
 from .safety import OutputError, _damaged, _open, _plain, _writer_lock_held
 
 GROUP = "ensemble"
-# The per-trajectory datasets of /ensemble beside y0 and invariant_errors (ensemble.ROW_ARRAYS).
-ROW_DATASETS = ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps",
-                "diagnostics")
 STORED = "stored"
 STATUS_RUNNING, STATUS_COMPLETE = "running", "complete"
 READ_BLOCK_ROWS = 1 << 16     # rows per read where a reader scans a whole column (bounded memory)
@@ -55,7 +52,7 @@ def _allocated(group, name: str, shape: tuple, dtype) -> h5py.Dataset:
     dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
     if dtype.kind == "f":
         dcpl.set_fill_value(np.array(np.nan, dtype=dtype))
-    space = h5py.h5s.create_simple(tuple(int(n) for n in shape))
+    space = h5py.h5s.create_simple(tuple(int(length) for length in shape))
     return h5py.Dataset(h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(dtype), space, dcpl=dcpl))
 
 
@@ -63,29 +60,32 @@ def bytes_on_disk(run, states: np.ndarray) -> int:
     """The bytes of /ensemble's per-trajectory datasets, all allocated when the file is
     created, and of the reasons attribute written at the end (about 24 bytes a trajectory)."""
     n, width = states.shape
-    return n * (8 * (2 * width + 6 + run.n_diagnostics + len(run.invariant_names)) + 1 + 24)
+    row = sum(dtype.itemsize * int(np.prod(shape)) for shape, dtype in run.row_layout().values())
+    return n * (8 * (width + len(run.invariant_names)) + row + 1 + 24)
 
 
 def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
     """Create /ensemble in ``parent`` for ``run`` (an elimfast.ensemble.EnsembleRun: problem,
-    method, h, n_steps, conserve, invariant_names, n_diagnostics) from ``states`` (n, 2m):
-    every dataset at its final shape, y0 written, nothing stored yet."""
-    n_diagnostics = run.n_diagnostics
+    method, h, n_steps, conserve, invariant_names, and row_layout, the per-trajectory arrays
+    of its results) from ``states`` (n, 2m): every dataset at its final shape, y0 written,
+    nothing stored yet."""
     group = parent.create_group(GROUP)
     _set_attributes(group, {
         "problem": run.problem.name, "method": run.method.name, "h": run.h, "n_steps": run.n_steps,
         "conserve": list(run.conserve) or [""], "config": config_text, "status": STATUS_RUNNING})
-    n, width = states.shape
+    n = states.shape[0]
     component = _string_dataset(group, "component", run.problem.coordinate_names)
     component.make_scale("component")
     trajectory = dimension(group, "trajectory", n)
     attach(_small_dataset(group, "y0", states), trajectory, component)
-    diagnostic = dimension(group, "diagnostic", n_diagnostics)
-    for name in ROW_DATASETS:
-        shape, dtype = {"y_final": ((n, width), "f8"), "t_final": ((n,), "f8"), "max_multiplier": ((n,), "f8"),
-                        "diagnostics": ((n, n_diagnostics), "f8")}.get(name, ((n,), "i8"))
-        attach(_allocated(group, name, shape, dtype), trajectory,
-               component if name == "y_final" else diagnostic if name == "diagnostics" else None)
+    for name, (shape, dtype) in run.row_layout().items():
+        dataset = _allocated(group, name, (n,) + shape, dtype)
+        if not shape:
+            attach(dataset, trajectory)
+        elif name == "y_final":
+            attach(dataset, trajectory, component)
+        else:   # a row of its own kind of entries (diagnostics: one per diagnostic)
+            attach(dataset, trajectory, dimension(group, name.removesuffix("s"), shape[0]))
     errors = group.create_group("invariant_errors")
     _set_attributes(errors, {"order": list(run.invariant_names)})   # HDF5 lists members by name
     for name in run.invariant_names:
@@ -98,11 +98,14 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
 
 
 def write_rows(group, start: int, stop: int, rows: dict) -> None:
-    """Write the rows [start, stop) of every per-trajectory dataset (not yet marked stored)."""
-    for name in ROW_DATASETS:
-        group[name][start:stop] = rows[name]
-    for name, values in rows["invariant_errors"].items():
-        group["invariant_errors"][name][start:stop] = values
+    """Write the rows [start, stop) of every per-trajectory dataset (not yet marked stored):
+    ``rows`` maps each dataset's name to its rows, invariant_errors to {name: rows}."""
+    for name, values in rows.items():
+        if name == "invariant_errors":
+            for invariant, errors in values.items():
+                group["invariant_errors"][invariant][start:stop] = errors
+        else:
+            group[name][start:stop] = values
 
 
 def mark_stored(group, start: int, stop: int) -> None:
@@ -248,5 +251,5 @@ class EnsembleFile:
         return False
 
 
-__all__ = ["EnsembleFile", "ROW_DATASETS", "bytes_on_disk", "check_resumable", "create", "finish", "is_ensemble_file",
+__all__ = ["EnsembleFile", "bytes_on_disk", "check_resumable", "create", "finish", "is_ensemble_file",
            "mark_stored", "stored_count", "unstored_ranges", "write_rows"]
