@@ -394,17 +394,25 @@ def inspect(file):
     Reads files of finished, interrupted, failed, killed and still running runs (the last
     two through HDF5's SWMR mode); memory stays bounded for any length. Every stored row
     is read back, so HDF5 checks every checksum: a damaged file is reported (exit 2)
-    with the place of the damage. One run of a sweep file: SWEEP.h5:/runs/<label>.
+    with the place of the damage. One run of a sweep file: SWEEP.h5:/runs/<label>. The
+    file of an ensemble sweep: how many trajectories it stores (complete, or how to
+    complete it with --resume), failures and invariant errors over those stored.
 
     \b
     Examples:
       elimfast inspect out/kepler.h5
       elimfast inspect out/table1.h5:/runs/GAUSS3/pi/30
+      elimfast inspect out/ensemble.h5
     """
+    from elimfast.io.ensemblefile import EnsembleFile, is_ensemble_file
     from elimfast.io.hdf5 import RunFile
 
-    from .report import summary
+    from .report import ensemble_summary, summary
 
+    if is_ensemble_file(file):
+        with EnsembleFile(file) as ensemble_file:
+            click.echo(ensemble_summary(ensemble_file))
+        return EXIT_OK
     with RunFile(file) as run_file:
         integrity = run_file.verify()
         click.echo(summary(run_file, integrity))
@@ -604,7 +612,8 @@ def _format_tableau(method, A, b, c, eta) -> str:
 @click.option("--format", "table_format", type=click.Choice(["markdown", "csv"]), default="markdown",
               show_default=True, help="Format of the printed table.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
-@click.option("--resume", is_flag=True, help="OUT.h5 holds part of this sweep: run only the runs not complete in it.")
+@click.option("--resume", is_flag=True, help="OUT.h5 holds part of this sweep: run only the runs (or an ensemble's "
+                                              "trajectories) not complete in it.")
 @click.option("--scheduler", metavar="ADDRESS", default=None,
               help="Run on a Dask cluster: its scheduler (tcp://host:8786), or 'local' for a LocalCluster of "
                    "--workers processes (docs/dask.md; pip install 'elimfast[dask]').")
@@ -619,7 +628,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     A failed run does not stop the others: it is marked with its reason and the exit code is 1.
 
     An ensemble sweep (an ensemble: section, one config from many initial states) runs
-    in the parallel Numba kernel on N threads instead, and stores /ensemble in OUT.h5.
+    in the parallel Numba kernel on N threads instead, and stores /ensemble in OUT.h5 block
+    by block as the blocks end; --resume runs only the trajectories not stored yet.
 
     \b
     Examples:
@@ -643,7 +653,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
              "replaces them", EXIT_USAGE)
 
     def hard_stop(signal_name):
-        kept = f"; the finished runs are in {output}" if output is not None else ""
+        kept = (f"; the finished runs (of an ensemble: its stored blocks) are in {output}; --resume runs the rest"
+                if output is not None else "")
         return f"error: interrupted by {signal_name}{kept}"
 
     def on_start(n_trajectories):

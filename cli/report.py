@@ -179,3 +179,67 @@ def summary(run_file, integrity: dict | None = None) -> str:
                    f"{integrity['chunks']} data chunks read back (a format 1 file: its data carry no checksums)")
         row("integrity", checked)
     return "\n".join(rows)
+
+
+def ensemble_summary(ensemble_file) -> str:
+    """The inspect summary of an open EnsembleFile (io/ensemblefile.py): what it holds, how
+    far it got and, over the stored trajectories, failures, invariant errors and iterations.
+    Columns are read a block of rows at a time, so memory stays bounded for any size."""
+    from elimfast.ensemble import STATUS_NAMES
+    from elimfast.kernels.stepper import STATUS_OK
+
+    a, root = ensemble_file.attrs, ensemble_file.root_attrs
+    path, n = ensemble_file.path, ensemble_file.n_trajectories
+    rows = []
+
+    def row(key, value):
+        rows.append(f"{key:<13}{value}")
+
+    row("file", f"{path}" + ("  (opened in SWMR mode: its writer did not close it; other HDF5 programs open it "
+                             f"after 'elimfast repair {path}')" if ensemble_file.swmr else ""))
+    row("sweep", f"{root.get('source', '?')} (an ensemble)")
+    row("problem", _problem_text(ensemble_file))
+    conserve = [name for name in (a.get("conserve") or []) if name]
+    row("method", f"{a.get('method')}" + (f", imposing {', '.join(conserve)}" if conserve else ""))
+    row("h", f"{a.get('h')!r}  ({a.get('n_steps')} steps a trajectory)")
+    stored = ensemble_file.stored
+    row("trajectories", f"{stored:,} of {n:,} stored" + (f"  ({100.0 * stored / n:.1f}%)" if stored < n else ""))
+    status = ensemble_file.status
+    resume = f"elimfast sweep {root.get('source', 'SWEEP.yaml')} -o {path} --resume"
+    if status == "incomplete":
+        status = (f"incomplete (the sweep stopped or was killed before every block was stored; complete it with "
+                  f"{resume})")
+    elif status == "running":
+        status = "running (another process is writing it)"
+    row("status", status)
+    counts = np.zeros(max(STATUS_NAMES) + 1, dtype=np.int64)
+    drift = {name: 0.0 for name in ensemble_file.invariant_names}
+    iterations, completed = 0, 0
+    for start, stop in ensemble_file.blocks():
+        kept = ensemble_file.stored_mask(start, stop)
+        codes = ensemble_file.column("status", start, stop)[kept]
+        counts += np.bincount(np.clip(codes, 0, counts.size - 1), minlength=counts.size)
+        ok = np.zeros(stop - start, dtype=bool)
+        ok[kept] = codes == STATUS_OK
+        completed += int(ok.sum())
+        iterations += int(ensemble_file.column("iterations", start, stop)[ok].sum())
+        for name in drift:
+            values = ensemble_file.column(f"invariant_errors/{name}", start, stop)[ok]
+            if values.size:
+                drift[name] = max(drift[name], float(values.max()))
+    failed = stored - int(counts[STATUS_OK])
+    reasons = ", ".join(f"{int(count):,} {STATUS_NAMES[code]}" for code, count in enumerate(counts)
+                        if count and code != STATUS_OK and code in STATUS_NAMES)
+    row("failed", f"{failed:,} of the {stored:,} stored" + (f" ({reasons})" if reasons else ""))
+    if completed:
+        rows.append(f"invariants   max |I(t) - I(0)| over the {completed:,} stored trajectories that completed")
+        width = max(len(name) for name in drift)
+        for name, value in drift.items():
+            tag = "  (imposed)" if name in conserve else ""
+            rows.append(f"  {name:<{width}}  {value:.3e}{tag}")
+        row("iterations", f"mean {iterations / completed:,.1f} a completed trajectory, total {iterations:,}")
+    if "threads" in a:
+        row("threads", str(a["threads"]))
+    row("created", f"{root.get('created')} with elimfast {root.get('elimfast_version')}, numba "
+                   f"{root.get('numba_version')}, numpy {root.get('numpy_version')}, h5py {root.get('h5py_version')}")
+    return "\n".join(rows)

@@ -1,5 +1,6 @@
 """Reading a run back: ``load(path)`` and ``load(path, run=label)`` return the Result that
-``integrate`` returned (or would have returned) for the run stored there.
+``integrate`` returned (or would have returned) for the run stored there; ``load`` of an
+ensemble sweep's file returns the EnsembleResult of its ensemble (``load_ensemble``).
 
 The problem and the method are built again from the resolved config stored with the run
 (a ``python:`` problem needs its file where the config says), the arrays are read from
@@ -22,13 +23,17 @@ def load(path, run: str | None = None):
 
     y_final and t_final are the saved state of a run file (what --resume continues from),
     and the last sample of a sweep run (a failed run ends with a sample of its last good
-    state). Raises OutputError (an ElimfastError) for a file or run that cannot be read.
+    state). The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
+    Raises OutputError (an ElimfastError) for a file or run that cannot be read.
     """
     from .config import load_run_from_dict, parse_yaml
     from .integrate import Result
+    from .io.ensemblefile import is_ensemble_file
     from .io.runfile import RunFile, split_run_path
 
     file_path, run = split_run_path(path, run)
+    if run is None and is_ensemble_file(file_path):
+        return load_ensemble(file_path)
     with RunFile(file_path, run=run) as stored:
         source = f"{stored.name} (its stored config)"
         try:
@@ -77,3 +82,53 @@ def _adaptive_parts(stored, spec) -> dict:
         run.counters[...] = np.asarray(counters, dtype=np.int64)[:kernel.N_COUNTERS]
         parts["stats"] = run.stats()
     return parts
+
+
+def load_ensemble(path, lazy: bool = False):
+    """The EnsembleResult of the ensemble sweep stored in ``path``, as the sweep returned it.
+
+    The problem, the method and the settings are built again from the stored config (as
+    ``elimfast.ensemble.EnsembleRun`` builds them for a run); the arrays are read from the
+    file, all at once, or with ``lazy`` each when first used (so that a summary of a large
+    ensemble holds a column or two, never every array). OutputError for a file whose
+    ensemble is not complete (it says how to complete it) or that cannot be read.
+    """
+    from .config import load_run_from_dict, parse_yaml
+    from .ensemble import ROW_ARRAYS, EnsembleRun, LazyEnsembleResult
+    from .io.ensemblefile import STATUS_COMPLETE, EnsembleFile
+    from .io.safety import OutputError
+
+    path = Path(path)
+    with EnsembleFile(path) as stored:
+        if stored.status != STATUS_COMPLETE:
+            source = stored.root_attrs.get("source", "SWEEP.yaml")
+            raise OutputError(f"{path}: its ensemble is {stored.status}: {stored.stored:,} of "
+                              f"{stored.n_trajectories:,} trajectories stored; complete it with elimfast sweep "
+                              f"{source} -o {path} --resume (/ensemble/stored marks the rows written)")
+        if not stored.has("diagnostics"):
+            raise OutputError(f"{path}: its ensemble was written by an earlier elimfast (no /ensemble/diagnostics); "
+                              "read it with h5py or xarray, or run the sweep again")
+        source = f"{path}:/ensemble (its stored config)"
+        try:
+            spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
+                                      base_dir=path.parent)
+        except ElimfastError as err:
+            raise type(err)(f"{path}:/ensemble: cannot rebuild the ensemble from its stored config: {err}") from None
+        run = EnsembleRun.from_spec(spec, stored.column("y0", 0, 1)[0], n_threads=1)
+        settings = {"problem": spec.problem, "method": spec.method, "h": float(stored.attrs.get("h", run.h)),
+                    "conserve": run.conserve, "n_steps": int(stored.attrs.get("n_steps", run.n_steps)),
+                    "max_iter": run.max_iter, "n_threads": int(stored.attrs.get("threads", 0)), "solver": run.solver}
+        columns = {} if lazy else {name: _column(stored, name) for name in ("y0",) + ROW_ARRAYS + ("invariant_errors",)}
+        n_trajectories = stored.n_trajectories
+
+    def read(name):
+        with EnsembleFile(path) as again:
+            return _column(again, name)
+    return LazyEnsembleResult(read, n_trajectories, **settings, **columns)
+
+
+def _column(stored, name: str):
+    """One per-trajectory array of an EnsembleFile (invariant_errors: a mapping of them)."""
+    if name == "invariant_errors":
+        return {invariant: stored.column(f"invariant_errors/{invariant}") for invariant in stored.invariant_names}
+    return stored.column(name)

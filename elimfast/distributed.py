@@ -7,11 +7,12 @@
 
 A grid sweep's runs are Dask tasks (``sweep._execute``, the function the local process
 pool runs, so the numbers are the same bit for bit); an ensemble is split into blocks of
-trajectories, each run in the parallel Numba kernel on a worker (``integrate_ensemble``:
+trajectories, each run in the parallel Numba kernel on a worker (``ensemble.EnsembleRun.rows``:
 each trajectory is bit for bit the same whatever the block or thread count). Workers
 only compute and return arrays; this process is the only writer of the HDF5 file and
-stores each run as it arrives (``distributed.as_completed``, results released once
-stored, so memory stays bounded).
+stores each run or block as it arrives (``distributed.as_completed``, results released
+once stored, so memory stays bounded; an ensemble's blocks are submitted a window at a
+time, ``ensemble_blocks_on``).
 
 Faults: a task whose worker dies is run again elsewhere by the scheduler (up to its
 ``distributed.scheduler.allowed-failures``, then the run is reported failed with
@@ -40,7 +41,7 @@ import re
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -53,6 +54,7 @@ RETRIES = 2                       # retries of a task that raised an unexpected 
 BLOCKS_PER_THREAD = 4             # ensemble blocks per worker thread: load balance against per-task overhead
 MIN_BLOCK = 100                   # trajectories per block, at least (a block's overhead is ~10 ms; an orbit ~1 ms+)
 MAX_BLOCK = 50_000                # and at most (a block's arrays in flight stay a few MB)
+BLOCKS_IN_FLIGHT_PER_WORKER = 2   # ensemble blocks submitted and not yet stored, per worker process
 MAX_WARM_PROBLEMS = 8             # distinct problems warmed on each worker before the runs
 _ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc|ws|wss)://[^\s/]+(:\d+)?/?$|^[A-Za-z0-9_.\-\[\]:]+:\d+$")
 _KERNEL_LOCK = threading.Lock()   # one parallel kernel at a time per worker process (Numba's workqueue
@@ -251,25 +253,25 @@ def _task_failure(error: BaseException) -> str:
 
 
 # --- an ensemble -------------------------------------------------------------------------------
-def block_bounds(n_trajectories: int, threads: int) -> list[tuple[int, int]]:
+def block_bounds(n_trajectories: int, threads: int, ranges=None) -> list[tuple[int, int]]:
     """[start, stop) of each block: about BLOCKS_PER_THREAD blocks per worker thread (so that a
-    slow block or a lost worker costs little), each of MIN_BLOCK..MAX_BLOCK trajectories."""
+    slow block or a lost worker costs little), each of MIN_BLOCK..MAX_BLOCK trajectories.
+    ``ranges``: the [start, stop) ranges to cover (default: all; a resumed file's missing
+    trajectories), each cut into blocks of that size."""
+    ranges = [(0, n_trajectories)] if ranges is None else ranges
+    todo = sum(stop - start for start, stop in ranges)
     blocks = max(1, BLOCKS_PER_THREAD * max(1, threads))
-    size = min(MAX_BLOCK, max(MIN_BLOCK, math.ceil(n_trajectories / blocks)))
-    return [(start, min(start + size, n_trajectories)) for start in range(0, n_trajectories, size)]
-
-
-_BLOCK_ARRAYS = ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps",
-                 "diagnostics")
+    size = min(MAX_BLOCK, max(MIN_BLOCK, math.ceil(todo / blocks)))
+    return [(first, min(first + size, stop)) for start, stop in ranges for first in range(start, stop, size)]
 
 
 def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict[str, str]) -> dict:
     """On a worker: one block of an ensemble in the parallel kernel, on the worker's threads (one
-    block at a time per process); the arrays of its EnsembleResult and the run's settings."""
+    block at a time per process): (its rows, as ensemble.EnsembleRun.rows gives them, threads used)."""
     import numba
 
     from .config import load_run_from_dict
-    from .ensemble import integrate_ensemble
+    from .ensemble import EnsembleRun, check_states
 
     spec = load_run_from_dict(_localise(copy.deepcopy(config), source, shipped), source=source,
                               base_dir=Path(source).parent)
@@ -278,68 +280,96 @@ def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict
         from distributed import get_worker
         threads = get_worker().state.nthreads
     threads = max(1, min(threads, numba.config.NUMBA_NUM_THREADS))
+    states = check_states(spec.problem, states)
     with _KERNEL_LOCK:
-        result = integrate_ensemble(spec.problem, spec.method, spec.h, states, n_steps=spec.n_steps,
-                                    conserve=spec.conserve, solver=spec.solver, n_threads=threads, t0=spec.t0)
-    block = {name: getattr(result, name) for name in _BLOCK_ARRAYS}
-    block.update(invariant_errors=result.invariant_errors, h=result.h, conserve=result.conserve,
-                 n_steps=result.n_steps, max_iter=result.max_iter, solver=result.solver, n_threads=threads)
-    return block
+        rows = EnsembleRun.from_spec(spec, states[0], n_threads=threads).rows(states)
+    return rows, threads
+
+
+def ensemble_blocks_on(client, spec: SweepSpec, states: np.ndarray, ranges,
+                       on_message: Callable[[str], None] | None = None) -> Iterator[tuple[int, int, dict, int]]:
+    """The rows of ``states`` in ``ranges`` ([start, stop) pairs), run in blocks on the Dask
+    cluster of ``client``: yields (start, stop, rows, threads) as blocks arrive (rows as
+    ensemble.EnsembleRun.rows gives them; threads: the kernel threads of the worker).
+
+    At most ``ensemble_window`` blocks are submitted and not yet taken back from here: the
+    next block is submitted only when the caller asks for the next one, after storing the
+    last, so the states shipped, the results waiting on the workers and the block in hand
+    stay bounded whatever the ensemble's size. Close the iterator (contextlib.closing) to
+    cancel the blocks still out."""
+    distributed = _distributed()
+    if not any(stop > start for start, stop in ranges):
+        return
+    shipped = _python_files([spec.base], spec.source)
+    warm_workers(client, [spec.base], spec.source, shipped, on_message)
+    workers = client.scheduler_info().get("workers", {})
+    bounds = block_bounds(states.shape[0], sum(worker.get("nthreads", 1) for worker in workers.values()), ranges)
+    window = ensemble_window(len(workers))
+    if on_message is not None:
+        on_message(f"dask: {sum(stop - start for start, stop in bounds):,} trajectories in {len(bounds)} block(s) "
+                   f"of up to {max(stop - start for start, stop in bounds):,}, at most {window} at a time")
+    waiting = iter(bounds)
+    futures = {}
+
+    def submit_next():
+        bound = next(waiting, None)
+        if bound is None:
+            return None
+        start, stop = bound
+        future = client.submit(_ensemble_block, spec.base, spec.source, states[start:stop], shipped,
+                               key=f"elimfast-block-{start}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
+                               retries=RETRIES)
+        futures[future] = bound
+        return future
+
+    arriving = distributed.as_completed([future for future in (submit_next() for _ in range(window))
+                                         if future is not None])
+    try:
+        for future in arriving:
+            start, stop = futures.pop(future)
+            try:
+                rows, threads = future.result()
+            except Exception as error:   # noqa: BLE001
+                raise SweepError(f"{spec.source}: ensemble: trajectories {start}-{stop - 1} could not be run on "
+                                 f"the cluster ({_task_failure(error)[len('failed: '):]})") from None
+            future.release()
+            yield start, stop, rows, threads
+            following = submit_next()   # only now: the block yielded is stored (or dropped)
+            if following is not None:
+                arriving.add(following)
+    finally:   # done, or Ctrl-C, SIGTERM, a write that failed, the caller closing: drop the rest
+        if futures:
+            client.cancel(list(futures))
+
+
+def ensemble_window(workers: int) -> int:
+    """Blocks of an ensemble submitted and not yet stored, at most: BLOCKS_IN_FLIGHT_PER_WORKER
+    per worker process (each runs one block at a time: one running, the next queued)."""
+    return max(2, BLOCKS_IN_FLIGHT_PER_WORKER * max(1, workers))
 
 
 def run_ensemble_on(client, spec: SweepSpec, on_start: Callable[[int], None] | None = None,
                     on_message: Callable[[str], None] | None = None):
     """sweep.run_ensemble_sweep on the Dask cluster of ``client``: (RunSpec, Y0, EnsembleResult),
-    the result equal, array for array, to the local kernel's."""
-    from .ensemble import EnsembleResult
-    from .kernels.stepper import STATUS_OK
-    from .sweep import ensemble_states
+    the result equal, array for array, to the local kernel's, assembled in memory (to store
+    an ensemble block by block instead, give sweep.run_to_file a path)."""
+    from .ensemble import EnsembleRows
+    from .sweep import block_line, ensemble_run, ensemble_states
 
-    distributed = _distributed()
     run, states = ensemble_states(spec)
-    if on_start is not None:
-        on_start(states.shape[0])
-    shipped = _python_files([spec.base], spec.source)
-    warm_workers(client, [spec.base], spec.source, shipped, on_message)
-    threads = sum(worker.get("nthreads", 1) for worker in client.scheduler_info().get("workers", {}).values())
-    bounds = block_bounds(states.shape[0], threads)
-    if on_message is not None:
-        on_message(f"dask: {states.shape[0]:,} trajectories in {len(bounds)} block(s) of up to "
-                   f"{bounds[0][1] - bounds[0][0]:,}")
+    ensemble = ensemble_run(spec, run, states)   # validated here, before any task
     n = states.shape[0]
-    arrays: dict[str, np.ndarray] = {}
-    errors: dict[str, np.ndarray] = {}
-    settings: dict = {}
-    futures = {client.submit(_ensemble_block, spec.base, spec.source, states[start:stop], shipped,
-                             key=f"elimfast-block-{start}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
-                             retries=RETRIES): (start, stop) for start, stop in bounds}
-    try:
-        for done, future in enumerate(distributed.as_completed(futures), start=1):
-            start, stop = futures[future]
-            try:
-                block = future.result()
-            except Exception as error:   # noqa: BLE001
-                raise SweepError(f"{spec.source}: ensemble: trajectories {start}-{stop - 1} could not be run on "
-                                 f"the cluster ({_task_failure(error)[len('failed: '):]})") from None
-            future.release()
-            if not arrays:
-                arrays = {name: np.empty((n,) + block[name].shape[1:], dtype=block[name].dtype)
-                          for name in _BLOCK_ARRAYS}
-                errors = {name: np.empty(n, dtype=values.dtype) for name, values in block["invariant_errors"].items()}
-                settings = {key: block[key] for key in ("h", "conserve", "n_steps", "max_iter", "solver", "n_threads")}
-            for name in _BLOCK_ARRAYS:
-                arrays[name][start:stop] = block[name]
-            for name, values in block["invariant_errors"].items():
-                errors[name][start:stop] = values
+    if on_start is not None:
+        on_start(n)
+    assembly, threads, done = EnsembleRows(n), 1, 0
+    with contextlib.closing(ensemble_blocks_on(client, spec, states, [(0, n)], on_message)) as blocks:
+        for start, stop, rows, block_threads in blocks:
+            assembly.put(start, stop, rows)
+            threads, done = max(threads, block_threads), done + stop - start
             if on_message is not None:
-                failed = int(np.count_nonzero(block["status"] != STATUS_OK))
-                on_message(f"[{done}/{len(bounds)}] trajectories {start}-{stop - 1}: {failed} failed")
-    except BaseException:
-        client.cancel(list(futures))
-        raise
-    result = EnsembleResult(problem=run.problem, method=run.method, y0=states, invariant_errors=errors,
-                            **settings, **arrays)
-    return run, states, result
+                on_message(block_line(rows, start, stop, done, n))
+    return run, states, ensemble.result(states, assembly.rows, n_threads=threads)
 
 
-__all__ = ["block_bounds", "check_scheduler", "connect", "run_ensemble_on", "run_sweep_on", "warm_workers"]
+__all__ = ["block_bounds", "check_scheduler", "connect", "ensemble_blocks_on", "ensemble_window", "run_ensemble_on",
+           "run_sweep_on", "warm_workers"]

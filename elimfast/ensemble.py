@@ -15,8 +15,9 @@ which integrate would raise and the ensemble reports as status 'exception'.
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numba
 import numpy as np
@@ -29,6 +30,16 @@ from .kernels.codes import STATUS_EXCEPTION
 from .kernels.ensemble import ensemble_loop
 from .methods import Method
 from .problems import Problem
+
+# Blocks of a local ensemble written to a file (elimfast sweep -o): sized from the measured
+# speed, as a run's chunks are (streaming.next_chunk_steps), to take about this long. Each
+# block ends with threads idle while the last trajectories finish (at most one trajectory's
+# time: a 2,000-step Henon-Heiles orbit took 4 ms on one thread in bench/ensemble.py, 15 ms
+# on a loaded machine) and costs one kernel call (2 ms measured, threads woken included): at
+# 5 s a block, under 0.5%; a kill loses at most one block. (configs/sweeps/henon_heiles_ensemble.yaml on 2 threads, to a file in 3 blocks and
+# in memory in one call: 11.1 and 11.7 s vs 11.8 and 11.2 s, on a machine loaded by others.)
+TARGET_BLOCK_SECONDS = 5.0
+FIRST_BLOCK_ROWS_PER_THREAD = 8   # the first block measures the speed
 
 # integrate's status names, and the one only an ensemble reports.
 STATUS_NAMES = {**_RUN_STATUS_NAMES, STATUS_EXCEPTION: "exception"}
@@ -111,19 +122,9 @@ def _thread_count(n_threads) -> int:
     return int(n_threads)
 
 
-def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: float | None = None,
-                       n_steps: int | None = None, conserve: Iterable[str] = (), tol: float | None = None,
-                       max_iter: int | None = None, rhs: str = "stable", n_threads: int | None = None,
-                       t0: float = 0.0, warm_start: bool = True, solver: str | SolverSettings = DEFAULT_SOLVER,
-                       predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS) -> EnsembleResult:
-    """Integrate ``problem`` with ``method`` and step ``h`` from every row of Y0 (n_traj, 2m).
-
-    Arguments as for ``elimfast.integrate`` (give exactly one of t_end and n_steps);
-    n_threads: Numba threads for this call (default: all, NUMBA_NUM_THREADS); the
-    previous setting is restored afterwards. Failures do not raise: see
-    ``EnsembleResult.status`` and ``failure_message``.
-    """
-    h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
+def check_states(problem: Problem, Y0) -> np.ndarray:
+    """Y0 as a C-contiguous float64 array (n_traj, 2m) of finite initial states; TypeError or
+    ValueError naming what is wrong."""
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
     n = 2 * problem.degrees_of_freedom
@@ -138,44 +139,193 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
     if bad.size:
         raise ValueError(f"Y0 has non-finite entries in row(s) {bad[:10].tolist()}"
                          + (" ..." if bad.size > 10 else ""))
-    # The validation integrate does (problem, method, conserve, tol, max_iter, rhs), by the same code.
-    run = Integration(problem, method, h, n_steps, conserve=conserve, tol=tol, max_iter=max_iter, rhs=rhs,
-                      warm_start=warm_start, t0=t0, y0=states[0], solver=solver, predictor=predictor,
-                      max_halvings=max_halvings)
-    threads = _thread_count(n_threads)
-
-    n_traj = states.shape[0]
-    n_inv = len(problem.invariant_names)
-    y_final = np.empty((n_traj, n))
-    t_final = np.empty(n_traj)
-    inv_error = np.empty((n_traj, 1 + n_inv))
-    iterations = np.empty(n_traj, dtype=np.int64)
-    max_multiplier = np.empty(n_traj)
-    status = np.empty(n_traj, dtype=np.int64)
-    steps_done = np.empty(n_traj, dtype=np.int64)
-    split_steps = np.empty(n_traj, dtype=np.int64)
-    diagnostics = np.zeros((n_traj, stepper.N_DIAGNOSTICS))
-    previous_threads = numba.get_num_threads()
-    numba.set_num_threads(threads)
-    from .streaming import current_watchdog
-    watchdog = current_watchdog()
-    try:
-        with watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext():
-            ensemble_loop(
-                *run.kernel_settings(),
-                states, float(t0), run.n_steps, run.multipliers.size, threads,
-                y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps,
-                diagnostics)
-    finally:
-        numba.set_num_threads(previous_threads)
-    errors = {"H": inv_error[:, 0].copy()}
-    for i, name in enumerate(problem.invariant_names):
-        errors[name] = inv_error[:, 1 + i].copy()
-    return EnsembleResult(
-        problem=problem, method=method, h=run.h, conserve=run.conserve, n_steps=run.n_steps,
-        max_iter=run.max_iter, n_threads=threads, y0=states, y_final=y_final, t_final=t_final,
-        invariant_errors=errors, iterations=iterations, max_multiplier=max_multiplier,
-        status=status, steps_done=steps_done, split_steps=split_steps, solver=run.solver, diagnostics=diagnostics)
+    return states
 
 
-__all__ = ["EnsembleResult", "STATUS_NAMES", "integrate_ensemble"]
+# The per-trajectory arrays of an EnsembleResult that the kernel computes (y0 is its input;
+# invariant_errors, a mapping of such arrays, comes beside them): one block of an ensemble is
+# these arrays for some of its rows, plus invariant_errors.
+ROW_ARRAYS = ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps",
+              "diagnostics")
+
+
+class LazyEnsembleResult(EnsembleResult):
+    """An EnsembleResult whose per-trajectory arrays (y0, ROW_ARRAYS, invariant_errors) not
+    given are got from ``read(name)`` when first used, then kept: a summary of a large
+    ensemble read from its file (archive.load_ensemble) holds the columns it uses, not all.
+    The dataclass's fields are set here, not by its __init__; ``__getattr__`` runs only for
+    an attribute not set yet."""
+
+    _ARRAYS = frozenset(("y0", "invariant_errors", *ROW_ARRAYS))
+
+    def __init__(self, read, n_trajectories: int, **fields):
+        self.__dict__.update(fields)
+        self._read, self._n_trajectories = read, n_trajectories
+
+    def __getattr__(self, name):
+        if name not in self._ARRAYS:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        value = self._read(name)
+        self.__dict__[name] = value
+        return value
+
+    @property
+    def n_trajectories(self) -> int:
+        return self._n_trajectories
+
+
+class EnsembleRun:
+    """A validated ensemble: the problem, the method and the settings of ``integrate_ensemble``,
+    ready to run any rows of initial states in the kernel (``rows``).
+
+    Trajectories are independent (kernels/ensemble.py), so the rows of one call over some
+    states are, bit for bit, those of one call over all of them: an ensemble may be run in
+    blocks of rows, in any order, in any process.
+    """
+
+    def __init__(self, problem: Problem, method: Method, h: float, y0, t_end: float | None = None,
+                 n_steps: int | None = None, conserve: Iterable[str] = (), tol: float | None = None,
+                 max_iter: int | None = None, rhs: str = "stable", n_threads: int | None = None, t0: float = 0.0,
+                 warm_start: bool = True, solver: str | SolverSettings = DEFAULT_SOLVER, predictor: bool = True,
+                 max_halvings: int = DEFAULT_MAX_HALVINGS):
+        h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
+        # The validation integrate does (problem, method, conserve, tol, max_iter, rhs), by the same
+        # code, for one initial state (y0: the ensemble's first).
+        self.integration = Integration(problem, method, h, n_steps, conserve=conserve, tol=tol, max_iter=max_iter,
+                                       rhs=rhs, warm_start=warm_start, t0=t0, y0=y0, solver=solver,
+                                       predictor=predictor, max_halvings=max_halvings)
+        self.problem, self.method, self.t0 = problem, method, float(t0)
+        self.n_threads = _thread_count(n_threads)
+
+    @classmethod
+    def from_spec(cls, spec, y0, n_threads: int | None = None) -> "EnsembleRun":
+        """The ensemble of a validated config (``elimfast.config.RunSpec``) from its initial states."""
+        return cls(spec.problem, spec.method, spec.h, y0, n_steps=spec.n_steps, conserve=spec.conserve,
+                   solver=spec.solver, n_threads=n_threads, t0=spec.t0)
+
+    h = property(lambda self: self.integration.h)
+    n_steps = property(lambda self: self.integration.n_steps)
+    conserve = property(lambda self: self.integration.conserve)
+    max_iter = property(lambda self: self.integration.max_iter)
+    solver = property(lambda self: self.integration.solver)
+
+    n_diagnostics = stepper.N_DIAGNOSTICS   # columns of a trajectory's diagnostics
+
+    @property
+    def invariant_names(self) -> tuple[str, ...]:
+        """The invariants whose errors each trajectory reports: H, then every invariant of the problem."""
+        return ("H",) + tuple(self.problem.invariant_names)
+
+    def row_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+        """ROW_ARRAYS: the shape of one trajectory's entry and the dtype of each (what ``rows``
+        returns, and what an ensemble file holds per trajectory beside y0 and invariant_errors)."""
+        n, real, integer = 2 * self.problem.degrees_of_freedom, np.dtype(np.float64), np.dtype(np.int64)
+        layout = {"y_final": ((n,), real), "t_final": ((), real), "iterations": ((), integer),
+                  "max_multiplier": ((), real), "status": ((), integer), "steps_done": ((), integer),
+                  "split_steps": ((), integer), "diagnostics": ((self.n_diagnostics,), real)}
+        return {name: layout[name] for name in ROW_ARRAYS}
+
+    def rows(self, states: np.ndarray) -> dict:
+        """Run ``states`` (n_rows, 2m; checked by ``check_states``) in the kernel on n_threads
+        threads (the previous Numba setting is restored afterwards): ROW_ARRAYS, each with
+        n_rows rows, and invariant_errors {name: (n_rows,)}."""
+        run, threads = self.integration, self.n_threads
+        n_rows = states.shape[0]
+        rows = {name: np.zeros((n_rows,) + shape, dtype) if name == "diagnostics" else np.empty((n_rows,) + shape, dtype)
+                for name, (shape, dtype) in self.row_layout().items()}   # the kernel sets diagnostics on failure only
+        inv_error = np.empty((n_rows, len(self.invariant_names)))
+        previous_threads = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        from .streaming import current_watchdog
+        watchdog = current_watchdog()
+        try:
+            with watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext():
+                ensemble_loop(
+                    *run.kernel_settings(),
+                    states, self.t0, run.n_steps, run.multipliers.size, threads,
+                    rows["y_final"], rows["t_final"], inv_error, rows["iterations"], rows["max_multiplier"],
+                    rows["status"], rows["steps_done"], rows["split_steps"], rows["diagnostics"])
+        finally:
+            numba.set_num_threads(previous_threads)
+        rows["invariant_errors"] = {name: inv_error[:, i].copy() for i, name in enumerate(self.invariant_names)}
+        return rows
+
+    def result(self, states: np.ndarray, rows: dict, n_threads: int | None = None) -> EnsembleResult:
+        """The EnsembleResult of ``states`` from their rows (``rows``, or assembled by EnsembleRows)."""
+        return EnsembleResult(
+            problem=self.problem, method=self.method, h=self.h, conserve=self.conserve, n_steps=self.n_steps,
+            max_iter=self.max_iter, n_threads=self.n_threads if n_threads is None else n_threads, y0=states,
+            solver=self.solver, invariant_errors=rows["invariant_errors"], **{name: rows[name] for name in ROW_ARRAYS})
+
+
+class EnsembleRows:
+    """The rows of a whole ensemble in memory, put in place block by block as blocks arrive."""
+
+    def __init__(self, n_trajectories: int):
+        self.n_trajectories = n_trajectories
+        self.rows: dict | None = None
+
+    def put(self, start: int, stop: int, block: dict) -> None:
+        if self.rows is None:
+            n = self.n_trajectories
+            self.rows = {name: np.empty((n,) + block[name].shape[1:], dtype=block[name].dtype) for name in ROW_ARRAYS}
+            self.rows["invariant_errors"] = {name: np.empty(n, dtype=values.dtype)
+                                             for name, values in block["invariant_errors"].items()}
+        for name in ROW_ARRAYS:
+            self.rows[name][start:stop] = block[name]
+        for name, values in block["invariant_errors"].items():
+            self.rows["invariant_errors"][name][start:stop] = values
+
+
+def run_in_blocks(run: EnsembleRun, states: np.ndarray, ranges, target_seconds: float | None = None,
+                  first_rows: int | None = None) -> Iterator[tuple[int, int, dict, int]]:
+    """Run the rows of ``states`` in ``ranges`` ([start, stop) pairs) in consecutive blocks, one
+    kernel call each, on this process's threads: yields (start, stop, rows, threads) as each block ends,
+    and runs the next only when asked for it (so one block's rows are held at a time). Blocks
+    take about ``target_seconds`` (default TARGET_BLOCK_SECONDS) each, from the measured
+    speed; the first has ``first_rows`` (default FIRST_BLOCK_ROWS_PER_THREAD per thread). The
+    rows are those of one call over all the states, bit for bit."""
+    from .streaming import next_chunk_steps
+
+    target_seconds = TARGET_BLOCK_SECONDS if target_seconds is None else target_seconds
+
+    row_bytes = 8.0 * (states.shape[1] + len(run.invariant_names)) + sum(
+        dtype.itemsize * int(np.prod(shape)) for shape, dtype in run.row_layout().values())
+    size = first_rows or FIRST_BLOCK_ROWS_PER_THREAD * run.n_threads
+    measured = False
+    for range_start, range_stop in ranges:
+        start = range_start
+        while start < range_stop:
+            if measured:
+                size = next_chunk_steps(size, seconds, row_bytes, target_seconds=target_seconds,
+                                        remaining=range_stop - start)
+            stop = min(start + size, range_stop)
+            began = time.perf_counter()
+            rows = run.rows(states[start:stop])
+            seconds, size, measured = time.perf_counter() - began, stop - start, True
+            yield start, stop, rows, run.n_threads
+            start = stop
+
+
+def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: float | None = None,
+                       n_steps: int | None = None, conserve: Iterable[str] = (), tol: float | None = None,
+                       max_iter: int | None = None, rhs: str = "stable", n_threads: int | None = None,
+                       t0: float = 0.0, warm_start: bool = True, solver: str | SolverSettings = DEFAULT_SOLVER,
+                       predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS) -> EnsembleResult:
+    """Integrate ``problem`` with ``method`` and step ``h`` from every row of Y0 (n_traj, 2m).
+
+    Arguments as for ``elimfast.integrate`` (give exactly one of t_end and n_steps);
+    n_threads: Numba threads for this call (default: all, NUMBA_NUM_THREADS); the
+    previous setting is restored afterwards. Failures do not raise: see
+    ``EnsembleResult.status`` and ``failure_message``.
+    """
+    resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)   # its errors first, as integrate's
+    states = check_states(problem, Y0)
+    run = EnsembleRun(problem, method, h, states[0], t_end=t_end, n_steps=n_steps, conserve=conserve, tol=tol,
+                      max_iter=max_iter, rhs=rhs, n_threads=n_threads, t0=t0, warm_start=warm_start, solver=solver,
+                      predictor=predictor, max_halvings=max_halvings)
+    return run.result(states, run.rows(states))
+
+
+__all__ = ["EnsembleResult", "EnsembleRows", "EnsembleRun", "LazyEnsembleResult", "ROW_ARRAYS", "STATUS_NAMES", "check_states",
+           "integrate_ensemble", "run_in_blocks"]

@@ -358,9 +358,11 @@ def _whole_number(value) -> int | None:
 
 
 def ensemble_bytes(n_trajectories: int, dimension: int, n_invariants: int) -> int:
-    """Memory an ensemble sweep holds at once: the states (as drawn, and the kernel's copy), the
-    final states and their copy in the writer, invariant errors (kernel output and the result's
-    per-name copies), and five per-trajectory numbers."""
+    """Memory an ensemble sweep holds at once in memory (no output file): the states (as drawn,
+    and the kernel's copy), the final states and their copy in the writer, invariant errors
+    (kernel output and the result's per-name copies), and five per-trajectory numbers.
+    Streamed to a file it holds less (the states and the blocks in flight); the check before
+    drawing the states uses this bound either way."""
     return 8 * n_trajectories * (4 * dimension + 2 * (1 + n_invariants) + 5)
 
 
@@ -390,19 +392,32 @@ def _check_ensemble(source, ensemble) -> dict:
 
 
 def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Callable[[int], None] | None = None):
-    """Run an ensemble sweep in the parallel kernel: returns (RunSpec, Y0, EnsembleResult).
-    ``on_start(n_trajectories)`` is called once the states are drawn, before the kernel."""
-    from .ensemble import integrate_ensemble
-
+    """Run an ensemble sweep in the parallel kernel, in one call: returns (RunSpec, Y0,
+    EnsembleResult). ``on_start(n_trajectories)`` is called once the states are drawn, before
+    the kernel. (``run_to_file`` with a path runs it in blocks, each stored as it ends.)"""
     run, states = ensemble_states(spec)
+    ensemble = ensemble_run(spec, run, states, threads)
     if on_start is not None:
         on_start(states.shape[0])
+    return run, states, ensemble.result(states, ensemble.rows(states))
+
+
+def ensemble_run(spec: SweepSpec, run, states: np.ndarray, threads: int | None = None):
+    """The ensemble.EnsembleRun of an ensemble sweep (its base's RunSpec ``run`` from ``states``),
+    validated as integrate_ensemble validates; SweepError naming the sweep file if invalid."""
+    from .ensemble import EnsembleRun, check_states
+
     try:
-        result = integrate_ensemble(run.problem, run.method, run.h, states, n_steps=run.n_steps,
-                                    conserve=run.conserve, solver=run.solver, n_threads=threads, t0=run.t0)
+        return EnsembleRun.from_spec(run, check_states(run.problem, states)[0], n_threads=threads)
     except (ValueError, TypeError) as error:
         raise SweepError(f"{spec.source}: ensemble: {error}") from None
-    return run, states, result
+
+
+def block_line(rows: dict, start: int, stop: int, done: int, total: int) -> str:
+    """The progress line of an ensemble block just stored (or put in place)."""
+    from .kernels.stepper import STATUS_OK
+    failed = int(np.count_nonzero(rows["status"] != STATUS_OK))
+    return f"[{done:,}/{total:,}] trajectories {start}-{stop - 1}: {failed} failed"
 
 
 def ensemble_states(spec: SweepSpec):
@@ -892,9 +907,16 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
     ``keep_results``. Raises SweepError for a bad sweep file, OutputError for an output
     that cannot be written; the runs' own failures are in the outcome (``failures()``).
 
+    An ensemble with a ``path`` runs in blocks, each stored (and marked stored) as it ends
+    or arrives, so that only the blocks in flight are in memory and a killed sweep keeps
+    every stored block (io/ensemblefile.py). Its outcome's ``ensemble`` is then read from
+    the file, each array when first used (all at once with ``keep_results``). Without a
+    path, an ensemble runs in one kernel call (on a cluster: its blocks gathered in memory).
+
     ``resume``: ``path`` may exist and hold some of this sweep's runs (a sweep that was
     stopped or killed); those that are complete there are read back, not run again, and
-    the others run and are added. (An ensemble sweep is run again whole.)
+    the others run and are added. For an ensemble: the trajectories marked stored are
+    kept, the others run; the file ends as an uninterrupted run's, bit for bit.
 
     On a Dask cluster (docs/dask.md): ``client`` (a ``dask.distributed.Client``) runs the
     runs as Dask tasks, an ensemble as blocks of trajectories; or ``scheduler``, an
@@ -917,31 +939,35 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
     say = on_message or (lambda line: None)
     writer = None
 
-    def open_writer():
+    def open_writer(ensemble=None):
         nonlocal writer
         if path is not None:
             writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
                                  attributes={"source": spec.source, "axes": list(spec.axes) or [""]},
-                                 overwrite=overwrite or resume, resume=resume and spec.ensemble is None)
+                                 overwrite=overwrite or resume, resume=resume, ensemble=ensemble)
 
     with contextlib.ExitStack() as stack:
         if scheduler is not None:
             from .distributed import connect
             client = stack.enter_context(connect(scheduler, workers, on_message=say))
         try:
-            if spec.ensemble is not None:
-                def started(n_trajectories):
-                    open_writer()
-                    if on_start is not None:
-                        on_start(n_trajectories)
+            if spec.ensemble is not None and path is None:   # in memory: one kernel call, or blocks gathered
                 if client is not None:
                     from .distributed import run_ensemble_on
-                    run_spec, states, result = run_ensemble_on(client, spec, on_start=started, on_message=say)
+                    _, _, result = run_ensemble_on(client, spec, on_start=on_start, on_message=say)
                 else:
-                    run_spec, states, result = run_ensemble_sweep(spec, threads=workers, on_start=started)
-                if writer is not None:
-                    writer.add_ensemble(result, states, run_spec.resolved)
+                    _, _, result = run_ensemble_sweep(spec, threads=workers, on_start=on_start)
                 return SweepOutcome(spec=spec, path=path, ensemble=result)
+            if spec.ensemble is not None:
+                run, states = ensemble_states(spec)
+                ensemble = ensemble_run(spec, run, states, None if client is not None else workers)
+                if on_start is not None:
+                    on_start(states.shape[0])
+                open_writer((ensemble, states, _config_text(run.resolved)))
+                _stream_ensemble(spec, writer, ensemble, states, client, say)
+                writer.close()
+                from .archive import load_ensemble
+                return SweepOutcome(spec=spec, path=path, ensemble=load_ensemble(path, lazy=not keep_results))
 
             open_writer()
             done_before: dict[str, RunOutcome] = {}
@@ -980,6 +1006,34 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
         finally:
             if writer is not None:
                 writer.close()
+
+
+def _stream_ensemble(spec: SweepSpec, writer, ensemble, states: np.ndarray, client,
+                     say: Callable[[str], None]) -> None:
+    """Run the trajectories ``writer`` lacks (all, or what a resumed file lacks) in blocks,
+    on ``client``'s cluster or here (ensemble.run_in_blocks), storing each block as it
+    arrives; then mark the ensemble complete. Only the blocks in flight are held."""
+    from .ensemble import STATUS_NAMES, run_in_blocks
+    from .kernels.stepper import STATUS_OK
+
+    n = states.shape[0]
+    todo = writer.ensemble_todo
+    done = n - sum(stop - start for start, stop in todo)
+    if done:
+        say(f"resume: {done:,} of {n:,} trajectories are stored in {writer.path}; running the other {n - done:,}")
+    if client is not None:
+        from .distributed import ensemble_blocks_on
+        blocks = ensemble_blocks_on(client, spec, states, todo, on_message=say)
+    else:
+        blocks = run_in_blocks(ensemble, states, todo)
+    threads = 0   # of the blocks run now (0: none, a resumed file that held them all)
+    with contextlib.closing(blocks):
+        for start, stop, rows, block_threads in blocks:
+            writer.add_ensemble_rows(start, stop, rows)
+            threads, done = max(threads, block_threads), done + stop - start
+            say(block_line(rows, start, stop, done, n))
+    if not writer.ensemble_complete:
+        writer.finish_ensemble(threads=threads, status_names=STATUS_NAMES, ok_status=STATUS_OK)
 
 
 def run(spec, path=None, *, client=None, **options) -> SweepOutcome:

@@ -20,6 +20,7 @@ from elimfast import distributed as on_dask  # noqa: E402
 from elimfast import sweep as sweeps  # noqa: E402
 from elimfast.sweep import SweepError  # noqa: E402
 from elimfast_cli.main import cli  # noqa: E402
+from runfiles import assert_same_files, stopped_after_blocks  # noqa: E402
 
 ELIMFAST = Path(sys.executable).with_name("elimfast")
 DASK = Path(sys.executable).with_name("dask")
@@ -29,8 +30,6 @@ BASE = {
     "conserve": ["angular_momentum"],
     "integration": {"h": "pi/30", "t_end": "2*pi"},
 }
-# Attributes that say when and how long, not what: they differ between any two runs.
-TIMING_ATTRIBUTES = {"created", "wall_time_s", "kernel_time_s", "threads"}
 
 
 def write_sweep(tmp_path, data, name="sweep.yaml"):
@@ -49,34 +48,6 @@ def grid_sweep(tmp_path, steps=("2*pi/40", "2*pi/80", "2*pi/160"), t_end="2*pi",
         "error": {"exact": "initial"}, "order_axis": "h"}, name)
 
 
-def contents(path) -> dict:
-    """Every dataset (as an array) and attribute of an HDF5 file, by path; timing attributes left out."""
-    found = {}
-
-    def visit(name, obj):
-        for key, value in obj.attrs.items():
-            if key not in TIMING_ATTRIBUTES and not key.startswith(("DIMENSION_LIST", "REFERENCE_LIST")):
-                found[f"{name}@{key}"] = value
-        if isinstance(obj, h5py.Dataset) and obj.dtype.kind != "O" and not obj.dtype.names:
-            found[name] = obj[()]
-    with h5py.File(path, "r") as f:
-        visit("/", f)
-        f.visititems(visit)
-    return found
-
-
-def assert_same_files(a, b):
-    first, second = contents(a), contents(b)
-    assert any(key.endswith("/y") or key.endswith("/y_final") for key in first)   # the arrays are compared
-    assert sorted(first) == sorted(second)
-    for key, value in first.items():
-        other = second[key]
-        if isinstance(value, np.ndarray) and value.dtype.kind == "f":
-            np.testing.assert_array_equal(value, other, err_msg=key)   # bit for bit (nan == nan)
-        else:
-            assert np.array_equal(np.asarray(value), np.asarray(other)), key
-
-
 @pytest.fixture(scope="module")
 def client():
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
@@ -93,12 +64,16 @@ def test_a_sweep_on_a_local_cluster_writes_the_file_the_local_pool_writes(tmp_pa
     assert [o.status for o in dask.outcomes] == ["complete"] * 6
 
 
-def test_an_ensemble_in_blocks_on_a_local_cluster_equals_the_local_kernel(tmp_path, client, monkeypatch):
-    monkeypatch.setattr(on_dask, "MIN_BLOCK", 16)   # 8 blocks of 25 (2 worker threads): blocks meet
-    path = write_sweep(tmp_path, {"base": {"problem": {"builtin": "henon_heiles"},
+def ensemble_sweep(tmp_path):
+    return write_sweep(tmp_path, {"base": {"problem": {"builtin": "henon_heiles"},
                                            "method": {"name": "hbvm", "k": 6, "s": 3},
                                            "integration": {"h": 0.1, "t_end": 20}},
                                   "ensemble": {"n": 200, "seed": 3, "spread": 0.01}})
+
+
+def test_an_ensemble_in_blocks_on_a_local_cluster_equals_the_local_kernel(tmp_path, client, monkeypatch):
+    monkeypatch.setattr(on_dask, "MIN_BLOCK", 16)   # 8 blocks of 25 (2 worker threads): blocks meet
+    path = ensemble_sweep(tmp_path)
     assert len(on_dask.block_bounds(200, 2)) == 8
     local = sweeps.run_to_file(path, tmp_path / "pool.h5", workers=2)
     dask = sweeps.run_to_file(path, tmp_path / "dask.h5", client=client)
@@ -106,6 +81,60 @@ def test_an_ensemble_in_blocks_on_a_local_cluster_equals_the_local_kernel(tmp_pa
     for name in ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps"):
         np.testing.assert_array_equal(getattr(local.ensemble, name), getattr(dask.ensemble, name))
     assert local.table() == dask.table()
+
+
+def test_an_ensemble_streamed_from_a_local_cluster_equals_the_in_memory_results(tmp_path, client, monkeypatch):
+    monkeypatch.setattr(on_dask, "MIN_BLOCK", 16)
+    path = ensemble_sweep(tmp_path)
+    one_call = sweeps.run_to_file(path, workers=2).ensemble                # no file: one kernel call here
+    gathered = sweeps.run_to_file(path, client=client).ensemble            # no file: the blocks in memory
+    streamed = sweeps.run_to_file(path, tmp_path / "dask.h5", client=client).ensemble   # read from the file
+    for name in ("y0", "y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps",
+                 "diagnostics"):
+        np.testing.assert_array_equal(getattr(one_call, name), getattr(gathered, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(one_call, name), getattr(streamed, name), err_msg=name)
+    for name, values in one_call.invariant_errors.items():
+        np.testing.assert_array_equal(values, streamed.invariant_errors[name], err_msg=name)
+
+
+def test_an_ensembles_blocks_in_flight_never_exceed_the_window(tmp_path, client, monkeypatch):
+    """Blocks submitted and not yet stored (the states shipped, results waiting on the workers,
+    the block in hand) stay within ensemble_window, whatever the number of blocks."""
+    from elimfast.io.sweepfile import SweepWriter
+
+    monkeypatch.setattr(on_dask, "MIN_BLOCK", 16)   # 8 blocks of 25 (2 worker threads)
+    window = on_dask.ensemble_window(2)
+    assert window < 8
+    submitted, stored, most = [0], [0], [0]
+    submit, store = client.submit, SweepWriter.add_ensemble_rows
+
+    def counted_submit(function, *args, **options):
+        if function is on_dask._ensemble_block:
+            submitted[0] += 1
+            most[0] = max(most[0], submitted[0] - stored[0])
+        return submit(function, *args, **options)
+
+    def counted_store(writer, *block):
+        store(writer, *block)
+        stored[0] += 1
+
+    monkeypatch.setattr(client, "submit", counted_submit)
+    monkeypatch.setattr(SweepWriter, "add_ensemble_rows", counted_store)
+    sweeps.run_to_file(ensemble_sweep(tmp_path), tmp_path / "dask.h5", client=client)
+    assert submitted[0] == stored[0] == 8
+    assert most[0] == window
+
+
+def test_resume_on_a_local_cluster_completes_a_stopped_ensemble_file(tmp_path, client, monkeypatch):
+    monkeypatch.setattr(on_dask, "MIN_BLOCK", 16)   # 8 blocks of 25
+    path = ensemble_sweep(tmp_path)
+    sweeps.run_to_file(path, tmp_path / "full.h5", workers=2)
+    half = stopped_after_blocks(path, tmp_path / "half.h5", 3, monkeypatch, client=client)
+    messages = []
+    sweeps.run_to_file(path, half, resume=True, client=client, on_message=messages.append)
+    assert f"resume: 75 of 200 trajectories are stored in {half}; running the other 125" in messages
+    assert any(m.startswith("dask: 125 trajectories in ") for m in messages), messages
+    assert_same_files(tmp_path / "full.h5", half)
 
 
 def test_block_sizes_keep_the_overhead_small_and_cover_every_trajectory():
@@ -116,6 +145,12 @@ def test_block_sizes_keep_the_overhead_small_and_cover_every_trajectory():
         sizes = [stop - start for start, stop in bounds]
         assert max(sizes) <= on_dask.MAX_BLOCK
         assert len(bounds) == 1 or min(sizes[:-1]) >= on_dask.MIN_BLOCK
+    # A resumed file's missing ranges: covered exactly, no block across a gap.
+    ranges = [(0, 50), (300, 1000), (4000, 4001)]
+    bounds = on_dask.block_bounds(5000, 2, ranges)
+    assert sorted({i for start, stop in bounds for i in range(start, stop)}) == \
+        [i for start, stop in ranges for i in range(start, stop)]
+    assert all(any(a <= start < stop <= b for a, b in ranges) for start, stop in bounds)
 
 
 def test_a_worker_killed_mid_sweep_does_not_lose_the_sweep(tmp_path, client):

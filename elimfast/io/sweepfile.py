@@ -6,7 +6,8 @@ by ``layout.create_run_group``, the function that writes a run file's root, so i
 t, component, y, invariants/<name>, steps/..., method/... on the same dimension scales,
 and a run file's attributes (config, problem, method, h, n_steps, steps_done, status,
 wall_time_s, ...) plus ``label`` and ``axis_<name>`` for its coordinates. An ensemble
-sweep stores /ensemble instead. ``xarray.open_datatree(path, engine="h5netcdf")`` reads
+sweep stores /ensemble instead, block by block (``ensemblefile.py``: its layout, its done
+record and its reader). ``xarray.open_datatree(path, engine="h5netcdf")`` reads
 the file, one node per run; ``RunFile("file.h5:/runs/<label>")`` and
 ``elimfast.load(path, run=label)`` read one run.
 """
@@ -19,8 +20,9 @@ import h5py
 import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
-from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _set_attributes, _small_dataset, append_rows,
-                     _string_dataset, attach, create_run_group, dimension, version_attributes, write_method)
+from . import ensemblefile
+from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _set_attributes, append_rows, create_run_group,
+                     version_attributes)
 from .runfile import SWEEP_FORMAT, _now, run_attributes
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, ensure_not_busy)
@@ -43,14 +45,25 @@ class SweepWriter:
     resumable on its own; rerun the sweep. Runs are written and flushed as they finish,
     so a killed sweep keeps every finished run. The file is built under a temporary
     name and renamed into place (an existing file another process uses is refused).
+
+    An ensemble sweep (``ensemble=(run, states, config_text)``: an
+    elimfast.ensemble.EnsembleRun, its initial states and its resolved config) gets
+    /ensemble with every dataset at its final shape before the file is published; the
+    file is then written in SWMR mode, block by block (``add_ensemble_rows``), and
+    completed by ``finish_ensemble``. ``ensemble_todo``: the [start, stop) ranges of
+    trajectories not stored yet (all of them, or what a resumed file lacks).
     """
 
     def __init__(self, path, *, sweep_text: str, attributes: dict | None = None, overwrite: bool = True,
-                 resume: bool = False):
+                 resume: bool = False, ensemble: tuple | None = None):
         self.path = Path(path)
         self.complete: dict[str, str] = {}   # label -> group name of the runs a resumed file already holds
+        self.ensemble_todo: list[tuple[int, int]] | None = None
+        self._ensemble = None
+        self._kept = "the runs stored before this one are in the file" if ensemble is None else \
+            "the trajectories marked stored before it are in the file (--resume runs the rest)"
         if resume and self.path.exists():
-            self._reopen(sweep_text)
+            self._reopen(sweep_text, ensemble)
             return
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -67,14 +80,20 @@ class SweepWriter:
         self._guard = None
         try:
             self._guard = _FileGuard(temporary)
-            self._guard.reserve(SPACE_BASE + len(sweep_text))
+            self._guard.reserve(SPACE_BASE + len(sweep_text)
+                                + (0 if ensemble is None else ensemblefile.bytes_on_disk(ensemble[0], ensemble[1])))
             _set_attributes(self._file, {
                 **version_attributes(), "format": SWEEP_FORMAT, "format_version": FORMAT_VERSION,
                 "created": _now(),
                 "sweep": sweep_text, **(attributes or {})})
             self._runs = self._file.create_group("runs")
+            if ensemble is not None:
+                self._ensemble = ensemblefile.create(self._file, *ensemble)
+                self.ensemble_todo = [(0, ensemble[1].shape[0])]
             self._file.flush()
             _publish(temporary, self.path, overwrite)
+            if ensemble is not None:
+                self._file.swmr_mode = True   # flushes; from here on the file on disk is always consistent
         except DiskFullError:
             _close_quietly(self._file, self._guard, temporary)
             raise DiskFullError(f"{self.path}: the disk is full; free some space, or write the sweep elsewhere") \
@@ -83,10 +102,12 @@ class SweepWriter:
             _close_quietly(self._file, self._guard, temporary)
             raise
 
-    def _reopen(self, sweep_text: str) -> None:
+    def _reopen(self, sweep_text: str, ensemble: tuple | None) -> None:
         """Open an existing sweep file to add the runs it lacks (``--resume``): the file must
         hold the same sweep (its stored text), and every run that is not marked stored and
-        complete (failed, or cut off by a kill) is removed so that it runs again."""
+        complete (failed, or cut off by a kill) is removed so that it runs again. An
+        ensemble's file must hold the same ensemble (``ensemblefile.check_resumable``); its
+        trajectories not marked stored are the ones to run."""
         ensure_not_busy(self.path)
         if consistency_flags(self.path):   # a writer killed before closing it (HDF5 refuses such a file)
             try:
@@ -119,14 +140,51 @@ class SweepWriter:
                     self.complete[label] = name
                 else:
                     del self._runs[name]
+            if ensemble is not None:
+                self._resume_ensemble(ensemble)
             self._file.flush()
-        except OutputError:
+            if ensemble is not None:
+                self._file.swmr_mode = True
+        except (OutputError, DiskFullError):
             _close_quietly(self._file, self._guard, None)
             raise
         except (OSError, RuntimeError, KeyError) as err:
             _close_quietly(self._file, self._guard, None)
             raise OutputError(f"{self.path}: cannot resume: the file is damaged ({_one_line(err)[:160]}); start "
                               "again with --overwrite") from None
+
+    def _resume_ensemble(self, ensemble: tuple) -> None:
+        run, states, config_text = ensemble
+        if ensemblefile.GROUP not in self._file:   # an earlier elimfast's, killed before it wrote the ensemble
+            self._guard.reserve(SPACE_BASE + ensemblefile.bytes_on_disk(run, states))
+            self._ensemble = ensemblefile.create(self._file, run, states, config_text)
+        else:
+            self._ensemble = self._file[ensemblefile.GROUP]
+            ensemblefile.check_resumable(self.path, self._ensemble, run, states, config_text)
+        self.ensemble_todo = ensemblefile.unstored_ranges(self._ensemble)
+
+    @property
+    def ensemble_complete(self) -> bool:
+        """/ensemble is marked complete (every trajectory stored and the totals written)."""
+        return str(_plain(self._ensemble.attrs.get("status", ""))) == ensemblefile.STATUS_COMPLETE
+
+    def add_ensemble_rows(self, start: int, stop: int, rows: dict) -> None:
+        """Store the trajectories [start, stop) of the ensemble (``rows``: ensemble.ROW_ARRAYS
+        and invariant_errors): their data, flushed, then their done record, flushed."""
+        with self._writing():
+            ensemblefile.write_rows(self._ensemble, start, stop, rows)
+            self._file.flush()
+            ensemblefile.mark_stored(self._ensemble, start, stop)
+            self._file.flush()
+
+    def finish_ensemble(self, *, threads: int, status_names: dict[int, str], ok_status: int) -> None:
+        """Mark the ensemble complete, once every trajectory is stored (``ensemblefile.finish``)."""
+        with self._writing():
+            self._file.close()   # attributes change only outside SWMR mode: reopen the file normally
+            self._file = h5py.File(self.path, "r+", libver=LIBVER)
+            self._ensemble = self._file[ensemblefile.GROUP]
+            ensemblefile.finish(self._ensemble, threads=threads, status_names=status_names, ok_status=ok_status)
+            self._file.flush()
 
     def forget(self, label: str) -> None:
         """Remove a stored run of a resumed file, so that it runs (and is stored) again."""
@@ -203,38 +261,6 @@ class SweepWriter:
         group.attrs["stored"] = True
         self._file.flush()
 
-    def add_ensemble(self, result, states, resolved: dict) -> None:
-        """Store an ensemble sweep under /ensemble: per trajectory y0, y_final, t_final,
-        iterations (totals), max_multiplier, status (0 ok), steps_done, and
-        invariant_errors/<name> (max |I(t) - I(0)|); the failure reasons as an attribute."""
-        self._reserve([states, result.y_final, *result.invariant_errors.values()]
-                      + [getattr(result, name) for name in ("t_final", "iterations", "max_multiplier", "status",
-                                                            "steps_done")])
-        with self._writing():
-            self._add_ensemble(result, states, resolved)
-
-    def _add_ensemble(self, result, states, resolved: dict) -> None:
-        import yaml
-
-        group = self._file.create_group("ensemble")
-        _set_attributes(group, {
-            "problem": result.problem.name, "method": result.method.name, "h": result.h,
-            "n_steps": result.n_steps, "conserve": list(result.conserve) or [""], "threads": result.n_threads,
-            "config": yaml.safe_dump(resolved, sort_keys=False, default_flow_style=None, width=100),
-            "failed": result.n_failed, "reasons": list(result.reasons) or [""]})
-        component = _string_dataset(group, "component", result.problem.coordinate_names)
-        component.make_scale("component")
-        trajectory = dimension(group, "trajectory", states.shape[0])
-        attach(_small_dataset(group, "y0", states), trajectory, component)
-        for name in ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done"):
-            dataset = _small_dataset(group, name, getattr(result, name))
-            attach(dataset, trajectory, component if name == "y_final" else None)
-        errors = group.create_group("invariant_errors")
-        for name, values in result.invariant_errors.items():
-            attach(_small_dataset(errors, name, values), trajectory)
-        write_method(group.create_group("method"), result.method)
-        self._file.flush()
-
     def close(self) -> None:
         try:
             if not getattr(self, "abandoned", False) and self._file.id.valid:
@@ -250,7 +276,7 @@ class _SweepWriting:
 
     def __enter__(self):
         if getattr(self.writer, "abandoned", False):
-            raise OutputError(f"{self.writer.path}: an earlier write failed; the file holds the runs before it")
+            raise OutputError(f"{self.writer.path}: an earlier write failed; {self.writer._kept}")
         return self
 
     def __exit__(self, kind, err, traceback):
@@ -258,10 +284,9 @@ class _SweepWriting:
             self.writer.abandoned = True
             _abandon(self.writer._file, None, keep=self.writer)
             if _is_disk_full(err):
-                raise DiskFullError(f"{self.writer.path}: the disk is full; the runs stored before this one are "
-                                    "in the file") from None
-            raise OutputError(f"{self.writer.path}: cannot write ({_one_line(err)[:200]}); the runs stored before "
-                              "this one are in the file") from None
+                raise DiskFullError(f"{self.writer.path}: the disk is full; {self.writer._kept}") from None
+            raise OutputError(f"{self.writer.path}: cannot write ({_one_line(err)[:200]}); {self.writer._kept}") \
+                from None
         return False
 
 

@@ -1,0 +1,255 @@
+"""The ensemble of an ensemble sweep file: /ensemble, written block by block, and its reader.
+
+An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
+``elimfast-sweep``, the sweep's text, an empty /runs) and the group /ensemble:
+
+    component                 (2m,) strings  the state's component names; a dimension scale
+    trajectory, diagnostic    netCDF dimensions that are no variables (n, and N_DIAGNOSTICS)
+    y0                        (n, 2m)        the initial states
+    y_final                   (n, 2m)        the state after the last completed step
+    t_final, max_multiplier   (n,)           end time; max |alpha| (ELIM) or |lambda| (LIM)
+    iterations, status, steps_done, split_steps   (n,) int64   (status 0: complete)
+    diagnostics               (n, 6)         of a failed step (kernels/stepper.py try_step)
+    invariant_errors/<name>   (n,)           max |I(t) - I(0)|: H, then every invariant
+    stored                    (n,) uint8     the done record: 1 where the trajectory's row is written
+    method/...                the method's tables (layout.write_method)
+
+Attributes of /ensemble: problem, method, h, n_steps, conserve, config (the resolved
+YAML) and status: 'running' until every trajectory is stored, then 'complete', with
+threads, failed (how many trajectories failed) and reasons (each trajectory's status as
+a word) written then.
+
+Every dataset is created with its final shape and its storage allocated at once
+(contiguous; floats filled with NaN until written), so writing a block changes no
+metadata: the writer writes the block's rows, flushes, sets their ``stored`` entries,
+flushes. The file is written in HDF5's SWMR mode, so a killed writer leaves it
+consistent, with every block marked stored readable, and ``elimfast sweep ... --resume``
+runs only the trajectories not marked. Files written before the done record (the
+ensemble whole, at the end) lack ``stored``, ``split_steps`` and ``diagnostics``; they
+are read as complete.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .layout import _set_attributes, _small_dataset, _string_dataset, attach, dimension, write_method
+from .safety import OutputError, _damaged, _open, _plain, _writer_lock_held
+
+GROUP = "ensemble"
+STORED = "stored"
+STATUS_RUNNING, STATUS_COMPLETE = "running", "complete"
+READ_BLOCK_ROWS = 1 << 16     # rows per read where a reader scans a whole column (bounded memory)
+
+
+def _allocated(group, name: str, shape: tuple, dtype) -> h5py.Dataset:
+    """A contiguous dataset of its final shape with its storage allocated now (NaN for floats):
+    writing into it later writes data only, never metadata."""
+    dtype = np.dtype(dtype)
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    if dtype.kind == "f":
+        dcpl.set_fill_value(np.array(np.nan, dtype=dtype))
+    space = h5py.h5s.create_simple(tuple(int(length) for length in shape))
+    return h5py.Dataset(h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(dtype), space, dcpl=dcpl))
+
+
+def bytes_on_disk(run, states: np.ndarray) -> int:
+    """The bytes of /ensemble's per-trajectory datasets, all allocated when the file is
+    created, and of the reasons attribute written at the end (about 24 bytes a trajectory)."""
+    n, width = states.shape
+    row = sum(dtype.itemsize * int(np.prod(shape)) for shape, dtype in run.row_layout().values())
+    return n * (8 * (width + len(run.invariant_names)) + row + 1 + 24)
+
+
+def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
+    """Create /ensemble in ``parent`` for ``run`` (an elimfast.ensemble.EnsembleRun: problem,
+    method, h, n_steps, conserve, invariant_names, and row_layout, the per-trajectory arrays
+    of its results) from ``states`` (n, 2m): every dataset at its final shape, y0 written,
+    nothing stored yet."""
+    group = parent.create_group(GROUP)
+    _set_attributes(group, {
+        "problem": run.problem.name, "method": run.method.name, "h": run.h, "n_steps": run.n_steps,
+        "conserve": list(run.conserve) or [""], "config": config_text, "status": STATUS_RUNNING})
+    n = states.shape[0]
+    component = _string_dataset(group, "component", run.problem.coordinate_names)
+    component.make_scale("component")
+    trajectory = dimension(group, "trajectory", n)
+    attach(_small_dataset(group, "y0", states), trajectory, component)
+    for name, (shape, dtype) in run.row_layout().items():
+        dataset = _allocated(group, name, (n,) + shape, dtype)
+        if not shape:
+            attach(dataset, trajectory)
+        elif name == "y_final":
+            attach(dataset, trajectory, component)
+        else:   # a row of its own kind of entries (diagnostics: one per diagnostic)
+            attach(dataset, trajectory, dimension(group, name.removesuffix("s"), shape[0]))
+    errors = group.create_group("invariant_errors")
+    _set_attributes(errors, {"order": list(run.invariant_names)})   # HDF5 lists members by name
+    for name in run.invariant_names:
+        attach(_allocated(errors, name, (n,), "f8"), trajectory)
+    stored = _allocated(group, STORED, (n,), "u1")
+    attach(stored, trajectory)
+    _set_attributes(stored, {"long_name": "1 where the trajectory's results are written (the rest are not yet)"})
+    write_method(group.create_group("method"), run.method)
+    return group
+
+
+def write_rows(group, start: int, stop: int, rows: dict) -> None:
+    """Write the rows [start, stop) of every per-trajectory dataset (not yet marked stored):
+    ``rows`` maps each dataset's name to its rows, invariant_errors to {name: rows}."""
+    for name, values in rows.items():
+        if name == "invariant_errors":
+            for invariant, errors in values.items():
+                group["invariant_errors"][invariant][start:stop] = errors
+        else:
+            group[name][start:stop] = values
+
+
+def mark_stored(group, start: int, stop: int) -> None:
+    group[STORED][start:stop] = 1
+
+
+def unstored_ranges(group) -> list[tuple[int, int]]:
+    """[start, stop) of each run of consecutive trajectories not marked stored, in order."""
+    stored = group[STORED]
+    ranges, open_start, previous = [], None, False   # previous: whether the row before is unstored
+    for first in range(0, stored.shape[0], READ_BLOCK_ROWS):
+        unstored = stored[first:first + READ_BLOCK_ROWS] == 0
+        padded = np.concatenate(([previous], unstored))
+        for edge in np.flatnonzero(padded[1:] != padded[:-1]) + first:   # each edge opens or closes a range
+            if open_start is None:
+                open_start = int(edge)
+            else:
+                ranges.append((open_start, int(edge)))
+                open_start = None
+        previous = bool(unstored[-1])
+    if open_start is not None:
+        ranges.append((open_start, stored.shape[0]))
+    return ranges
+
+
+def stored_count(group) -> int:
+    stored = group[STORED]
+    return sum(int(np.count_nonzero(stored[first:first + READ_BLOCK_ROWS]))
+               for first in range(0, stored.shape[0], READ_BLOCK_ROWS))
+
+
+def finish(group, *, threads: int, status_names: dict[int, str], ok_status: int) -> None:
+    """Mark /ensemble complete (every trajectory stored): threads, failed, reasons, status."""
+    status = group["status"][()]
+    values = {"threads": int(threads), "failed": int(np.count_nonzero(status != ok_status)),
+              "reasons": [status_names.get(int(code), str(int(code))) for code in status] or [""],
+              "status": STATUS_COMPLETE}
+    for name in values:
+        if name in group.attrs:
+            del group.attrs[name]
+    _set_attributes(group, values)
+
+
+def check_resumable(path: Path, group, run, states: np.ndarray, config_text: str) -> None:
+    """OutputError unless /ensemble holds the ensemble about to be run: the same resolved
+    config, the same initial states (compared bit for bit, in blocks), a record of stored rows."""
+    if STORED not in group:
+        raise OutputError(f"{path}: its ensemble was written by an elimfast without the record of stored "
+                          "trajectories, so --resume cannot tell what is done; pass --overwrite to run it again")
+    if str(_plain(group.attrs.get("config", ""))) != config_text:
+        raise OutputError(f"{path}: its ensemble was run with another config (the base config changed since); "
+                          "pass --overwrite to start again, or choose another output file")
+    y0 = group["y0"]
+    if y0.shape != states.shape:
+        raise OutputError(f"{path}: holds an ensemble of {y0.shape[0]:,} trajectories, this sweep has "
+                          f"{states.shape[0]:,}; pass --overwrite to start again, or choose another output file")
+    for first in range(0, states.shape[0], READ_BLOCK_ROWS):
+        if not np.array_equal(y0[first:first + READ_BLOCK_ROWS], states[first:first + READ_BLOCK_ROWS]):
+            raise OutputError(f"{path}: its ensemble's initial states differ from those drawn now (another numpy "
+                              "or seed?); pass --overwrite to start again, or choose another output file")
+
+
+# --- the reader -----------------------------------------------------------------------------------
+def is_ensemble_file(path) -> bool:
+    """Whether ``path`` is an HDF5 file holding an ensemble sweep's /ensemble (False for anything else)."""
+    try:
+        with _open(Path(path)) as f:
+            return GROUP in f and str(_plain(f.attrs.get("format", ""))) == "elimfast-sweep"
+    except Exception:   # noqa: BLE001 -- not ours, damaged, busy: the caller's own reader says what
+        return False
+
+
+class EnsembleFile:
+    """An ensemble sweep file opened for reading (a killed writer's file in SWMR mode).
+
+    ``attrs`` (of /ensemble, plain values), ``root_attrs``, ``n_trajectories``,
+    ``stored`` (how many are written), ``status``: 'complete', 'running' (its writer
+    holds the file) or 'incomplete' (stopped or killed before every block was written).
+    ``column(name, start, stop)`` reads a dataset's rows (name: a dataset of /ensemble or
+    ``invariant_errors/<name>``); ``stored_mask`` the done record as booleans.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._file = _open(self.path)
+        try:
+            if GROUP not in self._file:
+                raise OutputError(f"{self.path}: holds no ensemble (/{GROUP}); give the file of an ensemble sweep")
+            self._group = self._file[GROUP]
+            self.root_attrs = {key: _plain(value) for key, value in self._file.attrs.items()}
+            self.attrs = {key: _plain(value) for key, value in self._group.attrs.items()}
+            self.n_trajectories = int(self._group["y0"].shape[0])
+            errors = self._group["invariant_errors"]
+            order = _plain(errors.attrs.get("order", ["H"] + sorted(name for name in errors if name != "H")))
+            self.invariant_names = [str(name) for name in order]
+            legacy = STORED not in self._group   # written whole at the end (before the done record)
+            self.stored = self.n_trajectories if legacy else stored_count(self._group)
+            status = str(self.attrs.get("status", STATUS_COMPLETE if legacy else STATUS_RUNNING))
+            if status != STATUS_COMPLETE:
+                status = STATUS_RUNNING if _writer_lock_held(self.path) else "incomplete"
+            self.status = status
+        except OutputError:
+            self.close()
+            raise
+        except (KeyError, OSError, RuntimeError, ValueError) as err:
+            self.close()
+            raise _damaged(self.path, f"/{GROUP}", err) from None
+
+    @property
+    def swmr(self) -> bool:
+        """Opened in SWMR mode: its writer is running or did not close it."""
+        return bool(self._file.swmr_mode)
+
+    def has(self, name: str) -> bool:
+        return name in self._group
+
+    def column(self, name: str, start: int = 0, stop: int | None = None) -> np.ndarray:
+        try:
+            return np.asarray(self._group[name][start:stop])
+        except (KeyError, OSError, RuntimeError, ValueError) as err:
+            raise _damaged(self.path, f"/{GROUP}/{name}", err) from None
+
+    def stored_mask(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        if STORED not in self._group:
+            stop = self.n_trajectories if stop is None else stop
+            return np.ones(stop - start, dtype=bool)
+        return self.column(STORED, start, stop) != 0
+
+    def blocks(self):
+        """[start, stop) pairs covering every trajectory, READ_BLOCK_ROWS at a time."""
+        return [(first, min(first + READ_BLOCK_ROWS, self.n_trajectories))
+                for first in range(0, self.n_trajectories, READ_BLOCK_ROWS)]
+
+    def close(self) -> None:
+        if self._file.id.valid:
+            self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+__all__ = ["EnsembleFile", "bytes_on_disk", "check_resumable", "create", "finish", "is_ensemble_file",
+           "mark_stored", "stored_count", "unstored_ranges", "write_rows"]

@@ -1,0 +1,206 @@
+"""Ensemble sweeps streamed to their file (issue 13, item 3): block by block as blocks end, with
+a done record, bit for bit the one-call result; a stopped or killed sweep keeps its stored
+blocks and `--resume` completes the file as an uninterrupted run writes it. (The same on a
+Dask cluster: tests/test_dask.py.)"""
+import signal
+import subprocess
+import sys
+import textwrap
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+import elimfast
+from elimfast import ensemble as ensembles
+from elimfast import sweep as sweeps
+from elimfast.io.ensemblefile import EnsembleFile
+from elimfast.io.safety import OutputError
+from elimfast.io.sweepfile import SweepWriter
+from elimfast_cli.main import cli
+from runfiles import assert_same_files, stopped_after_blocks
+
+N_TRAJECTORIES = 40
+BASE = {"problem": {"builtin": "henon_heiles"}, "method": {"name": "hbvm", "k": 6, "s": 3},
+        "integration": {"h": 0.1, "t_end": 10}}
+ARRAYS = ("y0",) + ensembles.ROW_ARRAYS
+
+
+def ensemble_sweep(tmp_path, base=BASE, name="ensemble.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump({"base": base, "ensemble": {"n": N_TRAJECTORIES, "seed": 7, "spread": 0.01}}))
+    return path
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Local blocks of a few trajectories (the first of 4 on 2 threads, then ~1 ms of kernel each)."""
+    monkeypatch.setattr(ensembles, "TARGET_BLOCK_SECONDS", 1e-3)
+    monkeypatch.setattr(ensembles, "FIRST_BLOCK_ROWS_PER_THREAD", 2)
+
+
+def assert_same_ensembles(a, b):
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)   # bit for bit
+    assert list(a.invariant_errors) == list(b.invariant_errors)
+    for name, values in a.invariant_errors.items():
+        np.testing.assert_array_equal(values, b.invariant_errors[name], err_msg=name)
+    assert (a.h, a.n_steps, a.conserve, a.max_iter, a.solver) == (b.h, b.n_steps, b.conserve, b.max_iter, b.solver)
+
+
+def test_a_streamed_local_ensemble_equals_the_one_call_result_bit_for_bit(tmp_path, small_blocks):
+    path = ensemble_sweep(tmp_path)
+    _, states, in_memory = sweeps.run_ensemble_sweep(sweeps.load_sweep(path), threads=2)   # one kernel call
+    messages = []
+    outcome = sweeps.run_to_file(path, tmp_path / "out.h5", workers=2, on_message=messages.append)
+    blocks = [m for m in messages if m.startswith("[")]
+    assert len(blocks) >= 3 and blocks[-1].startswith(f"[{N_TRAJECTORIES}/{N_TRAJECTORIES}] trajectories")
+    assert_same_ensembles(in_memory, outcome.ensemble)              # read from the file as used
+    assert_same_ensembles(in_memory, elimfast.load(tmp_path / "out.h5"))
+    assert outcome.table() == sweeps.SweepOutcome(spec=outcome.spec, path=None, ensemble=in_memory).table()
+    with h5py.File(tmp_path / "out.h5", "r") as f:
+        group = f["ensemble"]
+        assert group.attrs["status"] == "complete" and group.attrs["failed"] == 0
+        assert group["stored"][()].all() and group["y_final"].shape == (N_TRAJECTORIES, 4)
+        assert list(group.attrs["reasons"]) == ["ok"] * N_TRAJECTORIES
+        np.testing.assert_array_equal(group["y0"][()], states)
+
+
+def test_failed_trajectories_are_stored_and_reported_as_in_memory(tmp_path, small_blocks):
+    # Kepler near e = 0.6 with two fixed-point iterations a step and no halving: most fail.
+    path = ensemble_sweep(tmp_path, base={"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}},
+                                          "method": {"name": "gauss", "s": 3},
+                                          "solver": {"method": "fixed_point", "max_iter": 2, "max_halvings": 0},
+                                          "integration": {"h": 0.1, "t_end": 5}})
+    in_memory = sweeps.run_to_file(path, workers=2)
+    streamed = sweeps.run_to_file(path, tmp_path / "out.h5", workers=2)
+    assert in_memory.ensemble.n_failed > 0
+    assert streamed.failures() == in_memory.failures() and streamed.table() == in_memory.table()
+    with h5py.File(tmp_path / "out.h5", "r") as f:
+        assert f["ensemble"].attrs["failed"] == in_memory.ensemble.n_failed
+        assert [str(reason) for reason in f["ensemble"].attrs["reasons"]] == in_memory.ensemble.reasons
+    inspected = CliRunner().invoke(cli, ["inspect", str(tmp_path / "out.h5")])
+    assert f"failed       {in_memory.ensemble.n_failed} of the {N_TRAJECTORIES} stored (" in inspected.output
+
+
+def test_a_streamed_ensemble_file_opens_in_xarray_on_named_dimensions(tmp_path):
+    xr = pytest.importorskip("xarray")
+    out = tmp_path / "out.h5"
+    sweeps.run_to_file(ensemble_sweep(tmp_path), out, workers=1)
+    with xr.open_datatree(out, engine="h5netcdf") as tree:
+        ensemble = tree["ensemble"].ds
+        assert dict(ensemble.sizes) == {"trajectory": N_TRAJECTORIES, "component": 4, "diagnostic": 6}
+        assert ensemble["y_final"].dims == ("trajectory", "component")
+        assert int(ensemble["stored"].sum()) == N_TRAJECTORIES and ensemble.attrs["status"] == "complete"
+        assert list(ensemble["component"].values) == ["q1", "q2", "p1", "p2"]
+
+
+def test_a_local_ensemble_holds_one_block_at_a_time(tmp_path, small_blocks, monkeypatch):
+    """The next block is computed only once the last is stored: never two blocks' rows at once."""
+    events = []
+    rows, store = ensembles.EnsembleRun.rows, SweepWriter.add_ensemble_rows
+    monkeypatch.setattr(ensembles.EnsembleRun, "rows", lambda self, states: events.append("run") or rows(self, states))
+    monkeypatch.setattr(SweepWriter, "add_ensemble_rows",
+                        lambda writer, *block: events.append("store") or store(writer, *block))
+    sweeps.run_to_file(ensemble_sweep(tmp_path), tmp_path / "out.h5", workers=2)
+    assert events.count("run") >= 3
+    assert events == ["run", "store"] * events.count("run")
+
+
+def test_resume_completes_a_stopped_ensemble_file_bit_for_bit(tmp_path, small_blocks, monkeypatch):
+    path = ensemble_sweep(tmp_path)
+    sweeps.run_to_file(path, tmp_path / "full.h5", workers=2)
+    half = stopped_after_blocks(path, tmp_path / "half.h5", 2, monkeypatch, workers=2)
+    with EnsembleFile(half) as stored:
+        assert stored.status == "incomplete" and 0 < stored.stored < N_TRAJECTORIES
+        kept = stored.stored
+        assert stored.stored_mask()[:kept].all() and not stored.stored_mask()[kept:].any()
+    ran, rows = [], ensembles.EnsembleRun.rows
+    monkeypatch.setattr(ensembles.EnsembleRun, "rows", lambda self, states: ran.append(len(states)) or rows(self, states))
+    messages = []
+    resumed = sweeps.run_to_file(path, half, resume=True, workers=1, on_message=messages.append)
+    assert messages[0] == (f"resume: {kept} of {N_TRAJECTORIES} trajectories are stored in {half}; running the "
+                           f"other {N_TRAJECTORIES - kept}")
+    assert sum(ran) == N_TRAJECTORIES - kept                      # the stored blocks are not run again
+    assert_same_files(tmp_path / "full.h5", half)
+    assert resumed.failures() == []
+    # A complete file resumes to itself, running nothing.
+    ran.clear()
+    sweeps.run_to_file(path, half, resume=True, workers=1)
+    assert ran == []
+    assert_same_files(tmp_path / "full.h5", half)
+
+
+def test_a_killed_ensemble_sweep_leaves_a_readable_file_that_resume_completes(tmp_path):
+    path = ensemble_sweep(tmp_path)
+    full, out = tmp_path / "full.h5", tmp_path / "out.h5"
+    sweeps.run_to_file(path, full, workers=1)
+    # `elimfast sweep` whose second block never ends (as a long kernel call): killed there, with
+    # the first block (8 trajectories on 1 thread) stored.
+    code = textwrap.dedent(f"""
+        import sys, time
+        import elimfast.ensemble as ensembles
+        from elimfast_cli.main import cli
+        rows, calls = ensembles.EnsembleRun.rows, []
+        def second_never_ends(self, states):
+            calls.append(len(states))
+            if len(calls) == 2:
+                time.sleep(600)
+            return rows(self, states)
+        ensembles.EnsembleRun.rows = second_never_ends
+        cli(["sweep", {str(path)!r}, "-o", {str(out)!r}, "--workers", "1"])
+    """)
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True)
+    first = ensembles.FIRST_BLOCK_ROWS_PER_THREAD
+    lines = []
+    for line in process.stderr:
+        lines.append(line)
+        if line.startswith(f"[{first}/{N_TRAJECTORIES}] trajectories 0-{first - 1}: 0 failed"):
+            process.send_signal(signal.SIGKILL)
+            break
+    process.wait(timeout=60)
+    assert process.returncode == -signal.SIGKILL, lines
+
+    with EnsembleFile(out) as stored, h5py.File(full, "r") as reference:
+        assert stored.swmr and stored.status == "incomplete" and stored.stored == first
+        np.testing.assert_array_equal(stored.column("y_final", 0, first), reference["ensemble/y_final"][:first])
+        assert np.isnan(stored.column("y_final", first)).all()      # not written yet
+    inspected = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert inspected.exit_code == 0, inspected.output
+    assert f"trajectories {first} of {N_TRAJECTORIES} stored" in inspected.output
+    assert f"incomplete (the sweep stopped or was killed before every block was stored; complete it with " \
+           f"elimfast sweep {path} -o {out} --resume)" in inspected.output
+    with pytest.raises(OutputError, match=f"{first} of {N_TRAJECTORIES} trajectories stored; complete it with "
+                                          "elimfast sweep .* --resume"):
+        elimfast.load(out)
+
+    resumed = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--resume", "--workers", "2"])
+    assert resumed.exit_code == 0, resumed.output
+    assert f"resume: {first} of {N_TRAJECTORIES} trajectories are stored in {out}" in resumed.stderr
+    assert_same_files(full, out)
+    assert "status       complete" in CliRunner().invoke(cli, ["inspect", str(out)]).output
+
+
+def test_resume_refuses_an_ensemble_file_of_another_config_or_without_the_done_record(tmp_path, small_blocks,
+                                                                                       monkeypatch):
+    # The sweep file stays the same; the base config it names changes between the runs.
+    path, base = tmp_path / "ensemble.yaml", tmp_path / "base.yaml"
+    path.write_text(yaml.safe_dump({"base": "base.yaml", "ensemble": {"n": N_TRAJECTORIES, "seed": 7}}))
+    base.write_text(yaml.safe_dump(BASE))
+    out = stopped_after_blocks(path, tmp_path / "half.h5", 1, monkeypatch, workers=1)
+    base.write_text(yaml.safe_dump({**BASE, "integration": {"h": 0.05, "t_end": 10}}))
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--resume", "-q"])
+    assert result.exit_code == 2
+    assert result.output == (f"error: {out}: its ensemble was run with another config (the base config changed "
+                             "since); pass --overwrite to start again, or choose another output file\n")
+
+    base.write_text(yaml.safe_dump(BASE))
+    with h5py.File(out, "a") as f:
+        del f["ensemble/stored"]                      # as the files written whole, before the done record
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--resume", "-q"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert result.output == (f"error: {out}: its ensemble was written by an elimfast without the record of stored "
+                             "trajectories, so --resume cannot tell what is done; pass --overwrite to run it again\n")
