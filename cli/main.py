@@ -643,6 +643,7 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
         from elimfast import sweep as sweeps
         from elimfast import config, integrate  # noqa: F401
         from elimfast.streaming import StopOnSignals
+    announce_compilation()   # a sweep after an upgrade compiles its kernels first (40 s for an ensemble)
 
     if output is not None:
         output = Path(output).expanduser()
