@@ -342,6 +342,22 @@ def _random_expressions():
         max_leaves=8)
 
 
+def test_a_derivative_sympy_cannot_write_is_a_clear_error(tmp_path, monkeypatch):
+    """abs(sqrt(q)) is complex for q < 0 to sympy: its second derivative keeps an unevaluated
+    d/dq re(sqrt(q)), which has no code (found by the random test below: a printer traceback)."""
+    monkeypatch.setenv("ELIMFAST_CACHE_DIR", str(tmp_path / "cache"))
+    with pytest.raises(ProblemDefinitionError, match=r"second derivative of the hamiltonian .* with respect to q "
+                                                     r"twice has no closed form") as caught:
+        problem_from_expressions({"q": ["q"], "p": ["p"]}, "p**2/2 + abs(sqrt(q))", initial={"q": 0.3, "p": 0.6})
+    assert caught.value.key == "hamiltonian"
+    # an invariant needs first derivatives only, and abs(sqrt(q))'s first derivative has code
+    problem_from_expressions({"q": ["q"], "p": ["p"]}, "p**2/2", invariants={"L": "abs(sqrt(q)) * p"},
+                             initial={"q": 0.3, "p": 0.6})
+    # the real-valued spelling of the same thing compiles
+    problem = problem_from_expressions({"q": ["q"], "p": ["p"]}, "p**2/2 + sqrt(abs(q))", initial={"q": 0.3, "p": 0.6})
+    assert problem.gradient(np.array([0.25, 0.6]))[0] == pytest.approx(0.5 / 0.5)
+
+
 def test_random_problems_compile_and_agree_with_the_float_evaluator(tmp_path, monkeypatch):
     """Generated code for random expressions: either a clear ProblemDefinitionError, or code
     that compiles and whose H equals the double-precision evaluation of the text."""

@@ -313,6 +313,9 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
                sum(sum(sizes.values()) for sizes in _derivative_sizes(L, variables)))
     grad_H = [sympy.diff(H, v) for v in variables]
     grad_L = [[sympy.diff(f, v) for v in variables] for f in L]
+    _require_closed_form(grad_H, variables, "the derivative of the hamiltonian", "hamiltonian", h_text)
+    for (iname, text, _), row in zip(invariants, grad_L):
+        _require_closed_form(row, variables, f"the derivative of invariant {iname}", f"invariants.{iname}", text)
     upper = [(i, j) for i in range(n) for j in range(i, n)]
     gradient_sizes = _derivative_sizes(grad_H, variables)
     budget.add("the second derivatives of the hamiltonian (for hess_H)", "hamiltonian",
@@ -320,6 +323,9 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
     # d^2/dx^2 abs(x) = 2 DiracDelta(x): 0 almost everywhere (module docstring)
     hess_H = [sympy.diff(grad_H[i], variables[j]).replace(lambda e: isinstance(e, sympy.DiracDelta),
                                                           lambda e: sympy.S.Zero) for i, j in upper]
+    _require_closed_form(hess_H, [f"{variables[i]} and {variables[j]}" if i != j else f"{variables[i]} twice"
+                                  for i, j in upper],
+                         "the second derivative of the hamiltonian (for the Newton solver)", "hamiltonian", h_text)
 
     local = {symbols[n]: f"y[{i}]" for i, n in enumerate(coordinate_names)}
     local.update({symbols[n]: f"params[{i}]" for i, n in enumerate(param_names)})
@@ -375,6 +381,20 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
            "def grad_invariants(y, params, out):", *gi_body,
            ""]
     return "\n".join(out)
+
+
+def _require_closed_form(derivatives, variables, what, key, text) -> None:
+    """A derivative sympy leaves unevaluated (d/dq re(sqrt(q)) in the derivative of abs(sqrt(q)),
+    which it takes to be complex for q < 0) has no code: say so, naming the expression."""
+    import sympy
+
+    for derivative, variable in zip(derivatives, variables):
+        if derivative.has(sympy.Derivative):
+            raise ProblemDefinitionError(
+                f"{what} ({text!r}) with respect to {variable} has no closed form for sympy "
+                f"(it is complex where an argument of sqrt, log or a power is negative, e.g. abs(sqrt(q))); "
+                f"rewrite it for the domain you integrate on, e.g. sqrt(abs(q)) or q**2 instead of abs(q)**2",
+                key=key)
 
 
 class _DerivativeBudget:
@@ -465,6 +485,9 @@ def _check_printable(expr, key) -> None:
     import sympy
 
     for node in sympy.preorder_traversal(expr):
+        if isinstance(node, (sympy.Derivative, sympy.Integral, sympy.Subs)):   # unevaluated: no code
+            raise ExpressionError(f"cannot generate code for the unevaluated {type(node).__name__} in "
+                                  f"{sympy.sstr(expr)[:80]}", key=key)
         if isinstance(node, sympy.Function) and type(node).__name__ not in _PRINTABLE_FUNCTIONS:
             raise ExpressionError(f"cannot generate code for {type(node).__name__}(...) in {sympy.sstr(expr)[:80]}",
                                   key=key)
