@@ -147,6 +147,20 @@ def test_output_times_in_config_give_samples_at_those_times(tmp_path):
     assert max(loaded.invariant_errors().values()) <= 1e-13
 
 
+def test_inspect_says_a_terminal_event_ended_the_run(tmp_path):
+    config = {**CONFIG, "integration": {"rtol": 1e-12, "t_end": 100},
+              "events": {"apocentre": {"expression": "q1*p1 + q2*p2", "direction": -1, "terminal": True}}}
+    out = tmp_path / "terminal.h5"
+    result = CliRunner().invoke(cli, ["run", str(write_config(tmp_path, config)), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    loaded = elimfast.load(out)
+    assert loaded.events["apocentre"].t.size == 1 and abs(loaded.events["apocentre"].t[0] - math.pi) < 1e-10
+    report = CliRunner().invoke(cli, ["inspect", str(out)])
+    status = next(line for line in report.output.splitlines() if line.startswith("status"))
+    assert status.split(None, 1)[1] == f"complete (ended by a terminal event at t = {loaded.t_final:.10g})"
+    assert abs(loaded.t_final - math.pi) < 1e-10
+
+
 def test_fixed_step_run_with_events_keeps_its_steps(tmp_path):
     config = {"problem": {"builtin": "kepler"}, "method": {"name": "hbvm", "k": 6, "s": 3},
               "integration": {"h": 0.1, "n_steps": 200},
