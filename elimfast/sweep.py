@@ -524,10 +524,9 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
 
 def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
     """The table's numbers of one run, from its Result (fresh, or read back from a sweep file)."""
-    from .adaptive import evaluations_per_iteration
     outcome.iterations_total = int(result.iterations.sum())
     outcome.grad_H_evaluations = int(result.stats.get("grad_H_evaluations", outcome.iterations_total * (
-        evaluations_per_iteration(result.method, len(result.conserve), rhs == "stable")[0])))
+        result.method.evaluations_per_iteration(len(result.conserve), rhs == "stable")[0])))
     outcome.n_steps = result.n_steps
     multipliers = result.alpha if result.alpha is not None else result.lam
     if multipliers is not None and multipliers.size:
