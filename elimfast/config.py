@@ -59,8 +59,7 @@ import yaml
 from .cache import CacheError, content_hash
 from . import methods
 from .errors import ElimfastError, ParameterError
-from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, SolverSettings, resolve_conserve, resolve_steps,
-                        resolve_store_every, suggest)
+from .integrate import SolverSettings, resolve_conserve, resolve_steps, resolve_store_every, suggest
 from .integrate import compact_number as _count
 from .integrate import compact_number
 from .methods import Method
