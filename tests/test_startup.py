@@ -192,6 +192,29 @@ def test_validated_sections_are_pydantics_as_plain_data(name):
     assert plain.solver.model_dump() == model.solver.model_dump() and plain.output.every == model.output.every
 
 
+LAZY_LINKING_PROBE = """
+import json
+from elimfast.kernels import _cache, stepper
+compiled = stepper.time_loop.overloads[stepper.time_loop.signatures[0]]
+library, fndesc = compiled.library, compiled.fndesc
+own = (fndesc.llvm_func_name, fndesc.llvm_cpython_wrapper_name, fndesc.llvm_cfunc_wrapper_name)
+out = {"lazy": isinstance(library, _cache._LazyLinkingLibrary), "unparsed": library._linking_bitcode is not None}
+module = library._get_module_for_linking()   # what linking it into new code asks for: parses
+defined = sorted(f.name for f in module.functions if not f.is_declaration)
+out["defines_own"] = set(own) <= set(defined)
+out["pointers"] = all(library.get_pointer_to_function(name) != 0 for name in own + tuple(defined[:5]))
+print(json.dumps(out))
+"""
+
+
+def test_the_time_loop_loads_without_parsing_its_linking_bitcode_which_is_parsed_when_needed():
+    """A warm load keeps time_loop's linking bitcode unparsed (_cache._LazyLinkingLibrary);
+    linking the library, or asking for any of its symbols, still works: it is parsed then."""
+    done = subprocess.run([sys.executable, "-c", LAZY_LINKING_PROBE], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == {"lazy": True, "unparsed": True, "defines_own": True, "pointers": True}
+
+
 def test_cache_warm_is_listed_and_runs_on_a_warm_cache():
     result = CliRunner().invoke(cli, ["cache", "warm"])
     assert result.exit_code == 0, result.output
