@@ -649,9 +649,9 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         # (Table 1 in grid order ended with its two longest runs).
         jobs = sorted(jobs, key=lambda job: -_expected_work(job[2]))
         # A warm pool: the shortest run here, before forking. Its first run costs a process
-        # about 0.27 s of CPU (Table 1: the problem's functions, the quadrature of the method
-        # tables, the adaptive module, the kernel's first call), which every worker then
-        # inherits instead of paying again.
+        # about 0.04 s of CPU (Table 1: the problem's functions, the quadrature of the method
+        # tables, the kernel's first call), which every worker then inherits instead of
+        # paying again.
         first = jobs.pop()
         outcome = _execute(*first, spec.source, store_arrays)
         results[outcome.label] = outcome
