@@ -12,6 +12,10 @@ never load old code; it compiles into a new folder. The package's own functions 
 ``elimfast/__pycache__/kernels/<key>/`` (elimfast's cache if the package is not
 writable), the generated problem modules to ``<cache>/kernels/<key>/``; with
 NUMBA_CACHE_DIR set, both go to ``$NUMBA_CACHE_DIR/elimfast-kernels/<key>/``.
+
+Loading them from there skips what only a compilation needs (start-up, issue 12): Numba's
+registries of typing and lowering rules (_load_overload) and, for the two run kernels, the
+parse of their linking bitcode (_LazyLinkingLibrary).
 """
 from __future__ import annotations
 
@@ -127,7 +131,8 @@ def _load_overload(self, sig, target_context):
     NRT (``rtsys.initialize``, the refresh's first step). Measured: 0.10-0.13 s of CPU of
     a warm `elimfast run`, a third of its cost above the bare `import numba, h5py`. A
     compilation in the same process still refreshes first (Numba's compiler does so on
-    every compile), and a cache miss here falls through to it unchanged.
+    every compile), and a cache miss here falls through to it unchanged. The run kernels
+    (LAZY_LINKING) load through _load_linking_lazily.
     """
     if not isinstance(getattr(self._impl, "locator", None), KeyedCacheLocator):
         return _NUMBA_LOAD_OVERLOAD(self, sig, target_context)
@@ -228,7 +233,7 @@ def _load_linking_lazily(cache, sig, target_context):
 
 def install() -> None:
     """Put the keyed locator first in Numba's list and load elimfast's functions from the
-    cache without the registries refresh (_load_overload); once per process."""
+    cache with _load_overload; once per process."""
     locators = caching.CacheImpl._locator_classes
     if KeyedCacheLocator not in locators:
         locators.insert(0, KeyedCacheLocator)
