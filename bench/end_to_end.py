@@ -74,6 +74,15 @@ COMMANDS = {
 }
 
 
+def compile_bytecode() -> None:
+    """Compile the package's bytecode, as make does after installing: with PYTHONDONTWRITEBYTECODE
+    set (as on this machine), a module edited since the install is otherwise compiled again in
+    every process, which measured 40 ms of a 0.55 s run after a few edits."""
+    import compileall
+    for folder in ("elimfast", "cli"):
+        compileall.compile_dir(ROOT / folder, quiet=1)
+
+
 def cold_round() -> dict:
     """One round of the two cold starts, each on fresh caches."""
     out = {}
@@ -128,6 +137,7 @@ def main() -> None:
     args = parser.parse_args()
 
     load_before = os.getloadavg()[0]
+    compile_bytecode()
     run_config(SHORT)   # make sure the caches are warm
     warm = {name: {"wall": [], "cpu": []} for name in COMMANDS}
     for _ in range(args.warm):

@@ -28,6 +28,14 @@ SWEEP = ROOT / "configs/paper/table1.yaml"
 TARGET = 0.6
 
 
+def compile_bytecode() -> None:
+    """As make does after installing (see bench/end_to_end.py: with PYTHONDONTWRITEBYTECODE set,
+    edited modules are otherwise compiled again in every process)."""
+    import compileall
+    for folder in ("elimfast", "cli"):
+        compileall.compile_dir(ROOT / folder, quiet=1)
+
+
 def command(workers: int, *extra) -> tuple[float, float]:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
@@ -62,6 +70,7 @@ def main():
     parser.add_argument("--out", type=Path, help="also write the results as markdown to this file")
     args = parser.parse_args()
     load_before = os.getloadavg()[0]
+    compile_bytecode()
     grid(1)
     command(1)  # warm the caches
     lines = ["# Table 1 sweep: 1 worker vs 2 workers", "",
@@ -70,9 +79,10 @@ def main():
              "each repeat runs 1 worker then 2 workers; medians (min-max).", "",
              "| measurement | 1 worker | 2 workers | ratio 2/1 (median of per-repeat ratios) | target |",
              "|---|---|---|---|---|"]
+    medians = {}
     for name, measure in (("whole command, wall", command), ("whole command with -o OUT.h5, wall", command_to_file),
                           ("grid in process (results kept), wall", grid)):
-        times = {1: [], 2: []}
+        times = medians[measure] = {1: [], 2: []}
         cpu = {1: [], 2: []}
         for _ in range(args.repeats):
             for workers in (1, 2):
@@ -86,6 +96,14 @@ def main():
         if measure is command:
             lines.append(f"| whole command, CPU (parent + workers) | {fmt(cpu[1])} | {fmt(cpu[2])} | "
                          f"{statistics.median([b / a for a, b in zip(cpu[1], cpu[2])]):.2f} | |")
+    # The serial part S (start-up, the warm run before the workers fork) = whole command - grid,
+    # both on 1 worker; 2 workers can at best halve the grid G: (S + G/2) / (S + G).
+    whole, grid_alone = (statistics.median(medians[m][1]) for m in (command, grid))
+    serial = whole - grid_alone
+    lines += ["", f"Serial part (the whole command on 1 worker minus its grid): {serial:.2f} s of {whole:.2f} s. "
+                  f"With the grid ({grid_alone:.2f} s) halved exactly, 2 workers would take "
+                  f"{serial + grid_alone / 2:.2f} s: a ratio of {(serial + grid_alone / 2) / whole:.2f} at best; "
+                  f"{TARGET} needs the serial part under {grid_alone * (TARGET - 0.5) / (1 - TARGET):.2f} s."]
     lines += ["", f"Load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after."]
     text = "\n".join(lines) + "\n"
     print(text)

@@ -641,7 +641,7 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     """
     with start_up():   # what every sweep loads (the config machinery, the kernels), with the GC paused
         from elimfast import sweep as sweeps
-        from elimfast import config, integrate  # noqa: F401
+        from elimfast import config_schema, integrate  # noqa: F401 (a sweep's runs are validated by pydantic)
         from elimfast.streaming import StopOnSignals
     announce_compilation()   # a sweep after an upgrade compiles its kernels first (40 s for an ensemble)
 

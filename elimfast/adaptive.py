@@ -237,18 +237,6 @@ def initial_step(problem: Problem, method: Method, y0: np.ndarray, rtol: float, 
     return float(min(100.0 * h0, h1))
 
 
-def evaluations_per_iteration(method: Method, n_imposed: int, stable_rhs: bool) -> tuple[int, int]:
-    """(grad H, grad L) evaluations of one iteration of the family's map (kernels/maps.py)."""
-    k, r = method.k, method.r
-    grad_H = k
-    if method.kernel_family == codes.FAMILY_LIM:
-        grad_H += r if r != k else 0
-    elif n_imposed > 0 and stable_rhs and r != k:
-        grad_H += r
-    grad_L = r if n_imposed > 0 else 0
-    return grad_H, grad_L
-
-
 class AdaptiveIntegration:
     """A run with the adaptive kernel: varying steps, or fixed steps with output times or
     events. Mirrors integrate.Integration: ``advance``, ``state``/``restore`` (the
@@ -466,7 +454,7 @@ class AdaptiveIntegration:
     def stats(self) -> dict:
         """What users compare methods by: steps, rejections and evaluations (docs/adaptive.md)."""
         c = self.counters
-        per_grad_H, per_grad_L = evaluations_per_iteration(self.method, len(self.conserve), self.solver.rhs == "stable")
+        per_grad_H, per_grad_L = self.method.evaluations_per_iteration(len(self.conserve), self.solver.rhs == "stable")
         iterations = int(c[kernel.CNT_ITERATIONS] + c[kernel.CNT_SIDE_ITERATIONS])
         return {
             "steps": int(c[kernel.CNT_STEPS]), "rejected_steps": int(c[kernel.CNT_REJECTED]),

@@ -7,6 +7,8 @@ Layout (everything elimfast writes lives in these two folders; nothing else is t
     <cache>/problems/f_<sha256>.py        events and time scales from expressions (symbolic.py)
     <cache>/problems/u_<sha256>.py        copies of ``python:`` problem files (user_file.py)
     <cache>/keys/<sha256>                 input key -> generated file name (skips sympy when warm)
+    <cache>/configs/<sha256>              a config file's validated sections (skips pydantic when
+                                          the same config runs again; config.load_run)
     <cache>/kernels/<key>/...             Numba's cache of the modules above, one folder per key
                                           of the kernels' sources (kernels/_cache.py; the
                                           kernels and built-in problems are cached in the
@@ -29,6 +31,7 @@ from .errors import ElimfastError
 ENV_VAR = "ELIMFAST_CACHE_DIR"
 PROBLEMS_SUBDIR = "problems"
 KEYS_SUBDIR = "keys"
+VALIDATED_SUBDIR = "configs"
 
 
 class CacheError(ElimfastError, OSError):
@@ -78,8 +81,9 @@ def content_hash(*parts: str) -> str:
     return digest.hexdigest()
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Write text to path so that readers see either nothing or the whole file."""
+def write_atomic(path: Path, text: str | bytes, *, sync: bool = True) -> None:
+    """Write text (or bytes) to path so that readers see either nothing or the whole file;
+    ``sync``: on disk before it is renamed into place (also after a crash of the machine)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -87,10 +91,11 @@ def write_atomic(path: Path, text: str) -> None:
     except OSError as err:
         raise _unwritable(path.parent, err) from None
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+        with (os.fdopen(fd, "wb") if isinstance(text, bytes) else os.fdopen(fd, "w", encoding="utf-8")) as handle:
             handle.write(text)
             handle.flush()
-            os.fsync(handle.fileno())
+            if sync:
+                os.fsync(handle.fileno())
         os.replace(tmp, path)
     except BaseException as err:
         try:
@@ -104,7 +109,7 @@ def write_atomic(path: Path, text: str) -> None:
 
 def _our_files():
     root = cache_dir()
-    for sub in (PROBLEMS_SUBDIR, KEYS_SUBDIR):
+    for sub in (PROBLEMS_SUBDIR, KEYS_SUBDIR, VALIDATED_SUBDIR):
         folder = root / sub
         if not folder.is_dir():
             continue
@@ -190,7 +195,7 @@ def clear_cache() -> int:
         except FileNotFoundError:
             pass
     root = cache_dir()
-    for sub in (PROBLEMS_SUBDIR, KEYS_SUBDIR):
+    for sub in (PROBLEMS_SUBDIR, KEYS_SUBDIR, VALIDATED_SUBDIR):
         folder = root / sub
         for dirpath, _dirnames, _filenames in sorted(os.walk(folder), reverse=True) if folder.is_dir() else ():
             try:

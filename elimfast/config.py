@@ -37,6 +37,8 @@ evaluated in double precision exactly as Python would (``pi/30 == math.pi/30``);
 values may also use the problem's parameters. Nothing in a config can run code: YAML is
 read with a safe loader (no tags, no aliases) and expressions are parsed as data.
 
+The keys and types are validated by pydantic (config_schema.py); ``load_run`` keeps each
+validation in elimfast's cache, so that a config run again skips pydantic (_Builder.validate).
 Every error is a ``ConfigError`` whose text is one line, ``FILE: key.path: what is
 wrong; what to do``. ``load_run(path, overrides)`` applies ``--set``-style overrides
 (``"method.s=4"``, values parsed as YAML) before validating.
@@ -44,24 +46,25 @@ wrong; what to do``. ``load_run(path, overrides)`` applies ``--set``-style overr
 from __future__ import annotations
 
 import copy
+import functools
 import inspect
+import json
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, StrictBool, ValidationError
 
-from .cache import CacheError
+from .cache import CacheError, content_hash
 from . import methods
 from .errors import ElimfastError, ParameterError
-from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, SolverSettings, resolve_conserve, resolve_steps,
-                        resolve_store_every, suggest)
+from .integrate import SolverSettings, resolve_conserve, resolve_steps, resolve_store_every, suggest
 from .integrate import compact_number as _count
 from .integrate import compact_number
 from .methods import Method
 from .problems.base import Problem
-from .problems.expressions import ExpressionError, ProblemDefinitionError, evaluate_number
+from .problems.expressions import ProblemDefinitionError, evaluate_number
 
 MAX_FILE_BYTES = 1 << 20     # a config (or sweep, or python: problem file) larger than 1 MiB is a mistake
 MAX_YAML_NODES = 100_000     # scalars + containers in one config
@@ -82,128 +85,102 @@ class ConfigError(ElimfastError):
         self.key = key
 
 
-# --- scalar types -------------------------------------------------------------------------
+# --- validated sections (config_schema.py holds their pydantic models) ---------------------
 
-def _to_number(value):
-    # A ValueError here is reported by pydantic as a value_error with this text.
-    if not isinstance(value, str):
-        return evaluate_number(value, what="the value")
+class Section:
+    """One validated section of a config, as plain data: its fields as attributes (a
+    sub-section a Section), ``model_dump()`` as pydantic's. What ``config_schema.RunConfig``
+    validates, converted (config_schema.sections) or read back from the cache of validations."""
+
+    __slots__ = ("_fields",)
+
+    def __init__(self, fields: dict):
+        self._fields = fields
+
+    def __getattr__(self, name):
+        try:
+            return self._fields[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __reduce__(self):   # pickled with its fields (the default would call __getattr__ before they exist)
+        return Section, (self._fields,)
+
+    def __repr__(self) -> str:
+        return f"Section({self._fields!r})"
+
+    def model_dump(self) -> dict:
+        return {name: _dump(value) for name, value in self._fields.items()}
+
+
+def _dump(value):
+    if isinstance(value, Section):
+        return value.model_dump()
+    if isinstance(value, dict):
+        return {key: _dump(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_dump(item) for item in value]
+    return value
+
+
+VALIDATED_FORMAT = "validated-config-v1"
+
+
+@functools.lru_cache(maxsize=1)
+def _schema_stamp() -> str:
+    """pydantic's version and the text of the schema's sources (SCHEMA_SOURCES), read without
+    importing pydantic: its version.py (0.5 ms; importlib.metadata takes 3 ms to find it)."""
+    from importlib.util import find_spec
+
+    found = find_spec("pydantic")
+    parts = [Path(found.origin).with_name("version.py").read_text(encoding="utf-8")] if found and found.origin else []
+    package = Path(__file__).resolve().parent
+    parts += [(package / name).read_text(encoding="utf-8") for name in SCHEMA_SOURCES]
+    return content_hash(*parts)
+
+
+# What a validation depends on besides the data and pydantic: the models, the defaults they
+# take (integrate.py) and the evaluation of numbers (problems/expressions.py).
+SCHEMA_SOURCES = ("config_schema.py", "integrate.py", "problems/expressions.py")
+
+
+def _validation_key(data) -> str | None:
+    """The cache key of validating ``data`` (None: not cached; data holding YAML types that
+    JSON has not, such as dates, is validated every time)."""
     try:
-        return evaluate_number(value, what="value")
-    except ExpressionError as err:
-        detail = err.detail
-        raise ValueError(f"{_short(value)} is not a number ({detail}); write a number or arithmetic on numbers, "
-                         "pi and e, e.g. pi/30") from None
+        text = json.dumps(data, allow_nan=True)
+    except (TypeError, ValueError):
+        return None
+    try:
+        return content_hash(VALIDATED_FORMAT, _schema_stamp(), text)
+    except OSError:
+        return None
 
 
-def _to_int(value):
-    if isinstance(value, bool):
-        raise ValueError(f"must be a whole number, got {value!r}")
-    if isinstance(value, int):
-        return value
-    number = _to_number(value)
-    if not number.is_integer():
-        raise ValueError(f"must be a whole number, got {value!r}")
-    return int(number)
+def _validated_path(key: str) -> Path:
+    from .cache import VALIDATED_SUBDIR, cache_dir
+    return cache_dir() / VALIDATED_SUBDIR / key
 
 
-def _to_list_of_names(value):
-    if value is None:
-        return []
-    return [value] if isinstance(value, str) else value
+def _read_validated(key: str) -> Section | None:
+    """The sections stored for key, or None (none stored, or unreadable: validated again)."""
+    try:
+        stored_key, config = pickle.loads(_validated_path(key).read_bytes())
+    except Exception:   # noqa: BLE001 -- missing, cut short or garbage: a miss
+        return None
+    return config if stored_key == key and isinstance(config, Section) else None
 
 
-Number = Annotated[float, BeforeValidator(_to_number)]
-Integer = Annotated[int, BeforeValidator(_to_int)]
+def _write_validated(key: str, config: Section) -> None:
+    """Store a validation; best effort (an unwritable cache only costs the next run the validation)."""
+    from .cache import write_atomic
+    try:
+        # Not synced: a file cut short by a crash fails to load (or to match its key), a miss.
+        write_atomic(_validated_path(key), pickle.dumps((key, config)), sync=False)
+    except (OSError, pickle.PicklingError):
+        pass
 
 
-# --- the schema (types and keys only; meaning is checked in _Builder) ---------------------
-
-class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=False)
-
-
-class CoordinatesSection(_Section):
-    q: list[str]
-    p: list[str]
-
-
-class ProblemSection(_Section):
-    builtin: str | None = None
-    python: str | None = None
-    coordinates: CoordinatesSection | None = None
-    hamiltonian: str | None = None
-    invariants: dict[str, str] | None = None
-    name: str | None = None
-    parameters: dict[str, Any] | None = None
-    initial: dict[str, Any] | None = None
-    check: StrictBool = True
-    time_scale: str | None = None
-
-
-class MethodSection(_Section):
-    name: str
-    r: Integer | None = None
-    k: Integer | None = None
-    s: Integer | None = None
-
-
-class IntegrationSection(_Section):
-    h: Number | None = None
-    t_end: Number | None = None
-    n_steps: Integer | None = None
-    t0: Number = 0.0
-    # Adaptive steps (docs/adaptive.md): rtol (error control) or step_control: time_scale.
-    rtol: Number | None = None
-    atol: Number | None = None
-    step_control: Literal["error", "time_scale"] | None = None
-    epsilon: Number | None = None
-    verify: StrictBool = False
-    h_max: Number | None = None
-
-
-class TimesSection(_Section):
-    start: Number
-    stop: Number
-    step: Number | None = None
-    n: Integer | None = None
-
-
-class EventSection(_Section):
-    expression: str
-    direction: Integer = 0
-    terminal: StrictBool = False
-
-
-class SolverSection(_Section):
-    method: str = DEFAULT_SOLVER
-    tol: Number | None = None
-    max_iter: Integer | None = None
-    max_halvings: Integer = DEFAULT_MAX_HALVINGS
-    predictor: StrictBool = True
-    rhs: Literal["stable", "literal"] = "stable"
-    warm_start: StrictBool = True
-
-
-class OutputSection(_Section):
-    path: str | None = None
-    every: Integer = 1
-    times: TimesSection | list[Number] | None = None
-
-
-class RunConfig(_Section):
-    problem: ProblemSection
-    conserve: Annotated[list[str], BeforeValidator(_to_list_of_names)] = []
-    method: MethodSection
-    integration: IntegrationSection
-    solver: SolverSection = SolverSection()
-    output: OutputSection = OutputSection()
-    events: dict[str, EventSection] | None = None
-
-
-_SECTIONS = {(): RunConfig, ("problem",): ProblemSection, ("problem", "coordinates"): CoordinatesSection,
-             ("method",): MethodSection, ("integration",): IntegrationSection, ("solver",): SolverSection,
-             ("output",): OutputSection, ("output", "times"): TimesSection}
 _EXAMPLES = {
     "problem": "add e.g. problem: {builtin: kepler}",
     "method": "add e.g. method: {name: ehbvm, k: 12, s: 3}",
@@ -264,14 +241,19 @@ def load_run(path, overrides=()) -> RunSpec:
     data = parse_yaml(text, source)
     if data is None:
         raise ConfigError(f"{source}: the file is empty; a config needs problem, method and integration sections")
-    return load_run_from_dict(data, source=source, overrides=overrides, base_dir=file_path.resolve().parent)
+    return load_run_from_dict(data, source=source, overrides=overrides, base_dir=file_path.resolve().parent,
+                              remember=True)
 
 
-def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=None) -> RunSpec:
+def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=None, remember: bool = False) -> RunSpec:
     """Validate config data (as yaml.safe_load returns it); ``base_dir``: where relative
-    ``python:`` paths start (default: the current directory)."""
+    ``python:`` paths start (default: the current directory). ``remember``: keep the
+    validation in elimfast's cache and take it from there when this data comes again
+    (load_run does, for config files; a sweep's runs do not: one file per run, while
+    their process validates them all with one import of pydantic)."""
     data, overridden = _apply_overrides(copy.deepcopy(data), overrides, source)
-    return _Builder(source, overridden, Path(base_dir) if base_dir is not None else Path.cwd()).build(data)
+    return _Builder(source, overridden, Path(base_dir) if base_dir is not None else Path.cwd(),
+                    remember=remember).build(data)
 
 
 def read_text_file(path, source: str, *, what: str = "file", example: str = "a .yaml file",
@@ -400,8 +382,8 @@ _suggest = suggest
 
 
 class _Builder:
-    def __init__(self, source: str, overridden: set, base_dir: Path):
-        self.source, self.overridden, self.base_dir = source, overridden, base_dir
+    def __init__(self, source: str, overridden: set, base_dir: Path, remember: bool = False):
+        self.source, self.overridden, self.base_dir, self.remember = source, overridden, base_dir, remember
 
     # errors
     def message(self, path, text: str) -> str:
@@ -427,11 +409,7 @@ class _Builder:
             raise ConfigError(f"{self.source}: the config must be a mapping of sections (problem, method, "
                               f"integration, ...), got {type(data).__name__}")
         self.check_keys(data)
-        try:
-            config = RunConfig.model_validate(data)
-        except ValidationError as err:
-            messages = tuple(self.message(e["loc"], self.describe(e)) for e in err.errors())
-            raise ConfigError(messages[0], messages=messages, key=_join(err.errors()[0]["loc"])) from None
+        config = self.validate(data)
 
         # Everything that needs no problem first: building the problem may compile code.
         integration = config.integration
@@ -505,7 +483,26 @@ class _Builder:
                        output_every=every, resolved=resolved, step_control=step_control, t_eval=t_eval,
                        events=resolved.get("events"))
 
-    def step_control(self, integration: IntegrationSection):
+    def validate(self, data) -> Section:
+        """The config's sections as config_schema.RunConfig validates them. With ``remember``,
+        from the cache of validations when this data was validated before (no pydantic
+        then), else validated and stored there."""
+        key = _validation_key(data) if self.remember else None
+        if key is not None:
+            config = _read_validated(key)
+            if config is not None:
+                return config
+        from .config_schema import RunConfig, ValidationError, sections
+        try:
+            config = sections(RunConfig.model_validate(data))
+        except ValidationError as err:
+            messages = tuple(self.message(e["loc"], self.describe(e)) for e in err.errors())
+            raise ConfigError(messages[0], messages=messages, key=_join(err.errors()[0]["loc"])) from None
+        if key is not None:
+            _write_validated(key, config)
+        return config
+
+    def step_control(self, integration: Section):
         """The integration section's adaptive keys, validated by StepControl (their one owner)."""
         from .adaptive import StepControl
         return StepControl(controller=integration.step_control or "error", rtol=integration.rtol,
@@ -551,7 +548,7 @@ class _Builder:
         except ProblemDefinitionError as err:
             raise self.error(tuple((err.key or "events").split(".")), str(err)) from None
 
-    def solver(self, section: SolverSection) -> SolverSettings:
+    def solver(self, section: Section) -> SolverSettings:
         """The solver section, validated by SolverSettings (the one owner of its rules)."""
         try:
             return SolverSettings(**section.model_dump())
@@ -583,8 +580,9 @@ class _Builder:
     def describe(self, error) -> str:
         kind, value, loc = error["type"], error.get("input"), error["loc"]
         if kind == "extra_forbidden":
+            from .config_schema import SECTIONS
             parent = tuple(p for p in loc[:-1] if isinstance(p, str))
-            model = _SECTIONS.get(parent)
+            model = SECTIONS.get(parent)
             allowed = list(model.model_fields) if model else []
             return f"unknown key; {_suggest(loc[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"
         if kind == "missing":
@@ -609,7 +607,7 @@ class _Builder:
         return f"{error['msg']}, got {_short(value)}"
 
     # problem
-    def problem(self, section: ProblemSection):
+    def problem(self, section: Section):
         modes = [m for m, present in (("builtin", section.builtin is not None), ("python", section.python is not None),
                                       ("expressions", section.hamiltonian is not None or section.coordinates
                                        is not None)) if present]
@@ -658,7 +656,7 @@ class _Builder:
         resolved["check"] = section.check
         return problem, resolved
 
-    def builtin(self, section: ProblemSection):
+    def builtin(self, section: Section):
         from . import problems as library
 
         name = section.builtin
@@ -727,7 +725,7 @@ class _Builder:
                 raise self.error(("problem", "initial", cname), str(err).replace("value ", "", 1)) from None
         return problem.with_initial(y0)
 
-    def python_file(self, section: ProblemSection):
+    def python_file(self, section: Section):
         from .problems.user_file import problem_from_file
 
         path = Path(section.python).expanduser()
@@ -743,7 +741,7 @@ class _Builder:
                          "parameters": {k: _plain(v) for k, v in problem.parameters.items()},
                          "initial": _initial_dict(problem)}
 
-    def expressions(self, section: ProblemSection):
+    def expressions(self, section: Section):
         from .problems.symbolic import problem_from_expressions
 
         if section.coordinates is None:

@@ -538,6 +538,8 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = ()) -
 
 def _python_file(config_text: str) -> str | None:
     """problem.python of a resolved config (the user's problem file), if it has one."""
+    if "python" not in config_text:   # no such key: skips parsing the YAML (2-3 ms on every run)
+        return None
     import yaml
     try:
         problem = (yaml.safe_load(config_text) or {}).get("problem")

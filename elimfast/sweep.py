@@ -542,10 +542,9 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
 
 def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
     """The table's numbers of one run, from its Result (fresh, or read back from a sweep file)."""
-    from .adaptive import evaluations_per_iteration
     outcome.iterations_total = int(result.iterations.sum())
     outcome.grad_H_evaluations = int(result.stats.get("grad_H_evaluations", outcome.iterations_total * (
-        evaluations_per_iteration(result.method, len(result.conserve), rhs == "stable")[0])))
+        result.method.evaluations_per_iteration(len(result.conserve), rhs == "stable")[0])))
     outcome.n_steps = result.n_steps
     multipliers = result.alpha if result.alpha is not None else result.lam
     if multipliers is not None and multipliers.size:
@@ -669,9 +668,9 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         # (Table 1 in grid order ended with its two longest runs).
         jobs = sorted(jobs, key=lambda job: -_expected_work(job[2]))
         # A warm pool: the shortest run here, before forking. Its first run costs a process
-        # about 0.27 s of CPU (Table 1: the problem's functions, the quadrature of the method
-        # tables, the adaptive module, the kernel's first call), which every worker then
-        # inherits instead of paying again.
+        # about 0.04 s of CPU (Table 1: the problem's functions, the quadrature of the method
+        # tables, the kernel's first call), which every worker then inherits instead of
+        # paying again.
         first = jobs.pop()
         outcome = _execute(*first, spec.source, store_arrays)
         results[outcome.label] = outcome

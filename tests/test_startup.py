@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PROBE = """
 import json, sys
 {body}
-heavy = sorted(m for m in sys.modules if m == "numba" or m.startswith(("numba.", "elimfast.kernels", "h5py")))
+heavy = sorted(m for m in sys.modules if m in ("numba", "pydantic") or m.startswith(("numba.", "elimfast.kernels", "h5py")))
 loaded = sorted(m for m in sys.modules if m.startswith("elimfast.problems."))
 print(json.dumps({{"heavy": heavy, "problems": loaded}}))
 """
@@ -44,7 +44,7 @@ def probe(body: str) -> dict:
 
 @pytest.mark.parametrize("args", [["--help"], ["--version"], ["problems"], ["methods"], ["run", "--help"],
                                   ["cache", "--help"]])
-def test_listings_and_help_import_no_numba_kernels_h5py_or_problem(args):
+def test_listings_and_help_import_no_numba_kernels_h5py_pydantic_or_problem(args):
     loaded = probe(CLI_BODY.format(args=args))
     assert loaded["heavy"] == [], f"elimfast {' '.join(args)} imported {loaded['heavy'][:5]}"
     assert loaded["problems"] == [] or set(loaded["problems"]) <= {"elimfast.problems.base",
@@ -139,6 +139,82 @@ def test_compile_notice_is_one_line_on_a_cache_miss(tmp_path):
     again = subprocess.run([ELIMFAST, "run", str(config), "-o", str(tmp_path / "p.h5"), "--quiet"],
                            capture_output=True, text=True, env=env)
     assert again.returncode == 0 and again.stderr == ""
+
+
+LOAD_CONFIG = """
+import json, sys
+from elimfast.config import load_run
+spec = load_run(sys.argv[1], ["integration.t_end=2", "solver.max_halvings=3"])
+print(json.dumps({"pydantic": "pydantic" in sys.modules, "resolved": spec.resolved,
+                  "solver": repr(spec.solver), "steps": [spec.h, spec.n_steps, spec.t_end]}))
+"""
+
+
+def test_a_config_file_loaded_again_is_not_validated_again_and_loads_the_same(tmp_path):
+    """load_run keeps each validation in elimfast's cache: the same config (and --set values)
+    is then read back, without importing pydantic, and gives the same run; a damaged entry
+    is validated again."""
+    import os
+    env = dict(os.environ, ELIMFAST_CACHE_DIR=str(tmp_path / "cache"))
+
+    def load(config):
+        done = subprocess.run([sys.executable, "-c", LOAD_CONFIG, str(config)], capture_output=True, text=True,
+                              env=env)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+    results = {}
+    for name in ("kepler.yaml", "kepler_adaptive.yaml", "henon_heiles_section.yaml"):
+        first, again = load(ROOT / "configs" / name), load(ROOT / "configs" / name)
+        assert first["pydantic"] and not again["pydantic"], name
+        assert again == dict(first, pydantic=False), name
+        results[name] = first
+    stored = sorted((tmp_path / "cache" / "configs").iterdir())
+    assert len(stored) == 3
+    for path in stored:
+        path.write_bytes(path.read_bytes()[:40])      # cut short: a miss, validated and stored again
+    config = ROOT / "configs" / "henon_heiles_section.yaml"
+    assert load(config) == results["henon_heiles_section.yaml"]
+    assert not load(config)["pydantic"]
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (ROOT / "configs").glob("*.yaml")))
+def test_validated_sections_are_pydantics_as_plain_data(name):
+    """config.Section (what the cache stores) holds exactly what the pydantic models hold."""
+    import pickle
+
+    from elimfast.config import Section, parse_yaml
+    from elimfast.config_schema import RunConfig, sections
+    model = RunConfig.model_validate(parse_yaml((ROOT / "configs" / name).read_text()))
+    plain = sections(model)
+    assert isinstance(plain, Section) and plain.model_dump() == model.model_dump()
+    assert pickle.loads(pickle.dumps(plain)).model_dump() == model.model_dump()
+    assert plain.solver.model_dump() == model.solver.model_dump() and plain.output.every == model.output.every
+
+
+LAZY_LINKING_PROBE = """
+import json
+from elimfast.kernels import _cache, stepper
+compiled = stepper.time_loop.overloads[stepper.time_loop.signatures[0]]
+library, fndesc = compiled.library, compiled.fndesc
+own = (fndesc.llvm_func_name, fndesc.llvm_cpython_wrapper_name, fndesc.llvm_cfunc_wrapper_name)
+out = {"lazy": isinstance(library, _cache._LazyLinkingLibrary), "unparsed": library._linking_bitcode is not None}
+module = library._get_module_for_linking()   # what linking it into new code asks for: parses
+defined = sorted(f.name for f in module.functions if not f.is_declaration)
+out["defines_own"] = set(own) <= set(defined)
+out["pointers"] = all(library.get_pointer_to_function(name) != 0 for name in own + tuple(defined[:5]))
+print(json.dumps(out))
+"""
+
+
+def test_the_time_loop_loads_without_parsing_its_linking_bitcode_which_is_parsed_when_needed():
+    """A warm load keeps time_loop's linking bitcode unparsed (_cache._LazyLinkingLibrary);
+    linking the library, or asking for any of its symbols, still works: it is parsed then.
+    (Twice: the first process compiles, on a cold cache.)"""
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", LAZY_LINKING_PROBE], capture_output=True, text=True, cwd=ROOT)
+        assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == {"lazy": True, "unparsed": True, "defines_own": True, "pointers": True}
 
 
 def test_cache_warm_is_listed_and_runs_on_a_warm_cache():

@@ -12,14 +12,23 @@ never load old code; it compiles into a new folder. The package's own functions 
 ``elimfast/__pycache__/kernels/<key>/`` (elimfast's cache if the package is not
 writable), the generated problem modules to ``<cache>/kernels/<key>/``; with
 NUMBA_CACHE_DIR set, both go to ``$NUMBA_CACHE_DIR/elimfast-kernels/<key>/``.
+
+Loading them from there skips what only a compilation needs (start-up, issue 12): Numba's
+registries of typing and lowering rules (_load_overload) and, for the two run kernels, the
+parse of their linking bitcode (_LazyLinkingLibrary).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from pathlib import Path
 
 from numba.core import caching
+from numba.core import codegen as numba_codegen
+from numba.core import compiler as numba_compiler
+
+from ..cache import ENV_VAR
 
 KERNELS_DIR = Path(__file__).resolve().parent
 PACKAGE_DIR = KERNELS_DIR.parent
@@ -81,22 +90,152 @@ class KeyedCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLoc
 
     @classmethod
     def from_function(cls, py_func, py_file):
-        place = _place(py_file)
-        if place is None or not os.path.exists(py_file):
-            return None
-        roots = [kernel_cache_dir(in_package=True), kernel_cache_dir()] if place == "package" else [kernel_cache_dir()]
-        for root in roots:   # an installed package may not be writable: then elimfast's cache
-            locator = cls(py_func, py_file, root)
-            try:
-                locator.ensure_cache_path()
-            except OSError:
-                continue
-            return locator
+        root = _writable_root(py_file, os.environ.get("NUMBA_CACHE_DIR"), os.environ.get(ENV_VAR))
+        return None if root is None else cls(py_func, py_file, root)
+
+
+@functools.lru_cache(maxsize=None)
+def _writable_root(py_file: str, *settings) -> Path | None:
+    """The keyed root under which the functions of py_file are cached, or None for a file
+    that is not elimfast's: for the package's own modules the package's folder, else (an
+    installed package may not be writable) elimfast's cache. Once per file and cache
+    settings (``settings``: the two environment variables that move the cache), not once
+    per function: a kernel module defines up to 20 cached functions, and resolving the
+    file's place and test-writing its folder took ~0.4 ms a function, 57 functions in a
+    warm `elimfast run`."""
+    place = _place(py_file)
+    if place is None or not os.path.exists(py_file):
         return None
+    for in_package in (True, False) if place == "package" else (False,):
+        root = kernel_cache_dir(in_package)
+        probe = KeyedCacheLocator.__new__(KeyedCacheLocator)
+        probe._cache_path = str(root / KeyedCacheLocator.get_suitable_cache_subpath(py_file))
+        try:
+            probe.ensure_cache_path()   # Numba's check: the folder exists and takes a file
+        except OSError:
+            continue
+        return root
+    return None
+
+
+_NUMBA_LOAD_OVERLOAD = caching.Cache.load_overload
+
+
+def _load_overload(self, sig, target_context):
+    """Numba's ``Cache.load_overload`` without its ``target_context.refresh()`` for elimfast's
+    own functions (those under the keyed locator; any other function loads as Numba does).
+
+    The refresh imports and installs every typing and lowering registry of Numba (about
+    70 modules: numba.np.*, numba.cpython.*, typed containers, jitclass, random), which
+    only a compilation uses; running machine code loaded from the cache needs only the
+    NRT (``rtsys.initialize``, the refresh's first step). Measured: 0.10-0.13 s of CPU of
+    a warm `elimfast run`, a third of its cost above the bare `import numba, h5py`. A
+    compilation in the same process still refreshes first (Numba's compiler does so on
+    every compile), and a cache miss here falls through to it unchanged. The run kernels
+    (LAZY_LINKING) load through _load_linking_lazily.
+    """
+    if not isinstance(getattr(self._impl, "locator", None), KeyedCacheLocator):
+        return _NUMBA_LOAD_OVERLOAD(self, sig, target_context)
+    from numba.core.runtime import rtsys
+    rtsys.initialize(target_context)
+    with self._guard_against_spurious_io_errors():
+        py_func = self._py_func
+        if _LAZY_LINKING_WORKS and (py_func.__module__, py_func.__qualname__) in LAZY_LINKING:
+            return _load_linking_lazily(self, sig, target_context)
+        return self._load_overload(sig, target_context)
+
+
+# The run kernels, loaded with their linking bitcode left unparsed (_LazyLinkingLibrary): each
+# is compiled with both of Numba's wrappers (an explicit signature, called from Python), is
+# large (time_loop's bitcode is 0.9 MB), and no compiled code calls it.
+LAZY_LINKING = {("elimfast.kernels.stepper", "time_loop"), ("elimfast.kernels.adaptive", "adaptive_loop")}
+
+
+class _LazyLinkingLibrary(numba_codegen.JITCodeLibrary):
+    """A library loaded from Numba's cache that parses its linking bitcode on first need.
+
+    The cache holds a function's machine code and, to link it into code compiled later, its
+    LLVM bitcode. Numba parses that bitcode on every load (time_loop: 45-55 ms of CPU, a
+    tenth of a warm `elimfast run`), though the machine code runs without it: only to list
+    the library's symbols. Here the loader registers the three symbols it looks up (the
+    function and its two wrappers); the bitcode is parsed, and all its symbols registered,
+    when code links the library (``_shared_module``) or asks for another symbol."""
+
+    _linking_bitcode = None
+    _linking_module = None
+
+    @property
+    def _shared_module(self):
+        if self._linking_bitcode is not None:
+            import llvmlite.binding as llvm
+            self._linking_module = llvm.parse_bitcode(self._linking_bitcode)
+            self._linking_bitcode = None
+            self._codegen._engine._load_defined_symbols(self._linking_module)
+        return self._linking_module
+
+    @_shared_module.setter
+    def _shared_module(self, module):
+        self._linking_module = module
+
+    def get_pointer_to_function(self, name):
+        if self._linking_bitcode is not None and not self._codegen._engine.is_symbol_defined(name):
+            self._shared_module   # noqa: B018 -- parses the bitcode, which registers every symbol
+        return super().get_pointer_to_function(name)
+
+
+_COMPILE_RESULT_FIELDS = {"typing_context", "target_context", "entry_point", "typing_error", "type_annotation",
+                          "signature", "objectmode", "lifted", "fndesc", "library", "call_helper", "environment",
+                          "metadata", "reload_init", "referenced_envs"}
+# The Numba internals _load_linking_lazily uses; with another layout, Numba's own loader runs.
+_LAZY_LINKING_WORKS = (set(getattr(numba_compiler, "CR_FIELDS", ())) == _COMPILE_RESULT_FIELDS
+                       and all(hasattr(numba_codegen.JITCodeLibrary, name) for name in (
+                           "_finalize_final_module", "enable_object_caching", "_set_compiled_object"))
+                       and hasattr(numba_codegen.JitEngine, "_load_defined_symbols")
+                       and all(hasattr(caching.Cache, name) for name in ("_index_key", "_load_overload")))
+
+
+def _load_linking_lazily(cache, sig, target_context):
+    """Numba's ``Cache._load_overload`` and ``CompileResult._rebuild`` for a LAZY_LINKING
+    kernel, building a _LazyLinkingLibrary; None when the cache has no entry. Data of
+    another form (no machine code, object mode, parallel code's reload hooks) are loaded
+    by Numba's own code."""
+    if not cache._enabled:
+        return None
+    data = cache._cache_file.load(cache._index_key(sig, target_context.codegen()))
+    if data is None:
+        return None
+    try:
+        libdata, fndesc, env, signature, objectmode, lifted, typeann, reload_init, referenced_envs = data
+        name, kind, (object_code, linking_bitcode) = libdata
+    except (TypeError, ValueError):
+        kind = None
+    if kind != "object" or objectmode or reload_init:
+        return cache._impl.rebuild(target_context, data)
+    library = target_context.codegen().create_library(name)
+    if type(library) is not numba_codegen.JITCodeLibrary:
+        return cache._impl.rebuild(target_context, data)
+    library.__class__ = _LazyLinkingLibrary
+    library.enable_object_caching()
+    library._set_compiled_object(object_code)
+    library._linking_bitcode = linking_bitcode
+    library._finalize_final_module()
+    library._codegen._engine._defined_symbols.update(
+        (fndesc.llvm_func_name, fndesc.llvm_cpython_wrapper_name, fndesc.llvm_cfunc_wrapper_name))
+    result = numba_compiler.CompileResult(
+        typing_context=target_context.typing_context, target_context=target_context,
+        entry_point=target_context.get_executable(library, fndesc, env), typing_error=None, type_annotation=typeann,
+        signature=signature, objectmode=objectmode, lifted=lifted, fndesc=fndesc, library=library, call_helper=None,
+        environment=env, metadata=None, reload_init=reload_init, referenced_envs=referenced_envs)
+    for referenced in referenced_envs:
+        library.codegen.set_env(referenced.env_name, referenced)
+    return result
 
 
 def install() -> None:
-    """Put the keyed locator first in Numba's list (once per process)."""
+    """Put the keyed locator first in Numba's list and load elimfast's functions from the
+    cache with _load_overload; once per process."""
     locators = caching.CacheImpl._locator_classes
     if KeyedCacheLocator not in locators:
         locators.insert(0, KeyedCacheLocator)
+    if hasattr(caching.Cache, "_load_overload") and hasattr(caching.Cache, "_guard_against_spurious_io_errors"):
+        caching.Cache.load_overload = _load_overload

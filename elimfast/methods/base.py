@@ -225,6 +225,16 @@ class Method:
             return ()
         return (("H",) if self.kind.multiplier_counts_H else ()) + tuple(conserve)
 
+    def evaluations_per_iteration(self, n_imposed: int, stable_rhs: bool) -> tuple[int, int]:
+        """(grad H, grad L) evaluations of one iteration of the family's map (kernels/maps.py),
+        for a run imposing n_imposed invariants, with the stable right-hand side or not."""
+        grad_H = self.k
+        if self.kind.kernel_map == "lim":
+            grad_H += self.r if self.r != self.k else 0
+        elif n_imposed > 0 and stable_rhs and self.r != self.k:
+            grad_H += self.r
+        return grad_H, (self.r if n_imposed > 0 else 0)
+
     def require_imposable(self, n_imposed: int) -> None:
         """ParameterError unless this method can impose n_imposed invariants besides H."""
         if n_imposed and not self.imposes_invariants:
