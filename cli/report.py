@@ -123,8 +123,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
         # a terminal event ends a run before t_end (docs/adaptive.md)
         clock = run_file.saved_state().get("clock")
         t_end = a.get("t_end")
-        if clock is not None and t_end is not None and float(np.asarray(clock).ravel()[0]) < float(t_end):
-            status += f" (ended by a terminal event at t = {float(np.asarray(clock).ravel()[0]):.10g})"
+        t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else None
+        if t_final is not None and t_end is not None and t_final < float(t_end):
+            status += f" (ended by a terminal event at t = {t_final:.10g})"
     row("status", status)
     wall, kernel = run_file.wall_time_s, run_file.kernel_time_s
     rate = f", {done / wall:,.0f} steps/s" if wall > 0 and done else ""

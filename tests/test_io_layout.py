@@ -128,6 +128,14 @@ def test_invariant_scales_are_the_size_of_the_terms():
     assert abs(values["linear_momentum_x"]) < 1e-12 * sizes["linear_momentum_x"]   # a cancellation
 
 
+def inspected_invariant_lines(run, path) -> dict[str, str]:
+    """Run into path, inspect it, and return inspect's invariant rows by invariant name."""
+    streaming.run_to_file(run, path, config_text="a: 1\n", handle_signals=False)
+    result = invoke("inspect", path)
+    assert result.exit_code == 0, result.output
+    return {line.split()[0]: line for line in result.output.splitlines() if line.startswith("  ")}
+
+
 def test_inspect_measures_a_cancelled_invariant_against_its_terms(tmp_path):
     """The solar system's linear momenta sum to ~1e-21 from terms of ~1e-5: their round-off
     errors read as relative errors of 1e1..1e3 against I(t0), of ~1e-14 against the terms."""
@@ -135,11 +143,8 @@ def test_inspect_measures_a_cancelled_invariant_against_its_terms(tmp_path):
     solar = nbody()
     conserve = ("linear_momentum_x", "angular_momentum_z")
     path = tmp_path / "solar.h5"
-    run = Integration(solar, methods.ghbvm(12, 3), 50.0, 200, conserve=conserve, store_every=20)
-    streaming.run_to_file(run, path, config_text="a: 1\n", handle_signals=False)
-    result = invoke("inspect", path)
-    assert result.exit_code == 0, result.output
-    lines = {line.split()[0]: line for line in result.output.splitlines() if line.startswith("  ")}
+    lines = inspected_invariant_lines(Integration(solar, methods.ghbvm(12, 3), 50.0, 200, conserve=conserve,
+                                                  store_every=20), path)
     with h5py.File(path, "r") as f:
         values = f["invariants/linear_momentum_x"][()]
         scale = f["invariants/linear_momentum_x"].attrs["scale"]
@@ -152,18 +157,14 @@ def test_inspect_measures_a_cancelled_invariant_against_its_terms(tmp_path):
 
 def test_inspect_shows_relative_errors_beside_absolute_ones(tmp_path, kepler):
     path = tmp_path / "run.h5"
-    run = Integration(kepler, methods.ehbvm(12, 3), 0.1, 100, conserve=CONSERVE, store_every=10)
-    streaming.run_to_file(run, path, config_text="a: 1\n", handle_signals=False)
-    result = invoke("inspect", path)
-    assert result.exit_code == 0, result.output
-    lines = {line.split()[0]: line for line in result.output.splitlines() if line.startswith("  ")}
+    lines = inspected_invariant_lines(Integration(kepler, methods.ehbvm(12, 3), 0.1, 100, conserve=CONSERVE,
+                                                  store_every=10), path)
     with h5py.File(path, "r") as f:
         H = f["invariants/H"][()]
-    absolute = float(np.max(np.abs(H - H[0])))
-    assert f"{absolute:.3e}" in lines["H"] and f"relative {absolute / abs(H[0]):.3e}" in lines["H"]
-    with h5py.File(path, "r") as f:
         lrl_y = f["invariants/lrl_y"][()]
         lrl_y_scale = f["invariants/lrl_y"].attrs["scale"]
+    absolute = float(np.max(np.abs(H - H[0])))
+    assert f"{absolute:.3e}" in lines["H"] and f"relative {absolute / abs(H[0]):.3e}" in lines["H"]
     assert lrl_y[0] == 0.0 and lrl_y_scale > 0.1   # lrl_y(0) = 0: measured against its terms
     assert (f"relative {np.max(np.abs(lrl_y)) / lrl_y_scale:.3e} to the size of its terms (I(t0) = 0)"
             in lines["lrl_y"])
