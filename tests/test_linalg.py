@@ -3,7 +3,7 @@ Gram matrix, SPD)."""
 import numpy as np
 import pytest
 
-from elimfast.kernels.linalg import cholesky_solve, lu_solve
+from elimfast.kernels.linalg import cholesky_solve, invert, lu_solve
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
@@ -76,3 +76,36 @@ def test_cholesky_accepts_a_badly_scaled_gram_matrix_and_rejects_by_angle():
     for scales in ([1.0, 1.0, 1.0], [1e-6, 1e6, 1.0]):
         phi = parallel * np.array(scales)
         assert cholesky_solve((phi.T @ phi).copy(), np.ones(3)) == 1, scales
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.complex128])
+@pytest.mark.parametrize("n", [1, 2, 4, 8])
+def test_invert_matches_numpy_for_random_matrices(n, dtype):
+    """The Gauss-Jordan inverse of the Newton blocks (docs/solver.md, "Block form"), real and complex."""
+    rng = np.random.default_rng(10 * n + (dtype is np.complex128))
+    for _ in range(20):
+        a = rng.normal(size=(n, n)).astype(dtype)
+        if dtype is np.complex128:
+            a += 1j * rng.normal(size=(n, n))
+        inverse = np.full((n, n), np.nan, dtype=dtype)
+        assert invert(a.copy(), inverse) == 0
+        np.testing.assert_allclose(inverse @ a, np.eye(n), atol=1e-11 * np.linalg.cond(a))
+
+
+def test_invert_needs_pivoting():
+    a = np.array([[0.0, 1.0], [1.0, 1.0]], dtype=np.complex128)
+    inverse = np.zeros((2, 2), dtype=np.complex128)
+    assert invert(a.copy(), inverse) == 0
+    np.testing.assert_array_equal(inverse, [[-1.0, 1.0], [1.0, 0.0]])
+
+
+@pytest.mark.parametrize("a", [
+    np.zeros((2, 2)),
+    np.array([[1.0, 2.0], [2.0, 4.0]]),
+    np.array([[1.0, 1.0], [1.0, 1.0 + 1e-15]]),
+    np.array([[np.nan, 0.0], [0.0, 1.0]]),
+    np.array([[1.0, 1j], [-1j, 1.0]]),                 # complex and singular: (1)(1) - (1j)(-1j) = 0
+])
+def test_invert_reports_singular_or_badly_conditioned(a):
+    a = a.astype(np.complex128)
+    assert invert(a.copy(), np.zeros_like(a)) == 1

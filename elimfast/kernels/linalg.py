@@ -1,9 +1,9 @@
 """Dense solves of the kernels: the nu x nu systems of docs/methods.md#elim and #lim, and the
 simplified-Newton matrix of docs/solver.md.
 
-nu is 1 to a few and the Newton matrix is (s 2m) x (s 2m), so plain loops beat any BLAS
-call. Every function works in place and returns a status (0 ok, 1 singular or badly
-conditioned) instead of raising.
+nu is 1 to a few and the Newton matrix is (s 2m) x (s 2m), or about s/2 blocks of 2m x 2m,
+so plain loops beat any BLAS call. Every function works in place and returns a status (0
+ok, 1 singular or badly conditioned) instead of raising.
 """
 import math
 
@@ -79,6 +79,68 @@ def lu_solve_factored(lu, pivots, x):
         for j in range(i + 1, n):
             acc -= lu[i, j] * x[j]
         x[i] = acc / lu[i, i]
+
+
+@njit(cache=True, inline="always")
+def invert(a, inverse):
+    """inverse <- a^-1 by Gauss-Jordan elimination with partial pivoting; a (n, n), real or
+    complex, is destroyed.
+
+    For the small blocks I - h lambda J0 of the simplified Newton matrix (docs/solver.md,
+    "Block form"): applied by a matrix-vector product, the inverse costs one n^2 pass per
+    iteration whose rows are independent, where an LU solve is two chains of dependent
+    substitutions and, for complex blocks, n complex divisions. Measured on Kepler (n = 4),
+    one factorisation and 5 solves of GHBVM/EHBVM(12,3)'s blocks: 0.76 us against 1.26 us
+    (LU blocks) and 1.62 us (the real 12 x 12 LU). For n >= 12 the LU's n^3/3 beats the
+    inverse's n^3 (stepper keeps the LU there). Pivots are compared by |Re| + |Im| (no
+    square root). Returns 0, or 1 as lu_factor: a pivot below RELATIVE_PIVOT_FLOOR times
+    the largest entry, or an entry that is not finite.
+    """
+    n = a.shape[0]
+    scale = 0.0
+    for i in range(n):
+        for j in range(n):
+            v = abs(a[i, j].real) + abs(a[i, j].imag)
+            if not (v <= 1e308):
+                return 1
+            if v > scale:
+                scale = v
+            inverse[i, j] = 0.0
+        inverse[i, i] = 1.0
+    if scale == 0.0:
+        return 1
+    for col in range(n):
+        pivot_row = col
+        pivot_abs = abs(a[col, col].real) + abs(a[col, col].imag)
+        for i in range(col + 1, n):
+            v = abs(a[i, col].real) + abs(a[i, col].imag)
+            if v > pivot_abs:
+                pivot_abs = v
+                pivot_row = i
+        if pivot_abs <= RELATIVE_PIVOT_FLOOR * scale:
+            return 1
+        if pivot_row != col:
+            for j in range(n):
+                tmp = a[col, j]
+                a[col, j] = a[pivot_row, j]
+                a[pivot_row, j] = tmp
+                tmp = inverse[col, j]
+                inverse[col, j] = inverse[pivot_row, j]
+                inverse[pivot_row, j] = tmp
+        inverse_pivot = 1.0 / a[col, col]
+        for j in range(col + 1, n):
+            a[col, j] *= inverse_pivot
+        for j in range(n):
+            inverse[col, j] *= inverse_pivot
+        for i in range(n):
+            if i != col:
+                factor = a[i, col]
+                if factor != 0.0:
+                    for j in range(col + 1, n):
+                        a[i, j] -= factor * a[col, j]
+                    for j in range(n):
+                        inverse[i, j] -= factor * inverse[col, j]
+    return 0
 
 
 @njit(cache=True)

@@ -17,7 +17,7 @@ from numba import njit
 
 from .codes import (internal, FAMILY_LIM, SOLVER_NEWTON, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK,
                     STATUS_SINGULAR)
-from .linalg import lu_factor, lu_solve_factored
+from .linalg import invert, lu_factor, lu_solve_factored
 from .maps import EPS, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
 
 # The stopping rule's constants (docs/solver.md; measured there, not tunables).
@@ -41,12 +41,12 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     cond(M) was 1.7e19). The |h f_p| term matters where a coordinate passes through
     zero (Kepler's q2 and p1 at apocentre, ~1e-16): |y_p| alone made M~ singular there.
 
-    Two forms (the workspace's arrays say which, workspace.make_workspace): for large
-    s n, with X = V Lambda V^-1 (tables newton_values, newton_vectors, newton_inverse),
-    M~ is block diagonal in the eigenbasis, one complex n x n factorisation of
-    I - h lambda J0~ per eigenvalue (one per conjugate pair), as in Hairer & Wanner's
-    RADAU5; else (small s n, or large s, where V is ill-conditioned) one real
-    (s n) x (s n) LU of M~.
+    Three forms (the workspace's arrays say which, workspace.make_workspace): with
+    X = V Lambda V^-1 (tables newton_values, newton_vectors, newton_inverse), M~ is block
+    diagonal in the eigenbasis, one complex n x n matrix I - h lambda J0~ per eigenvalue
+    (one per conjugate pair), as in Hairer & Wanner's RADAU5; each block is inverted
+    (small n, linalg.invert) or LU-factorised (large n). Without an eigenbasis (large s,
+    where V is ill-conditioned), one real (s n) x (s n) LU of M~.
     Returns STATUS_OK, STATUS_NONFINITE (Hessian not finite) or STATUS_SINGULAR.
     """
     n = y.shape[0]
@@ -78,15 +78,19 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
                 return STATUS_NONFINITE
     values = tables.newton_values
     if work.newton_blocks.shape[0] > 0:
-        blocks, pivots = work.newton_blocks, work.newton_block_pivots
+        blocks, pivots, scratch = work.newton_blocks, work.newton_block_pivots, work.newton_block_scratch
+        inverted = scratch.shape[0] > 0
         for b in range(values.shape[0]):
             factor = -h * values[b]
-            block = blocks[b]
+            block = scratch if inverted else blocks[b]
             for p in range(n):
                 for q in range(n):
                     block[p, q] = factor * jacobian[p, q]
                 block[p, p] += 1.0
-            if lu_factor(block, pivots[b]) != 0:
+            if inverted:
+                if invert(block, blocks[b]) != 0:
+                    return STATUS_SINGULAR
+            elif lu_factor(block, pivots[b]) != 0:
                 return STATUS_SINGULAR
         return STATUS_OK
     M = work.newton_matrix
@@ -107,10 +111,10 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
 def newton_solve(tables, work, delta):
     """delta (s n,) <- M^-1 delta with the factors of newton_factor (same two forms).
 
-    Block form: w = V^-1 D^-1 r (per eigenvalue b, w_b = sum_j Vinv[b, j] r_j / d), z_b =
-    (I - h lambda_b J0~)^-1 w_b, Delta = D Re(sum_b weight_b V[:, b] z_b), weight 2 for the
-    representative of a conjugate pair (its partner contributes the conjugate), 1 for a
-    real eigenvalue.
+    Block forms: w = V^-1 D^-1 r (per eigenvalue b, w_b = sum_j Vinv[b, j] r_j / d), z_b =
+    (I - h lambda_b J0~)^-1 w_b (a product with the inverted block, or the LU solve),
+    Delta = D Re(sum_b weight_b V[:, b] z_b), weight 2 for the representative of a
+    conjugate pair (its partner contributes the conjugate), 1 for a real eigenvalue.
     """
     n = work.newton_scale.shape[0]
     unit = work.newton_scale
@@ -125,6 +129,21 @@ def newton_solve(tables, work, delta):
                 for j in range(s):
                     acc += V_inverse[b, j] * delta[j * n + p]
                 rhs[b, p] = acc / unit[p]
+        if work.newton_block_scratch.shape[0] > 0:
+            # delta <- D Re(sum_b weight_b V[:, b] (B_b^-1 w_b)), row p of each B_b^-1 at a time
+            for i in range(s * n):
+                delta[i] = 0.0
+            for b in range(values.shape[0]):
+                inverse = blocks[b]
+                for p in range(n):
+                    z = 0.0 + 0.0j
+                    for q in range(n):
+                        z += inverse[p, q] * rhs[b, q]
+                    z *= weights[b] * unit[p]
+                    for j in range(s):
+                        delta[j * n + p] += (V[j, b] * z).real
+            return
+        for b in range(values.shape[0]):
             lu_solve_factored(blocks[b], pivots[b], rhs[b])
         for j in range(s):
             for p in range(n):

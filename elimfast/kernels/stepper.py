@@ -168,7 +168,7 @@ def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, forc
     """Keep or refactorise the simplified Newton matrix for a solve from y with step h.
 
     Simplified Newton needs only an approximation of the Jacobian (docs/solver.md): like
-    Hairer & Wanner's RADAU5, for large systems (the block form) the matrix of an earlier
+    Hairer & Wanner's RADAU5, for large systems (LU-factorised blocks) the matrix of an earlier
     step is kept while the step size is the same and the last solve needed at most
     REUSE_ITERATIONS iterations; otherwise (or when force) it is factorised at (y, h), and
     newton_base records where. Returns (status, fresh): fresh when factorised now.
@@ -180,10 +180,11 @@ def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, forc
     unchanged, no solve there is that easy).
     """
     n = y.shape[0]
-    # The block form's factorisation is kept while solves stay easy; the full form's (small
-    # systems) only while they take at most REUSE_ITERATIONS_FULL iterations: small steps,
+    # The LU blocks' factorisation is kept while solves stay easy; for small systems (inverted
+    # blocks, or the full form) only while they take at most REUSE_ITERATIONS_FULL iterations: small steps,
     # where refactorising every step cost more than the iterations it saved.
-    limit = REUSE_ITERATIONS if work.newton_blocks.shape[0] > 0 else REUSE_ITERATIONS_FULL
+    lu_blocks = work.newton_blocks.shape[0] > 0 and work.newton_block_scratch.shape[0] == 0
+    limit = REUSE_ITERATIONS if lu_blocks else REUSE_ITERATIONS_FULL
     if not force and newton_base[0] != 0.0 and newton_base[1] == h and newton_base[2] <= limit:
         return STATUS_OK, False
     status = newton_factor(grad_H, hess_H, params, y, h, tables, work)

@@ -70,9 +70,11 @@ Workspace = namedtuple("Workspace", [
     "scale",             # (n,) sc_i of the stopping rule
     "newton_matrix",     # (s n, s n) M~ = I - h X (x) J0~, factored (full form; else 0 x 0)
     "newton_pivots",     # (s n,) int64
-    "newton_blocks",     # (n_b, n, n) complex: I - h lambda_b J0~, factored (block form; else 0 x n x n)
-    "newton_block_pivots",   # (n_b, n) int64
+    "newton_blocks",     # (n_b, n, n) complex: I - h lambda_b J0~, LU-factored, or its inverse (block
+    #                      forms; else 0 x n x n)
+    "newton_block_pivots",   # (n_b, n) int64 (LU blocks)
     "newton_block_rhs",  # (n_b, n) complex
+    "newton_block_scratch",  # (n, n) complex: I - h lambda_b J0~ before inversion (inverse form; else 0 x 0)
     "newton_scale",      # (n,) d_p, the equilibration of the Newton matrix
     "hessian",           # (n, n) Hess(H)(y0)
     "jacobian",          # (n, n) J0 = J Hess(H)(y0)
@@ -143,27 +145,31 @@ def borrow_workspace(w):
         borrowed(w.component_increment), borrowed(w.carried), borrowed(w.h_powers), borrowed(w.new_coef),
         borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
         borrowed(w.newton_blocks), borrowed(w.newton_block_pivots), borrowed(w.newton_block_rhs),
-        borrowed(w.newton_scale),
+        borrowed(w.newton_block_scratch), borrowed(w.newton_scale),
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
         borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info))
 
 
-# Below this size of the Newton matrix (s n) its real LU beats the complex blocks of the
-# eigenbasis: measured on Kepler (s n = 12), a block solve cost 640 ns per iteration inside
-# the solver against ~150 ns for the real 12 x 12 one. Above it, the blocks' O(n^3 s)
-# factorisation (instead of O((s n)^3)) wins: the solar system's s n = 108.
-FULL_NEWTON_MAX = 48
+# The Newton matrix is factorised in blocks whenever the method has an eigenbasis of X
+# (tables.newton_values, methods/base.py): measured on Kepler (n = 4), one factorisation and
+# 5 solves cost 0.76 us as inverted blocks against 1.62 us for the real 12 x 12 LU of
+# EHBVM(12,3), and 1.5 us against 5.6 us at s = 6. Up to this n the blocks are inverted
+# (linalg.invert, a matrix-vector product per solve); above it, LU-factorised (n^3/3
+# instead of n^3: the solar system's n = 36).
+INVERSE_MAX_N = 8
 
 
 @njit(cache=True)
 def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
     """Allocate every array a step needs (sizes as in the Workspace comments). The Newton
-    matrix is factorised in n_eigenvalues complex blocks (tables.newton_values.shape[0]) when
-    there are some and s n > FULL_NEWTON_MAX, else whole (the workspace says which)."""
+    matrix is factorised in n_eigenvalues complex blocks (tables.newton_values.shape[0]),
+    inverted when n <= INVERSE_MAX_N, when there are some, else whole (the workspace's array
+    shapes say which)."""
     n_tilde = nu + 1 if family == FAMILY_LIM else nu
-    n_blocks = n_eigenvalues if s * n > FULL_NEWTON_MAX else 0
+    n_blocks = n_eigenvalues
     n_full = 0 if n_blocks > 0 else s * n
+    n_scratch = n if n_blocks > 0 and n <= INVERSE_MAX_N else 0
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
     return Workspace(
@@ -175,6 +181,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((s, n)), np.zeros(s * n), np.zeros(n),
         np.zeros((n_full, n_full)), np.zeros(n_full, dtype=np.int64),
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
-        np.zeros((n_blocks, n), dtype=np.complex128), np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
+        np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
+        np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(5))

@@ -1,0 +1,67 @@
+"""The simplified Newton matrix M = I - h X (x) J Hess(H)(y0) of docs/solver.md in its three
+forms (kernels/solver.py): inverted eigen-blocks (small n), LU-factorised eigen-blocks (large
+n), the whole real matrix (no eigenbasis, large s). Each applies M^-1 as numpy.linalg.solve
+does on the matrix built here from the problem's Hessian, whatever the equilibration."""
+import numpy as np
+import pytest
+from numba import njit
+
+from elimfast.kernels import codes
+from elimfast.kernels.solver import newton_factor, newton_solve
+from elimfast.kernels.workspace import INVERSE_MAX_N, Tables, make_workspace
+from elimfast.methods import ehbvm, hbvm
+from elimfast.problems import fpu_beta, kepler, nbody
+
+
+@njit(cache=False)
+def _apply_inverse(grad_H, hess_H, params, y, h, tables, k, s, n_eigenvalues, rhs):
+    work = make_workspace(y.shape[0], k, k, s, 0, codes.FAMILY_ELIM, 1, 0, n_eigenvalues)
+    status = newton_factor(grad_H, hess_H, params, y, h, tables, work)
+    newton_solve(tables, work, rhs)
+    form = 0 if work.newton_blocks.shape[0] == 0 else (1 if work.newton_block_scratch.shape[0] > 0 else 2)
+    return status, form
+
+
+def _tables(m):
+    return Tables(m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat, m.predictor_nodes,
+                  m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights)
+
+
+FULL, INVERTED, LU_BLOCKS = 0, 1, 2
+
+
+@pytest.mark.parametrize("problem, method, h, blocks, form", [
+    # Kepler from its pericentre, |J0| ~ 1/r^3 = 1e3: h |J0| from 0.1 to 30
+    (kepler(0.9), ehbvm(12, 3), 0.01, True, INVERTED),      # one real and one complex block
+    (kepler(0.9), hbvm(12, 6), 0.03, True, INVERTED),       # three complex blocks
+    (kepler(0.9), hbvm(12, 3), 0.01, False, FULL),          # the whole matrix when asked
+    (kepler(0.9), hbvm(24, 12), 0.0001, True, FULL),        # s = 12: no eigenbasis (cond(V) ~ 1e6)
+    (fpu_beta(), hbvm(8, 4), 0.2, True, LU_BLOCKS),         # n = 16 > INVERSE_MAX_N
+    (nbody(), hbvm(12, 3), 50.0, True, LU_BLOCKS),          # the solar system: scales 1e-11 to 30
+])
+def test_each_form_applies_the_inverse_of_the_newton_matrix(problem, method, h, blocks, form):
+    y = problem.y0.copy()   # writable, as the kernels get it
+    n, s = y.size, method.s
+    assert (n > INVERSE_MAX_N) == (form == LU_BLOCKS)
+    m = n // 2
+    J = np.block([[np.zeros((m, m)), np.eye(m)], [-np.eye(m), np.zeros((m, m))]])
+    M = np.eye(s * n) - h * np.kron(method.X, J @ problem.hessian(y))
+    rng = np.random.default_rng(s * n)
+    # the solver's right-hand sides are coefficient increments, in units of the state
+    rhs = (rng.normal(size=(s, n)) * np.maximum(np.abs(y), 1e-3 * np.abs(y).max())).ravel()
+    expected = np.linalg.solve(M, rhs)
+    out = rhs.copy()
+    status, used = _apply_inverse(problem.grad_H, problem.hess_H, problem.params, y, h, _tables(method), method.k,
+                                  s, method.newton_values.shape[0] if blocks else 0, out)
+    assert status == codes.STATUS_OK and used == form
+    # Both are backward stable: in units of the state, where M is well conditioned (the solar
+    # system's M is not, unscaled: cond 1e19), they differ by about eps cond, times cond(V)
+    # for the block forms (methods/base.py: MAX_EIGENBASIS_CONDITION).
+    f = np.abs(J @ problem.gradient(y))
+    units = np.tile(np.maximum(np.abs(y), h * f), s)
+    scaled = M / units[:, None] * units[None, :]
+    bound = 100 * np.finfo(float).eps * np.linalg.cond(scaled)
+    if form != FULL:
+        bound *= np.linalg.cond(np.linalg.eig(method.X)[1])
+    assert bound < 1e-9
+    assert np.max(np.abs(out - expected) / units) <= bound * np.max(np.abs(expected) / units)
