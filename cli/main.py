@@ -743,6 +743,7 @@ def cache():
     Examples:
       elimfast cache info
       elimfast cache clear
+      elimfast cache clear --stale   (the kernels of other versions only)
     """
 
 
@@ -759,7 +760,7 @@ def cache_info():
     Example:
       elimfast cache info
     """
-    from elimfast.cache import ENV_VAR, cache_info as info, kernel_cache_files
+    from elimfast.cache import ENV_VAR, cache_info as info, kernel_cache_files, kernel_roots, stale_kernel_folders
 
     data = info()
     where, files = kernel_cache_files()
@@ -768,6 +769,11 @@ def cache_info():
                f"set {ENV_VAR} to move it)")
     click.echo(f"kernel cache:   {where}  ({len(files)} Numba files, {_size(size)}; "
                "set NUMBA_CACHE_DIR to move it)")
+    stale = [folder for root in kernel_roots() for folder in stale_kernel_folders(root)]
+    if stale:
+        stale_size = sum(f.stat().st_size for f in files if f.exists() and any(s in f.parents for s in stale))
+        click.echo(f"stale kernels:  {len(stale)} key folders of other versions ({_size(stale_size)} of the above; "
+                   "`elimfast cache clear --stale` removes them)")
     return EXIT_OK
 
 
@@ -802,21 +808,50 @@ def cache_warm(quiet):
 
 @cache.command("clear", context_settings=CONTEXT)
 @click.option("--kernels", is_flag=True, help="Also delete Numba's compiled kernels (the next run recompiles, ~1-2 min).")
-def cache_clear(kernels):
+@click.option("--stale", is_flag=True,
+              help="Only delete the compiled kernels of other elimfast, Numba or kernel versions (every key folder "
+                   "but the current one); nothing this elimfast uses.")
+def cache_clear(kernels, stale):
     """Delete the generated problem code (and with --kernels the compiled kernels).
+
+    Each version of elimfast, Numba or the kernels compiles into its own key folder; a new
+    one removes those unused for 30 days, and --stale removes all the others now.
 
     \b
     Examples:
       elimfast cache clear
       elimfast cache clear --kernels
+      elimfast cache clear --stale
     """
     from elimfast.cache import cache_dir, clear_cache, clear_kernels, kernel_cache_files
 
+    if stale:
+        if kernels:
+            raise click.UsageError("give --stale (the kernels of other versions) or --kernels (all kernels), not both")
+        return _clear_stale()
     removed = clear_cache()
     click.echo(f"removed {removed} files from {cache_dir()}")
     if kernels:
         where = kernel_cache_files()[0]
         click.echo(f"removed {clear_kernels()} Numba files from {where}")
+    return EXIT_OK
+
+
+def _clear_stale() -> int:
+    from elimfast.cache import current_key, kernel_roots, prune_kernel_folders
+
+    roots = kernel_roots()
+    pruned = prune_kernel_folders()
+    where = " and ".join(str(root) for root in roots)
+    folders = "folder" if len(pruned.folders) == 1 else "folders"
+    exact = f" ({pruned.bytes:,} bytes)" if pruned.bytes >= 1000 else ""
+    click.echo(f"removed {len(pruned.folders)} stale kernel {folders} from {where}, freed {_size(pruned.bytes)}"
+               f"{exact}; kept the current one ({current_key()})")
+    if pruned.failed:
+        folder, err = pruned.failed[0]
+        others = f" (and {len(pruned.failed) - 1} more)" if len(pruned.failed) > 1 else ""
+        click.echo(f"error: cannot remove {folder}{others}: {err.strerror or err}; check its permissions", err=True)
+        return EXIT_USAGE
     return EXIT_OK
 
 

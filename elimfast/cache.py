@@ -18,12 +18,22 @@ Layout (everything elimfast writes lives in these two folders; nothing else is t
 Files are named by content hashes that include the elimfast version and are written
 atomically (temporary file + ``os.replace``), so concurrent processes can share the
 cache and a stale or half-written file is never imported.
+
+Every change of elimfast, Numba or a kernel's source makes a new key folder; the old ones
+are pruned. A process that uses a key folder sets its mtime (once, kernel_folder_used), and
+the first process to use a new key folder (one without the marker file ``.pruned``)
+removes the key folders of the same root not used for STALE_AFTER_DAYS days.
+``elimfast cache clear --stale`` removes every key folder but the current one.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import stat
 import tempfile
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import ElimfastError
@@ -176,8 +186,159 @@ def clear_kernels() -> int:
     root, files = kernel_cache_files()
     removed = _remove(files)
     for folder in (root, kernels_root(in_package=True)):
+        _remove(key / PRUNED_MARKER for key in _key_folders(folder))
         _remove_empty_folders(folder)
     return removed
+
+
+# --- pruning the key folders of old kernels ------------------------------------------------
+
+STALE_AFTER_DAYS = 30     # a key folder no process used for this long is removed when a new key comes
+PRUNED_MARKER = ".pruned"  # in a key folder: the first process to use it pruned its root
+_USED: set = set()        # the key folders this process has marked as used
+
+
+def kernel_roots() -> list[Path]:
+    """The folders holding one subfolder per key (kernels/_cache.py): the package's (its own
+    kernels) and elimfast's cache's (generated problems; every kernel if the package is not
+    writable); one folder if NUMBA_CACHE_DIR is set."""
+    from .kernels._cache import kernels_root
+    return list(dict.fromkeys((kernels_root(in_package=True), kernels_root())))
+
+
+def current_key() -> str:
+    """The key of this process's kernels (the name of its folder in each root)."""
+    from .kernels._cache import kernel_cache_dir
+    return kernel_cache_dir().name
+
+
+def _key_folders(root: Path):
+    """The key folders directly in root: real directories (not symlinks) named like a key
+    (lowercase hex digits, as long as the current key). Nothing else in root is ever touched."""
+    key = current_key()
+    try:
+        with os.scandir(root) as listing:
+            entries = list(listing)
+    except OSError:   # no root yet, or unreadable: nothing to prune
+        return
+    for entry in entries:
+        name = entry.name
+        if len(name) != len(key) or name.strip("0123456789abcdef"):
+            continue
+        try:
+            if entry.is_dir(follow_symlinks=False):
+                yield Path(entry.path)
+        except OSError:
+            continue
+
+
+def stale_kernel_folders(root: Path, unused_for_days: float | None = None) -> list[Path]:
+    """The key folders of root but the current one; with unused_for_days, only those whose
+    mtime (the last use, kernel_folder_used) is older than that."""
+    key = current_key()
+    cutoff = None if unused_for_days is None else time.time() - unused_for_days * 86400.0
+    stale = []
+    for folder in _key_folders(root):
+        if folder.name == key:
+            continue
+        if cutoff is not None:
+            try:
+                if os.stat(folder, follow_symlinks=False).st_mtime >= cutoff:
+                    continue
+            except FileNotFoundError:   # removed meanwhile by another process
+                continue
+        stale.append(folder)
+    return stale
+
+
+def _remove_tree(folder: Path, pruned: "Pruned") -> None:
+    """Delete folder and everything under it without following symbolic links (a link is
+    removed, never its target), adding the bytes of the regular files this call removed to
+    pruned.bytes. Files another process removes first are skipped (concurrent pruning); a
+    folder another process wrote into meanwhile stays, with that file. Other OS errors are
+    raised."""
+    if os.path.islink(folder):
+        return
+    for dirpath, dirnames, filenames in os.walk(folder, topdown=False, onerror=_ignore_missing):
+        links = [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]
+        for name in (*filenames, *links):
+            path = os.path.join(dirpath, name)
+            try:
+                info = os.lstat(path)
+                os.unlink(path)
+            except FileNotFoundError:
+                continue
+            if stat.S_ISREG(info.st_mode):
+                pruned.bytes += info.st_size
+        try:
+            os.rmdir(dirpath)
+        except FileNotFoundError:
+            pass
+        except OSError as err:
+            if err.errno != errno.ENOTEMPTY:
+                raise
+
+
+def _ignore_missing(err: OSError) -> None:
+    if not isinstance(err, FileNotFoundError):
+        raise err
+
+
+@dataclass
+class Pruned:
+    """What prune_kernel_folders removed: the folders, the bytes of the files it removed
+    (also from folders it could not remove entirely), and those folders with the error."""
+
+    folders: list[Path] = field(default_factory=list)
+    bytes: int = 0
+    failed: list[tuple[Path, OSError]] = field(default_factory=list)
+
+
+def prune_kernel_folders(unused_for_days: float | None = None, roots=None) -> Pruned:
+    """Remove the key folders of the kernel roots (kernel_roots(), or roots) but the current
+    key's; with unused_for_days, only those not used for that long. Safe to run in several
+    processes at once: what another one removed first is skipped."""
+    pruned = Pruned()
+    for root in dict.fromkeys(roots if roots is not None else kernel_roots()):
+        for folder in stale_kernel_folders(Path(root), unused_for_days):
+            try:
+                _remove_tree(folder, pruned)
+            except OSError as err:
+                pruned.failed.append((folder, err))
+            else:
+                pruned.folders.append(folder)
+    return pruned
+
+
+def kernel_folder_used(in_package: bool = True) -> None:
+    """Mark this process's key folder as used now (its mtime), once per process and folder;
+    the first process to use a key folder (it has no PRUNED_MARKER yet: the key is new, or
+    its folder was just created) then removes the key folders of the same root that no
+    process used for STALE_AFTER_DAYS. ``in_package``: the folder of elimfast's own kernels
+    (integrate.py, when it loads them), else that of the generated problem modules (where
+    they are imported). Best effort, never raises; a few system calls when nothing is new."""
+    from .kernels._cache import kernel_cache_dir
+    folder = kernel_cache_dir(in_package)
+    if in_package and folder not in _USED and not folder.is_dir():
+        folder = kernel_cache_dir(False)   # the package is not writable: its kernels are in elimfast's cache
+    if folder in _USED:
+        return
+    _USED.add(folder)
+    try:
+        os.close(os.open(folder / PRUNED_MARKER, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+    except FileExistsError:   # not new: only mark the use
+        try:
+            os.utime(folder)
+        except OSError:
+            pass
+        return
+    except OSError:           # no folder (nothing compiled there yet) or not writable: nothing to do
+        return
+    # The marker is in place (which also set the folder's mtime): this process prunes.
+    try:
+        prune_kernel_folders(STALE_AFTER_DAYS, roots=[folder.parent])
+    except OSError:
+        pass
 
 
 def clear_cache() -> int:

@@ -39,9 +39,11 @@ read with a safe loader (no tags, no aliases) and expressions are parsed as data
 
 The keys and types are validated by pydantic (config_schema.py); ``load_run`` keeps each
 validation in elimfast's cache, so that a config run again skips pydantic (_Builder.validate).
-Every error is a ``ConfigError`` whose text is one line, ``FILE: key.path: what is
-wrong; what to do``. ``load_run(path, overrides)`` applies ``--set``-style overrides
-(``"method.s=4"``, values parsed as YAML) before validating.
+Every error is a ``ConfigError`` whose text is one line, ``FILE:LINE: key.path: what is
+wrong; what to do`` (LINE: where the key is, or its parent mapping for a missing key; no
+line for data not read from a file, and a value given by ``--set`` names that option
+instead). ``load_run(path, overrides)`` applies ``--set``-style overrides (``"method.s=4"``,
+values parsed as YAML) before validating.
 """
 from __future__ import annotations
 
@@ -75,14 +77,19 @@ MAX_SIZE_PARAMETER = 100_000  # an integer size parameter of a built-in (fpu_bet
 
 
 class ConfigError(ElimfastError):
-    """An invalid run config. ``str(err)`` is one line ``FILE: key.path: what is wrong; what to do``;
-    ``messages`` holds every error found (the first one is ``str(err)``); ``key`` the dotted key."""
+    """An invalid run config. ``str(err)`` is one line ``FILE:LINE: key.path: what is wrong; what
+    to do`` (``FILE: key.path: ...`` where the key has no line: data not read from a file, a
+    key missing at the top level, or a value given by ``--set``, which the message then names);
+    ``messages`` holds every error found (the first one is ``str(err)``); ``key`` the dotted
+    key; ``line`` its 1-based line in FILE, or None."""
 
-    def __init__(self, message: str, messages: tuple[str, ...] = (), key: str | None = None):
+    def __init__(self, message: str, messages: tuple[str, ...] = (), key: str | None = None,
+                 line: int | None = None):
         message = " ".join(str(message).split())
         super().__init__(message)
         self.messages = tuple(" ".join(m.split()) for m in messages) or (message,)
         self.key = key
+        self.line = line
 
 
 # --- validated sections (config_schema.py holds their pydantic models) ---------------------
@@ -238,22 +245,24 @@ def load_run(path, overrides=()) -> RunSpec:
     source = str(path)
     file_path = Path(path)
     text = read_text_file(file_path, source, what="config file", example="a .yaml file")
-    data = parse_yaml(text, source)
+    data, lines = parse_yaml_with_lines(text, source)
     if data is None:
         raise ConfigError(f"{source}: the file is empty; a config needs problem, method and integration sections")
     return load_run_from_dict(data, source=source, overrides=overrides, base_dir=file_path.resolve().parent,
-                              remember=True)
+                              remember=True, lines=lines)
 
 
-def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=None, remember: bool = False) -> RunSpec:
+def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=None, remember: bool = False,
+                       lines: dict | None = None) -> RunSpec:
     """Validate config data (as yaml.safe_load returns it); ``base_dir``: where relative
     ``python:`` paths start (default: the current directory). ``remember``: keep the
     validation in elimfast's cache and take it from there when this data comes again
     (load_run does, for config files; a sweep's runs do not: one file per run, while
-    their process validates them all with one import of pydantic)."""
+    their process validates them all with one import of pydantic). ``lines``: the line of
+    each key path in ``source`` (parse_yaml_with_lines), for the errors to name."""
     data, overridden = _apply_overrides(copy.deepcopy(data), overrides, source)
     return _Builder(source, overridden, Path(base_dir) if base_dir is not None else Path.cwd(),
-                    remember=remember).build(data)
+                    remember=remember, lines=lines).build(data)
 
 
 def read_text_file(path, source: str, *, what: str = "file", example: str = "a .yaml file",
@@ -323,8 +332,23 @@ class _SafeLoader(yaml.SafeLoader):
 
 def parse_yaml(text: str, source: str = "<text>"):
     """yaml safe-load of text; YAML errors become a ConfigError with the line and column."""
+    return parse_yaml_with_lines(text, source)[0]
+
+
+def parse_yaml_with_lines(text: str, source: str = "<text>"):
+    """(data, lines): parse_yaml's data, and the 1-based line of every key of the document,
+    by key path (mapping keys and list indexes, as ``_Builder`` paths name them: a key that
+    is not a string by ``str(key)``). What ``yaml.load`` does (compose the node tree, then
+    construct it with the safe loader), keeping the tree to read its marks."""
     try:
-        return yaml.load(text, Loader=_SafeLoader)  # noqa: S506 -- a SafeLoader subclass
+        loader = _SafeLoader(text)
+        try:
+            node = loader.get_single_node()
+            data = loader.construct_document(node) if node is not None else None
+            lines = _key_lines(loader, node)
+        finally:
+            loader.dispose()
+        return data, lines
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
@@ -334,10 +358,33 @@ def parse_yaml(text: str, source: str = "<text>"):
         raise ConfigError(f"{source}: the YAML is nested too deeply; simplify the file") from None
 
 
+def _key_lines(loader: yaml.SafeLoader, root) -> dict:
+    """{key path: line} of the nodes under root (iterative: depth is bounded later, by check_keys)."""
+    lines = {}
+    stack = [(root, ())] if root is not None else []
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:   # merge keys (<<) are flattened by now
+                if not isinstance(key_node, yaml.ScalarNode):
+                    continue   # a list or mapping as key: refused by check_keys, which has no line for it
+                key = loader.construct_object(key_node)
+                key = key if isinstance(key, str) else str(key)
+                lines[path + (key,)] = key_node.start_mark.line + 1   # a repeated key: the last wins, as in data
+                stack.append((value_node, path + (key,)))
+        elif isinstance(node, yaml.SequenceNode):
+            for index, item in enumerate(node.value):
+                lines[path + (index,)] = item.start_mark.line + 1
+                stack.append((item, path + (index,)))
+    return lines
+
+
 def _apply_overrides(data, overrides, source):
+    """(data with the overrides applied, {key path: the --set item that set it}); a later
+    override of a path or of a section above it replaces the record of the earlier ones."""
     if isinstance(overrides, str):
         overrides = (overrides,)
-    overridden = set()
+    overridden = {}
     for item in overrides or ():
         if not isinstance(item, str) or "=" not in item:
             raise ConfigError(f"{source}: --set {item!r}: expected KEY=VALUE, e.g. method.s=4")
@@ -360,7 +407,10 @@ def _apply_overrides(data, overrides, source):
                                   "has no keys; set it as a whole instead")
             node = child
         node[parts[-1]] = value
-        overridden.add(tuple(parts))
+        path = tuple(parts)
+        for earlier in [o for o in overridden if o[:len(path)] == path]:
+            del overridden[earlier]
+        overridden[path] = item.strip()
     return data, overridden
 
 
@@ -381,20 +431,49 @@ def _join(path) -> str:
 _suggest = suggest
 
 
+def _clip(text: str, limit: int = 60) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 class _Builder:
-    def __init__(self, source: str, overridden: set, base_dir: Path, remember: bool = False):
+    def __init__(self, source: str, overridden: dict, base_dir: Path, remember: bool = False,
+                 lines: dict | None = None):
         self.source, self.overridden, self.base_dir, self.remember = source, overridden, base_dir, remember
+        self.lines = lines or {}
 
     # errors
+    def override_of(self, path) -> str | None:
+        """The --set item that gave the value at path (the most specific one), or None."""
+        keys = tuple(p for p in path if isinstance(p, str))
+        found = [o for o in self.overridden if keys[:len(o)] == o]
+        return self.overridden[max(found, key=len)] if found else None
+
+    def line_of(self, path) -> int | None:
+        """The line of the deepest key of path that is in the file (None: none is, or the value
+        came from --set). Parts not in the file are skipped: a missing key (its parent's line)
+        and the union member pydantic names in a location (``output.times`` as a list)."""
+        if self.override_of(path) is not None:
+            return None
+        line, found = None, ()
+        for part in path:
+            if found + (part,) in self.lines:
+                found += (part,)
+                line = self.lines[found]
+        return line
+
     def message(self, path, text: str) -> str:
-        suffix = ""
-        path_tuple = tuple(p for p in path if isinstance(p, str))
-        if any(path_tuple[:len(o)] == o for o in self.overridden):
-            suffix = " (value from --set)"
-        return f"{self.source}: {_join(path)}: {text}{suffix}"
+        override = self.override_of(path)
+        if override is not None:
+            return f"{self.source}: {_join(path)}: {text} (value from --set {_clip(override)})"
+        line = self.line_of(path)
+        where = f"{self.source}:{line}" if line is not None else self.source
+        keys = tuple(p for p in path if isinstance(p, str))
+        below = [item for o, item in self.overridden.items() if keys and o[:len(keys)] == keys]
+        suffix = f" (with --set {_clip(below[0])})" if below else ""
+        return f"{where}: {_join(path)}: {text}{suffix}"
 
     def error(self, path, text: str):
-        return ConfigError(self.message(path, text), key=_join(path))
+        return ConfigError(self.message(path, text), key=_join(path), line=self.line_of(path))
 
     def parameter_error(self, err: ParameterError, section: tuple = ()):
         """A library validator's error at the parameter's YAML key (section: where its
@@ -496,8 +575,10 @@ class _Builder:
         try:
             config = sections(RunConfig.model_validate(data))
         except ValidationError as err:
-            messages = tuple(self.message(e["loc"], self.describe(e)) for e in err.errors())
-            raise ConfigError(messages[0], messages=messages, key=_join(err.errors()[0]["loc"])) from None
+            errors = err.errors()
+            messages = tuple(self.message(e["loc"], self.describe(e)) for e in errors)
+            raise ConfigError(messages[0], messages=messages, key=_join(errors[0]["loc"]),
+                              line=self.line_of(errors[0]["loc"])) from None
         if key is not None:
             _write_validated(key, config)
         return config

@@ -12,10 +12,15 @@ from typing import Iterable
 
 import numpy as np
 
+from .cache import kernel_folder_used
 from .errors import ConvergenceError, ParameterError
 from .kernels import codes, stepper
 from .methods import Method
 from .problems import Problem
+
+# The kernels are loaded (or compiled) from their key folder: mark it used, and prune the
+# key folders of old kernels if it is new (cache.py). Once per process, a few system calls.
+kernel_folder_used(in_package=True)
 
 # Defaults of the step solver (all tunables in one place; docs/solver.md).
 SOLVERS = {"newton": codes.SOLVER_NEWTON, "fixed_point": codes.SOLVER_FIXED_POINT}

@@ -2,6 +2,7 @@
 nothing in a config can run code."""
 import copy
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -115,7 +116,7 @@ def test_overrides_are_yaml_values_and_validated():
                                                          "problem.initial.p2=2.0"])
     assert spec.n_steps == 7 and spec.t_end == pytest.approx(0.7) and spec.problem.y0[3] == 2.0
     err = config_error(kepler_data(), overrides=["method.s=1"])
-    assert err.key == "method.s" and "(value from --set)" in str(err)
+    assert err.key == "method.s" and str(err).endswith("(value from --set method.s=1)") and err.line is None
 
 
 def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
@@ -243,6 +244,165 @@ def test_expression_problem_faults(label, path, value, key, match):
     err = config_error(data)
     assert err.key == key, str(err)
     assert __import__("re").search(match, str(err)), str(err)
+
+
+# --- errors name the line of the key --------------------------------------------------------
+
+LINED = """\
+problem:
+  builtin: kepler
+  parameters:
+    eccentricity: 0.6
+conserve:
+  - angular_momentum
+  - lrl_y
+method:
+  name: ehbvm
+  k: 12
+  s: 3
+integration:
+  h: 0.1
+  t_end: 100
+output:
+  every: 10
+"""
+EVENTS = """\
+events:
+  pericentre:
+    expression: "q1*p1 + q2*p2"
+    directoin: 1
+"""
+TIMES = """\
+  times:
+    - 0.5
+    - x
+"""
+
+
+def _edit(line, text):
+    """LINED with its line ``line`` (1-based) replaced by text (None: deleted)."""
+    def change(config):
+        rows = config.splitlines(keepends=True)
+        rows[line - 1:line] = [] if text is None else [text + "\n"]
+        return "".join(rows)
+    return change
+
+
+LINE_FAULTS = [
+    # label, the change to LINED, the key, its line (None: no line), what the message says
+    ("unknown key two levels down", lambda c: c + EVENTS, "events.pericentre.directoin", 20, "unknown key"),
+    ("wrong type", _edit(13, "  h: [0.1]"), "integration.h", 13, "must be a number .*, got list"),
+    ("wrong type in a nested mapping", _edit(4, "    eccentricity: {a: 1}"), "problem.parameters.eccentricity", 4,
+     "must be a number .*, got dict"),
+    ("bad list item (library)", _edit(7, "  - lrl_z"), "conserve[1]", 7, "no invariant 'lrl_z'"),
+    ("bad list item (schema)", _edit(6, "  - [angular_momentum]"), "conserve[0]", 6, "must be a string"),
+    ("bad value", _edit(11, "  s: 2"), "method.s", 11, "raise s to 3"),
+    ("unknown built-in", _edit(2, "  builtin: keplr"), "problem.builtin", 2, "did you mean 'kepler'"),
+    ("key not a string", _edit(4, "    yes: 0.6"), "problem.parameters.True", 4, "quote the key"),
+    ("missing key: its section's line", _edit(13, None), "integration.h", 12, "missing; give the step size"),
+    ("missing section: no line", lambda c: c.replace("method:\n  name: ehbvm\n  k: 12\n  s: 3\n", ""), "method",
+     None, "missing; add e.g. method:"),
+]
+
+
+@pytest.mark.parametrize("label,change,key,line,match", LINE_FAULTS, ids=[f[0] for f in LINE_FAULTS])
+def test_errors_name_the_line_of_the_key(tmp_path, label, change, key, line, match):
+    path = write(tmp_path, change(LINED))
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    message, where = str(info.value), str(path) if line is None else f"{path}:{line}"
+    assert message.startswith(f"{where}: {key}: "), message
+    assert re.search(match, message) and "\n" not in message, message
+    assert info.value.line == line and info.value.key == key
+    if line is not None:    # the line named holds the key (a list item, or for a missing key its section)
+        named = path.read_text().splitlines()[line - 1].strip()
+        last = info.value.key.split(".")[-1]
+        expected = "- " if last.endswith("]") else "yes:" if last == "True" else f"{last}:"
+        if label.startswith("missing key"):
+            expected = "integration:"
+        assert named.startswith(expected), named
+
+
+def test_every_schema_error_of_a_file_names_a_line(tmp_path):
+    text = LINED.replace("  k: 12", "  k: twelve").replace("  every: 10", "  every: 10\n  evry: 3") + TIMES + EVENTS
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    found = {re.match(rf"{re.escape(str(path))}:(\d+): (.+?): ", m).groups() for m in info.value.messages}
+    # output.times is a mapping or a list: pydantic reports both readings, and names the member in the key
+    assert found == {("10", "method.k"), ("17", "output.evry"), ("18", "output.times.TimesSection"),
+                     ("20", "output.times.list[function-before[_to_number(), float]][1]"),
+                     ("24", "events.pericentre.directoin")}, info.value.messages
+
+
+def test_an_override_error_names_the_set_option_not_a_line(tmp_path):
+    path = write(tmp_path, LINED)
+    cases = [
+        (["method.k=[12]"], "method.k", "must be a number", "method.k=[12]"),
+        (["method={name: ehbvm, k: 12, s: x}"], "method.s", "'x' is not a number",
+         "method={name: ehbvm, k: 12, s: x}"),
+        # the later override of the section replaces the earlier one of its key
+        (["method.s=4", "method={name: ehbvm, k: 12, s: 1}"], "method.s", "raise s to 3",
+         "method={name: ehbvm, k: 12, s: 1}"),
+        (["solver.max_iter=0"], "solver.max_iter", "must be >= 1", "solver.max_iter=0"),   # no solver in the file
+    ]
+    for overrides, key, match, item in cases:
+        with pytest.raises(ConfigError) as info:
+            load_run(path, overrides=overrides)
+        message = str(info.value)
+        assert message.startswith(f"{path}: {key}: ") and match in message, message
+        assert message.endswith(f"(value from --set {item})") and info.value.line is None, message
+    # A key below the error set by --set: the file's line, and the option
+    with pytest.raises(ConfigError) as info:
+        load_run(path, overrides=["problem.parameters.eccentricity=1.5"])
+    assert str(info.value).startswith(f"{path}:3: problem.parameters: kepler: ")
+    assert str(info.value).endswith("(with --set problem.parameters.eccentricity=1.5)")
+    # An override elsewhere leaves the file's lines in place
+    with pytest.raises(ConfigError) as info:
+        load_run(write(tmp_path, LINED.replace("  h: 0.1", "  h: [0.1]")), overrides=["method.k=8"])
+    assert str(info.value).startswith(f"{path}:13: integration.h: must be a number")
+
+
+def test_cached_validations_load_and_their_errors_keep_the_line(tmp_path, monkeypatch):
+    """config.load_run keeps validations in <cache>/configs, keyed by the data: a config run
+    again loads from there, a changed file validates again, and the lines (not cached) follow
+    the file as it is now."""
+    from elimfast import config as config_module
+    monkeypatch.setenv("ELIMFAST_CACHE_DIR", str(tmp_path / "cache"))
+    hits = []
+    read = config_module._read_validated
+    monkeypatch.setattr(config_module, "_read_validated", lambda key: hits.append(read(key)) or hits[-1])
+    stored = lambda: sorted(p.name for p in (tmp_path / "cache" / "configs").iterdir())  # noqa: E731
+
+    path = write(tmp_path, LINED)
+    first = load_run(path)
+    again = load_run(path)
+    assert hits[0] is None and hits[1] is not None and len(stored()) == 1
+    assert again.resolved == first.resolved and again.method.name == "EHBVM(12,3)"
+    path.write_text(LINED.replace("  s: 3", "  s: 4"))
+    changed = load_run(path)
+    assert hits[2] is None and len(stored()) == 2 and changed.method.name == "EHBVM(12,4)"
+
+    # A schema-valid file the builder refuses: its validation is cached, its line is not
+    path.write_text(LINED.replace("  builtin: kepler", "  builtin: keplr"))
+    for _ in range(2):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}:2: problem.builtin: unknown problem"):
+            load_run(path)
+    assert hits[-2] is None and hits[-1] is not None
+    path.write_text("# moved down\n\n" + LINED.replace("  builtin: kepler", "  builtin: keplr"))
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}:4: problem.builtin: unknown problem"):
+        load_run(path)
+    assert hits[-1] is not None and len(stored()) == 3
+
+
+def test_yaml_lines_come_from_the_safe_loader():
+    from elimfast.config import parse_yaml_with_lines
+    data, lines = parse_yaml_with_lines("a:\n  b: [1,\n     2]\n  c:\n    - {d: 1}\n<<: {e: 3}\n", "x.yaml")
+    assert data == {"a": {"b": [1, 2], "c": [{"d": 1}]}, "e": 3}
+    assert lines == {("a",): 1, ("a", "b"): 2, ("a", "b", 0): 2, ("a", "b", 1): 3, ("a", "c"): 4,
+                     ("a", "c", 0): 5, ("a", "c", 0, "d"): 5, ("e",): 6}
+    with pytest.raises(ConfigError, match="x.yaml: .*invalid YAML .*python/name"):
+        parse_yaml_with_lines("a: !!python/name:os.system\n", "x.yaml")
 
 
 def test_check_false_lets_a_wrong_invariant_through():

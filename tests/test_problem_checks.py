@@ -199,7 +199,7 @@ def test_wrong_sign_grad_h_in_a_python_file_is_refused_naming_the_users_file(cac
 
     config = tmp_path / "run.yaml"
     config.write_text(KEPLER_RUN)
-    with pytest.raises(ConfigError, match=r"run.yaml: problem.python: grad_H of problem 'kepler_python' does not "
+    with pytest.raises(ConfigError, match=r"run.yaml:1: problem.python: grad_H of problem 'kepler_python' does not "
                                           r"match .* relative error 2.0e\+00"):
         load_run(config)
     for command in ("check", "run"):
@@ -295,7 +295,11 @@ def test_non_ascii_names_are_refused_in_one_line(tmp_path, cache_root, where, va
         load_run(config)
     message = str(info.value)
     assert "\n" not in message and "non-ASCII character" in message and "U+FF" in message
-    assert message.startswith(f"{config}: {key}: "), message
+    line = re.match(rf"{re.escape(str(config))}:(\d+): {re.escape(key)}: ", message)
+    assert line, message
+    # the line named holds the key (a key of the config, written by yaml.safe_dump: one a line)
+    named = config.read_text(encoding="utf-8").splitlines()[int(line.group(1)) - 1].strip()
+    assert named.startswith(key.split(".")[-1] + ":"), (named, message)
 
 
 @pytest.mark.parametrize("change", [

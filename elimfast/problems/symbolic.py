@@ -273,6 +273,7 @@ def _import(path: Path):
                                          f"(generated file: {path})") from None
         raise
     _MODULES[str(path)] = module
+    cache.kernel_folder_used(in_package=False)   # its compiled code is in elimfast's cache (cache.py)
     return module
 
 

@@ -250,6 +250,7 @@ def _load_module(path: Path, text: str):
         raise UserProblemError(f"python problem file {path}: running it raised {type(err).__name__}{where}: "
                                f"{message}; fix the file", key="python") from None
     _MODULES[str(copy)] = module
+    cache.kernel_folder_used(in_package=False)   # its functions compile into elimfast's cache (cache.py)
     return module
 
 
