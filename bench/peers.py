@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 
 import elimfast
+from elimfast.integrate import MAX_STEPS
 from elimfast.methods import ehbvm, gauss, ghbvm, hbvm
 from elimfast.problems import kepler
 
@@ -476,7 +477,7 @@ class AdaptiveRun:
                                   store_every=store_every, **control)
 
     def final(self, T):
-        r = self._integrate(T, 2 ** 62)      # only the final state is kept
+        r = self._integrate(T, MAX_STEPS)    # only the final state is kept
         self.stats = r.stats
         return r.y_final
 
