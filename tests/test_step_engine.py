@@ -153,7 +153,10 @@ def test_the_predictor_saves_iterations_and_changes_nothing_else(solver):
             for predictor in (True, False)}
     saved = 1.0 - runs[True].iterations.sum() / runs[False].iterations.sum()
     assert 0.10 < saved < 0.40, saved
-    assert np.max(np.abs(runs[True].y_final - runs[False].y_final)) < 1e-12
+    # Round-off apart (each solve stops at eps, from another start): a difference that grows
+    # along the orbit and peaks near pericentre, measured 3e-13 to 6e-12 at n = 1990..2020
+    # steps; an unconverged or wrongly extrapolated solve would show at 1e-8 or more.
+    assert np.max(np.abs(runs[True].y_final - runs[False].y_final)) < 1e-11
 
 
 # --- splitting, bookkeeping, settings ---------------------------------------------------------

@@ -6,9 +6,10 @@ the coefficients to a converged iterate or a failure status; it knows nothing of
 time loop, predictors or step splitting (stepper.py).
 
 Simplified Newton (docs/solver.md, the default): with X_s = Ps^T Omega Is (tridiagonal) and
-J0 = J Hess(H)(y0), M = I_{s n} - h X_s (x) J0 is factorised once per step, and each
-iteration applies  coef <- coef + M^-1 vec(G(coef) - coef).  The fixed point applies
-coef <- G(coef) (the paper's iteration, whose counts Table 2 reports).
+J0 = J Hess(H) at the predicted midpoint (stepper._newton_point), M = I_{s n} - h X_s (x) J0
+is factorised once per step, and each iteration applies
+coef <- coef + M^-1 vec(G(coef) - coef).  The fixed point applies coef <- G(coef) (the
+paper's iteration, whose counts Table 2 reports).
 """
 import math
 

@@ -76,6 +76,7 @@ Workspace = namedtuple("Workspace", [
     "newton_block_rhs",  # (n_b, n) complex
     "newton_block_scratch",  # (n, n) complex: I - h lambda_b J0~ before inversion (inverse form; else 0 x 0)
     "newton_scale",      # (n,) d_p, the equilibration of the Newton matrix
+    "newton_point",      # (n,) where its Jacobian is taken (stepper._newton_point)
     "hessian",           # (n, n) Hess(H)(y0)
     "jacobian",          # (n, n) J0 = J Hess(H)(y0)
     "y_start",           # (n,) the state at the start of the step (restored on failure)
@@ -145,7 +146,7 @@ def borrow_workspace(w):
         borrowed(w.component_increment), borrowed(w.carried), borrowed(w.h_powers), borrowed(w.new_coef),
         borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
         borrowed(w.newton_blocks), borrowed(w.newton_block_pivots), borrowed(w.newton_block_rhs),
-        borrowed(w.newton_block_scratch), borrowed(w.newton_scale),
+        borrowed(w.newton_block_scratch), borrowed(w.newton_scale), borrowed(w.newton_point),
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
         borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info))
@@ -182,6 +183,6 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_full, n_full)), np.zeros(n_full, dtype=np.int64),
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
-        np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
+        np.zeros(n), np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(5))
