@@ -170,3 +170,25 @@ def test_files_of_format_2_are_still_read(tmp_path, kepler):
     from elimfast.io.hdf5 import RunFile
     with RunFile(path) as stored:
         assert stored.coordinate_names == ["q1", "q2", "p1", "p2"]
+
+
+def test_an_adaptive_result_in_xarray_has_its_steps_events_and_step_control():
+    """Result.to_xarray of an adaptive run carries what its run file holds in /steps and
+    /events: every step's end time and size, and each event's times and states."""
+    p = problems.kepler(0.9)
+    r = elimfast.integrate(p, methods.ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-12, conserve=CONSERVE,
+                           events={"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1}})
+    ds = r.to_xarray()
+    assert ds.sizes["step"] == r.steps_done
+    np.testing.assert_array_equal(ds["step_t"].values, r.step_t)
+    np.testing.assert_array_equal(ds["step_h"].values, r.step_h)
+    assert ds["step_t"].values[-1] == r.t_final
+    np.testing.assert_array_equal(ds["pericentre_t"].values, r.events["pericentre"].t)
+    np.testing.assert_array_equal(ds["pericentre_y"].values, r.events["pericentre"].y)
+    assert ds["pericentre_y"].dims == ("pericentre_occurrence", "component")
+    assert ds.sizes["pericentre_occurrence"] == 2
+    assert ds.attrs["step_control"] == "error" and ds.attrs["rtol"] == 1e-12
+    assert ds.attrs["rejected_steps"] == r.stats["rejected_steps"] and ds.attrs["steps"] == r.steps_done
+    # a fixed-step result has none of these
+    fixed = elimfast.integrate(p, methods.ehbvm(8, 4), 0.01, n_steps=10, conserve=CONSERVE).to_xarray()
+    assert "step_h" not in fixed and "step_control" not in fixed.attrs

@@ -9,7 +9,12 @@ from .layout import LONG_NAMES, unit_attributes
 def result_dataset(result):
     """y on (t, component); H and every invariant on t; iterations, substeps and alpha or
     lambda on step (alpha/lambda also on ``invariant``, the invariant of each column).
-    Attributes: problem, method, h, conserve, n_steps, steps_done, status and the units."""
+    Adaptive runs add step_t and step_h on step (a run file's /steps/t and /steps/h), and
+    every event its times ``<name>_t`` on ``<name>_occurrence`` and states ``<name>_y`` on
+    (``<name>_occurrence``, component) (a run file's /events/<name>).
+    Attributes: problem, method, h (adaptive: the first step, also as h_first), conserve,
+    n_steps, steps_done, status and the units; adaptive runs add the step control's
+    settings (step_control, rtol, atol or epsilon, verify) and the counts of Result.stats."""
     try:
         import xarray as xr
     except ImportError:
@@ -31,7 +36,21 @@ def result_dataset(result):
         if values is not None and values.shape[1]:
             coords["invariant"] = ("invariant", np.array(columns, dtype=object), {"long_name": LONG_NAMES["invariant"]})
             data[name] = (("step", "invariant"), np.asarray(values[:done]), {"long_name": LONG_NAMES[name]})
+    if result.step_t is not None:
+        data["step_t"] = ("step", np.asarray(result.step_t[:done]), {"long_name": LONG_NAMES["step_t"]})
+        data["step_h"] = ("step", np.asarray(result.step_h[:done]), {"long_name": LONG_NAMES["step_h"]})
+    for name, record in result.events.items():
+        occurrence = f"{name}_occurrence"
+        data[f"{name}_t"] = (occurrence, np.asarray(record.t), {"long_name": f"time of event {name}"})
+        data[f"{name}_y"] = ((occurrence, "component"), np.asarray(record.y), {"long_name": f"state at event {name}"})
     attrs = {"problem": result.problem.name, "method": result.method.name, "h": float(result.h),
              "conserve": list(result.conserve), "n_steps": int(result.n_steps), "steps_done": int(done),
              "status": result.status, **unit_attributes(result.problem)}
+    control = result.step_control
+    if control is not None:
+        attrs["h_first"] = float(result.h)
+        settings = control.as_dict()
+        attrs["step_control"] = settings.pop("controller")     # the run file's name for it
+        attrs.update({key: value for key, value in settings.items() if value is not None})
+        attrs.update({key: int(value) for key, value in result.stats.items()})
     return xr.Dataset(data, coords=coords, attrs=attrs)
