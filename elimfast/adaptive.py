@@ -14,11 +14,14 @@ from typing import Mapping
 import numpy as np
 
 from .errors import ParameterError
+from .function_addresses import install as _install_function_addresses
 from .kernels import adaptive as kernel
 from .kernels import codes, stepper
 from .kernels.signatures import no_invariants
 from .methods import Method
 from .problems import Problem
+
+_install_function_addresses()   # the problem's function addresses, once per function (function_addresses.py)
 
 CONTROLLERS = {"error": kernel.CONTROL_ERROR, "time_scale": kernel.CONTROL_TIME_SCALE}
 DEFAULT_EPSILON = 0.05

@@ -14,9 +14,12 @@ import numpy as np
 
 from .cache import kernel_folder_used
 from .errors import ConvergenceError, ParameterError
+from .function_addresses import install as _install_function_addresses
 from .kernels import codes, stepper
 from .methods import Method
 from .problems import Problem
+
+_install_function_addresses()   # the problem's function addresses, once per function (function_addresses.py)
 
 # The kernels are loaded (or compiled) from their key folder: mark it used, and prune the
 # key folders of old kernels if it is new (cache.py). Once per process, a few system calls.
