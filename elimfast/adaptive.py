@@ -14,7 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from .errors import ParameterError
-from .function_addresses import install as _install_function_addresses
+from .function_addresses import install as _install_function_addresses, kernel_call
 from .kernels import adaptive as kernel
 from .kernels import codes, stepper
 from .kernels.signatures import no_invariants
@@ -426,19 +426,21 @@ class AdaptiveIntegration:
         event_out = np.zeros(event_capacity, dtype=np.int64)
         event_t, event_y = np.empty(event_capacity), np.empty((event_capacity, dim))
         first = self.steps_done
-        status = kernel.adaptive_loop(
-            p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
-            p.time_scale if p.time_scale is not None else no_invariants, self.events.function,
-            m.kernel_family, solver.code, int(solver.rhs == "stable"), int(solver.warm_start), int(solver.predictor),
-            solver.tol, solver.max_iter, solver.max_halvings,
-            self.h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
-            m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
-            m.newton_weights, self.conserve_idx,
-            self.controls, self.options, self._kernel_t_eval, self.events.directions, self.events.terminal,
-            self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
-            self.control_state, self.counters, max_steps,
-            step_t, step_h, mult_out, iter_out, substeps_out, t_out, y_out, inv_out, event_out, event_t, event_y,
-            self._progress, self.diagnostics)
+        with kernel_call():
+            status = kernel.adaptive_loop(
+                p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
+                p.time_scale if p.time_scale is not None else no_invariants, self.events.function,
+                m.kernel_family, solver.code, int(solver.rhs == "stable"), int(solver.warm_start),
+                int(solver.predictor),
+                solver.tol, solver.max_iter, solver.max_halvings,
+                self.h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
+                m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
+                m.newton_weights, self.conserve_idx,
+                self.controls, self.options, self._kernel_t_eval, self.events.directions, self.events.terminal,
+                self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
+                self.control_state, self.counters, max_steps,
+                step_t, step_h, mult_out, iter_out, substeps_out, t_out, y_out, inv_out, event_out, event_t, event_y,
+                self._progress, self.diagnostics)
         done, samples, found, finished = (int(v) for v in self._progress)
         self.status = int(status)
         self.finished_flag = bool(finished)

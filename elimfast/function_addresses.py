@@ -12,27 +12,46 @@ rtol = 1e-14, 292 steps) 2.6 -> 2.3 ms.
 
 ``install`` wraps the two lookups with a memo per dispatcher and signature. The
 generated code calls them by module attribute on each call, so the wrapped versions are
-the ones used. The signature object a call site passes is the same object every time (Numba
-unpickles it once per call site); a miss only costs the original lookup, and each
-dispatcher's memo is bounded. The memo holds the dispatcher weakly. Numba never frees
-compiled code, so a remembered address always points to valid code; only a
-``Dispatcher.recompile()`` (which elimfast never calls on a problem's functions) would
-leave the memo pointing at the code from before the recompilation. Anything but a
-Dispatcher (cfuncs, objects with ``__wrapper_address__``) goes to Numba's lookup as before.
-If Numba no longer has these functions, ``install`` does nothing.
+the ones used. The memo serves only the calls of elimfast's own kernels, made inside
+``kernel_call()``: the Numba code of the user's program keeps Numba's lookups.
+
+The signature object a call site passes is the same object every time (Numba unpickles it
+once per call site). A miss only costs the original lookup, and each dispatcher's memo is
+bounded. The memo holds the dispatcher weakly. Numba never frees compiled code, so a
+remembered address always points to valid code; only a ``Dispatcher.recompile()`` of a
+problem's function (elimfast never does that) would leave the memo pointing at the code
+from before the recompilation. Anything but a Dispatcher (cfuncs, objects with
+``__wrapper_address__``) goes to Numba's lookup as before. If Numba no longer has these
+functions, ``install`` does nothing.
 """
 from __future__ import annotations
 
+import threading
 import weakref
 
 MAX_SIGNATURES = 64   # per dispatcher: more means the call sites' signature objects are not reused
+
+_calls = threading.local()   # .depth > 0 inside kernel_call() in this thread
+
+
+class kernel_call:
+    """``with kernel_call(): kernel(...)``: the memo serves this thread's calls in the block."""
+
+    __slots__ = ()
+
+    def __enter__(self):
+        _calls.depth = getattr(_calls, "depth", 0) + 1
+
+    def __exit__(self, *exc):
+        _calls.depth -= 1
+        return False
 
 
 def _memoised(resolve, dispatcher_type):
     memo: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
     def lookup(func, sig):
-        if not isinstance(func, dispatcher_type):
+        if not getattr(_calls, "depth", 0) or not isinstance(func, dispatcher_type):
             return resolve(func, sig)
         per_signature = memo.get(func)
         if per_signature is not None:
@@ -70,4 +89,4 @@ def install() -> bool:
     return installed
 
 
-__all__ = ["install", "MAX_SIGNATURES"]
+__all__ = ["install", "kernel_call", "MAX_SIGNATURES"]

@@ -14,7 +14,7 @@ import numpy as np
 
 from .cache import kernel_folder_used
 from .errors import ConvergenceError, ParameterError
-from .function_addresses import install as _install_function_addresses
+from .function_addresses import install as _install_function_addresses, kernel_call
 from .kernels import codes, stepper
 from .methods import Method
 from .problems import Problem
@@ -551,11 +551,12 @@ class Integration:
         substeps_out = np.zeros(n_run, dtype=np.int64)
         if n_run <= 0 or self.status != codes.STATUS_OK:
             return Chunk(t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self.steps_done, self.status)
-        status = stepper.time_loop(
-            *self.kernel_settings(),
-            self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
-            self.steps_done, n_run, self.n_steps, self.store_every,
-            t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self._progress, self.diagnostics)
+        with kernel_call():
+            status = stepper.time_loop(
+                *self.kernel_settings(),
+                self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
+                self.steps_done, n_run, self.n_steps, self.store_every,
+                t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self._progress, self.diagnostics)
         done, samples = int(self._progress[0]), int(self._progress[1])
         first = self.steps_done
         self.steps_done += done

@@ -4,6 +4,7 @@ bit for bit the ones Numba's own lookups give."""
 import math
 
 import numpy as np
+from numba import njit, types
 from numba.experimental import function_type
 
 import elimfast
@@ -78,10 +79,37 @@ def test_the_memo_is_bounded_when_signature_objects_are_not_reused():
         pass
 
     func = type("F", (), {})()
-    for _ in range(3 * function_addresses.MAX_SIGNATURES):
-        assert lookup(func, Sig()) == 1234
-    assert len(lookup.elimfast_memo[func]) <= function_addresses.MAX_SIGNATURES
-    same = Sig()
-    lookup(func, same)
-    lookup(func, same)
+    with function_addresses.kernel_call():
+        for _ in range(3 * function_addresses.MAX_SIGNATURES):
+            assert lookup(func, Sig()) == 1234
+        assert len(lookup.elimfast_memo[func]) <= function_addresses.MAX_SIGNATURES
+        same = Sig()
+        lookup(func, same)
+        lookup(func, same)
     assert seen.count(same) == 1
+
+
+def test_the_memo_serves_only_elimfasts_kernel_calls(monkeypatch):
+    """Numba code of the user's own that takes first-class functions keeps Numba's lookups,
+    call after call (a recompiled function of theirs is then never served stale code)."""
+    calls = _counting(monkeypatch)
+    signature = types.float64(types.float64)
+
+    @njit(signature)
+    def square(x):
+        return x * x
+
+    @njit(types.float64(types.FunctionType(signature), types.float64))
+    def apply(f, x):
+        return f(x)
+
+    assert apply(square, 3.0) == 9.0
+    first = len(calls)
+    assert first > 0
+    assert apply(square, 4.0) == 16.0
+    assert len(calls) == 2 * first          # resolved again: no memo outside kernel_call()
+    with function_addresses.kernel_call():
+        apply(square, 5.0)
+        inside = len(calls)
+        apply(square, 6.0)
+        assert len(calls) == inside         # inside: from the memo
