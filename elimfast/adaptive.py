@@ -365,7 +365,8 @@ class AdaptiveIntegration:
     def failure_message(self) -> str:
         from .integrate import failure_message
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
-                               float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics)
+                               float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics,
+                               adaptive=self.control is not None)
 
     @property
     def t(self) -> float:

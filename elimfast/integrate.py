@@ -60,6 +60,14 @@ _FAILURE_ADVICE = {
                             "impose fewer or other invariants, or change h"),
     codes.STATUS_NONFINITE: "reduce h; check the initial state and the problem's singularities",
 }
+# Adaptive runs choose h themselves: the step control has shrunk it already.
+_ADAPTIVE_FAILURE_ADVICE = {
+    codes.STATUS_NOT_CONVERGED: ("the step control found no step that converges; raise solver.max_iter, or use "
+                                 "a lower s (docs/adaptive.md measures s <= 6)"),
+    codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
+                            "impose fewer or other invariants, or use a lower s (docs/adaptive.md measures s <= 6)"),
+    codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
+}
 STATUS_NAMES = {
     codes.STATUS_OK: "ok",
     codes.STATUS_NOT_CONVERGED: "not converged",
@@ -579,8 +587,9 @@ class Integration:
 
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
-                    diagnostics) -> str:
-    """The one-line report of a step that failed at every level of splitting (docs/solver.md)."""
+                    diagnostics, adaptive: bool = False) -> str:
+    """The one-line report of a step that failed at every level of splitting (docs/solver.md);
+    adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -593,8 +602,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
     if d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
-    advice = _FAILURE_ADVICE[status]
-    if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS:
+    advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
+    if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = (f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now); "
                   "a failed run can be continued with --resume after changing solver settings")
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
@@ -735,8 +744,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
         chunks.append(run.advance(chunk_steps))
     result = run.result(chunks)
     if run.status != codes.STATUS_OK:
-        message = failure_message(method, solver, run.status, run.steps_done + 1, run.t,
-                                  float(run.diagnostics[stepper.DIAG_STEP]), run.diagnostics)
+        message = run.failure_message()
         result.status = "failed: " + message
         raise ConvergenceError(message, step=run.steps_done + 1, time=run.t, result=result,
                                reason=STATUS_NAMES[run.status])

@@ -385,3 +385,20 @@ def test_slow_solves_keep_the_step_from_growing_into_failures():
     # the steps still adapt over the orbit, and the invariants hold
     assert r.step_h.max() / r.step_h.min() > 50
     assert max_invariant_error(r, (L1,)) <= 1e-13
+
+
+def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
+    """EHBVM(20,10) imposing L and A_y on Kepler e = 0.9: the step control shrinks the step
+    until Gamma is singular (docs/adaptive.md: s <= 6 is the measured range). The message
+    must not tell the user to change an h the run chooses itself; a fixed-step failure
+    still does."""
+    from elimfast.errors import ConvergenceError
+    p = kepler(0.9)
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(p, ehbvm(20, 10), t_end=1.0, rtol=1e-13, conserve=(L1, AY))
+    message = str(failed.value)
+    assert "singular" in message and "lower s" in message and "change h" not in message, message
+    assert failed.value.result.status.startswith("failed: ")
+    with pytest.raises(ConvergenceError) as fixed:
+        elimfast.integrate(kepler(0.6), ehbvm(20, 10), 0.3, n_steps=1000, conserve=(L1, AY))
+    assert "change h" in str(fixed.value)
