@@ -14,7 +14,6 @@ One step of any family goes through ``try_step`` (docs/methods.md#round-off-over
 ``time_loop`` (a run, with samples) and the ensemble kernel (many runs) both call it,
 so an ensemble member is bit for bit the run ``elimfast.integrate`` makes.
 """
-import math
 import warnings
 
 import numpy as np
@@ -182,35 +181,26 @@ def _initial_guess(tables, settings, work, h, h_prev, cold, coef, mult):
 @njit(cache=True, inline="always", error_model="numpy")
 def _newton_point(tables, work, y, h, coef, at_start):
     """Where the Newton matrix takes its Jacobian J0 (docs/solver.md): the middle of the
-    predicted step, u(h/2) = y + h sum_j coef_j int_0^(1/2) P_j, into work.newton_point; y
+    predicted step, u(h/2) = y + h int_0^(1/2) sum_j coef_j P_j, into work.newton_point; y
     itself when there is no prediction (at_start).
 
     The Jacobian at the middle of the step is a second-order approximation of the map's
     over the step (the one at y is first-order). Measured, iterations per step: Kepler
     e = 0.9 over 10 periods, adaptive at rtol = 1e-14, HBVM(12,6) 6.22 -> 5.43 and
     HBVM(8,4) 4.50 -> 4.02; e = 0.6, h = 0.1, HBVM(12,3) 4.80 -> 4.65, GHBVM(12,3) 4.97 ->
-    4.71, EHBVM(12,3) 5.36 -> 5.26. ELIM barely gains (EHBVM(8,4) adaptive: 5.86 -> 5.89):
+    4.73, EHBVM(12,3) 5.36 -> 5.26. ELIM barely gains (EHBVM(8,4) adaptive: 5.86 -> 5.89):
     what slows its iteration is alpha's dependence on the stages, which M ignores.
     """
     point = work.newton_point
     _copy(y, point)
     if at_start:
         return
-    s = coef.shape[0]
-    # int_0^(1/2) P_j = 1/2 for j = 0, else (L_(j+1)(0) - L_(j-1)(0)) / (2 sqrt(2j+1)) with the
-    # Legendre values L_n(0) = -(n-1)/n L_(n-2)(0): zero for even j (P_j symmetric about 1/2).
-    weights = work.predictor_points      # (s + 1,): free until the next extrapolate
-    legendre_before, legendre_at = 1.0, 0.0      # L_(j-1)(0), L_j(0) for j = 1
-    weights[0] = 0.5
-    for j in range(1, s):
-        legendre_after = -j / (j + 1.0) * legendre_before      # L_(j+1)(0)
-        weights[j] = (legendre_after - legendre_before) / (2.0 * math.sqrt(2.0 * j + 1.0))
-        legendre_before, legendre_at = legendre_at, legendre_after
+    # The step restricted to its first half, as dense output's side steps take it: its
+    # coefficient 0 is the mean of u' over [0, h/2], so u(h/2) = y + h/2 half_0.
+    half = work.new_coef      # free until the solve's first map writes it
+    extrapolate(tables, work, 0.0, 0.5, coef, half)
     for p in range(point.shape[0]):
-        acc = 0.0
-        for j in range(s):
-            acc += weights[j] * coef[j, p]
-        point[p] += h * acc
+        point[p] += 0.5 * h * half[0, p]
 
 
 @njit(cache=True, inline="always", error_model="numpy")
