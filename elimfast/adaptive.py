@@ -14,14 +14,12 @@ from typing import Mapping
 import numpy as np
 
 from .errors import ParameterError
-from .function_addresses import install as _install_function_addresses, kernel_call
+from .function_addresses import remembered_addresses
 from .kernels import adaptive as kernel
 from .kernels import codes, stepper
 from .kernels.signatures import no_invariants
 from .methods import Method
 from .problems import Problem
-
-_install_function_addresses()   # the problem's function addresses, once per function (function_addresses.py)
 
 CONTROLLERS = {"error": kernel.CONTROL_ERROR, "time_scale": kernel.CONTROL_TIME_SCALE}
 DEFAULT_EPSILON = 0.05
@@ -427,7 +425,7 @@ class AdaptiveIntegration:
         event_out = np.zeros(event_capacity, dtype=np.int64)
         event_t, event_y = np.empty(event_capacity), np.empty((event_capacity, dim))
         first = self.steps_done
-        with kernel_call():
+        with remembered_addresses():
             status = kernel.adaptive_loop(
                 p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
                 p.time_scale if p.time_scale is not None else no_invariants, self.events.function,

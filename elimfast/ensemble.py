@@ -27,7 +27,7 @@ from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
 from .kernels import stepper
 from .kernels.codes import STATUS_EXCEPTION
-from .function_addresses import kernel_call
+from .function_addresses import remembered_addresses
 from .kernels.ensemble import ensemble_loop
 from .methods import Method
 from .problems import Problem
@@ -240,7 +240,7 @@ class EnsembleRun:
         from .streaming import current_watchdog
         watchdog = current_watchdog()
         try:
-            with watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext(), kernel_call():
+            with watchdog.kernel_call() if watchdog is not None else contextlib.nullcontext(), remembered_addresses():
                 ensemble_loop(
                     *run.kernel_settings(),
                     states, self.t0, run.n_steps, run.multipliers.size, threads,

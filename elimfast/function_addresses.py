@@ -13,7 +13,8 @@ rtol = 1e-14, 292 steps) 2.6 -> 2.3 ms.
 ``install`` wraps the two lookups with a memo per dispatcher and signature. The
 generated code calls them by module attribute on each call, so the wrapped versions are
 the ones used. The memo serves only the calls of elimfast's own kernels, made inside
-``kernel_call()``: the Numba code of the user's program keeps Numba's lookups.
+``remembered_addresses()``: the Numba code of the user's program keeps Numba's lookups.
+Importing this module installs it (the modules that call the kernels import it).
 
 The signature object a call site passes is the same object every time (Numba unpickles it
 once per call site). A miss only costs the original lookup, and each dispatcher's memo is
@@ -31,11 +32,11 @@ import weakref
 
 MAX_SIGNATURES = 64   # per dispatcher: more means the call sites' signature objects are not reused
 
-_calls = threading.local()   # .depth > 0 inside kernel_call() in this thread
+_calls = threading.local()   # .depth > 0 inside remembered_addresses() in this thread
 
 
-class kernel_call:
-    """``with kernel_call(): kernel(...)``: the memo serves this thread's calls in the block."""
+class remembered_addresses:
+    """``with remembered_addresses(): kernel(...)``: the memo serves this thread's kernel calls in the block."""
 
     __slots__ = ()
 
@@ -89,4 +90,6 @@ def install() -> bool:
     return installed
 
 
-__all__ = ["install", "kernel_call", "MAX_SIGNATURES"]
+install()
+
+__all__ = ["install", "remembered_addresses", "MAX_SIGNATURES"]

@@ -14,12 +14,10 @@ import numpy as np
 
 from .cache import kernel_folder_used
 from .errors import ConvergenceError, ParameterError
-from .function_addresses import install as _install_function_addresses, kernel_call
+from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
 from .methods import Method
 from .problems import Problem
-
-_install_function_addresses()   # the problem's function addresses, once per function (function_addresses.py)
 
 # The kernels are loaded (or compiled) from their key folder: mark it used, and prune the
 # key folders of old kernels if it is new (cache.py). Once per process, a few system calls.
@@ -559,7 +557,7 @@ class Integration:
         substeps_out = np.zeros(n_run, dtype=np.int64)
         if n_run <= 0 or self.status != codes.STATUS_OK:
             return Chunk(t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self.steps_done, self.status)
-        with kernel_call():
+        with remembered_addresses():
             status = stepper.time_loop(
                 *self.kernel_settings(),
                 self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,

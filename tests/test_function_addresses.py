@@ -79,7 +79,7 @@ def test_the_memo_is_bounded_when_signature_objects_are_not_reused():
         pass
 
     func = type("F", (), {})()
-    with function_addresses.kernel_call():
+    with function_addresses.remembered_addresses():
         for _ in range(3 * function_addresses.MAX_SIGNATURES):
             assert lookup(func, Sig()) == 1234
         assert len(lookup.elimfast_memo[func]) <= function_addresses.MAX_SIGNATURES
@@ -107,8 +107,8 @@ def test_the_memo_serves_only_elimfasts_kernel_calls(monkeypatch):
     first = len(calls)
     assert first > 0
     assert apply(square, 4.0) == 16.0
-    assert len(calls) == 2 * first          # resolved again: no memo outside kernel_call()
-    with function_addresses.kernel_call():
+    assert len(calls) == 2 * first          # resolved again: no memo outside remembered_addresses()
+    with function_addresses.remembered_addresses():
         apply(square, 5.0)
         inside = len(calls)
         apply(square, 6.0)
