@@ -443,7 +443,11 @@ def long_time(repeats):
 # --- eccentric orbits: adaptive elimfast (issue 11, item 8) ------------------------------
 ECCENTRIC = (0.9, 0.99)
 PERIODS_SHORT, PERIODS_LONG = 10, 1000
-ADAPTIVE_METHODS = ((hbvm(8, 4), ()), (hbvm(10, 5), ()), (hbvm(12, 6), ()), (ehbvm(8, 4), CONSERVE))
+# (method, conserve, verify): HBVM(12,6) with the cheap estimate, which elimfast does not trust above
+# s = 5 (it uses step doubling there unless told, docs/adaptive.md): at these tight tolerances it holds,
+# and every run here is judged by its error against the exact solution anyway.
+ADAPTIVE_METHODS = ((hbvm(8, 4), (), None), (hbvm(10, 5), (), None), (hbvm(12, 6), (), False),
+                    (ehbvm(8, 4), CONSERVE, None))
 ADAPTIVE_RTOLS = (1e-9, 1e-10, 1e-11, 1e-12, 1e-13, 1e-14)
 TIME_SCALE_METHODS = ((hbvm(8, 4), ()), (ehbvm(8, 4), CONSERVE))
 TIME_SCALE_EPSILONS = (0.1, 0.05, 0.02, 0.01)
@@ -462,17 +466,19 @@ class AdaptiveRun:
     """elimfast with adaptive steps: rtol (error controller) or epsilon (time_scale)."""
     family = "elimfast adaptive"
 
-    def __init__(self, method, conserve=(), rtol=None, epsilon=None, orbit=E06):
+    def __init__(self, method, conserve=(), rtol=None, epsilon=None, orbit=E06, verify=None):
         self.method, self.conserve, self.rtol, self.epsilon, self.orbit = method, tuple(conserve), rtol, epsilon, orbit
-        self.label = f"{method.name}{imposed(conserve)}" + (" time_scale" if epsilon is not None else "")
+        self.verify = verify
+        self.label = (f"{method.name}{imposed(conserve)}" + (" time_scale" if epsilon is not None else "")
+                      + {None: "", False: " cheap estimate", True: " step doubling"}[verify])
         self.stats = None
 
     def setting(self):
         return f"rtol = {self.rtol:.0e}" if self.epsilon is None else f"epsilon = {self.epsilon:g}"
 
     def _integrate(self, T, store_every):
-        control = {"rtol": self.rtol} if self.epsilon is None else {"step_control": "time_scale",
-                                                                    "epsilon": self.epsilon}
+        control = ({"rtol": self.rtol, "verify": self.verify} if self.epsilon is None
+                   else {"step_control": "time_scale", "epsilon": self.epsilon})
         return elimfast.integrate(self.orbit.problem, self.method, t_end=T, conserve=self.conserve,
                                   store_every=store_every, **control)
 
@@ -501,8 +507,8 @@ def labelled(run, family):
 
 def eccentric_runs(orbit):
     runs = []
-    for method, conserve in ADAPTIVE_METHODS:
-        runs += [AdaptiveRun(method, conserve, rtol=rtol, orbit=orbit) for rtol in ADAPTIVE_RTOLS]
+    for method, conserve, verify in ADAPTIVE_METHODS:
+        runs += [AdaptiveRun(method, conserve, rtol=rtol, orbit=orbit, verify=verify) for rtol in ADAPTIVE_RTOLS]
     for method, conserve in TIME_SCALE_METHODS:
         runs += [AdaptiveRun(method, conserve, epsilon=eps, orbit=orbit) for eps in TIME_SCALE_EPSILONS]
     for method, conserve in FIXED_METHODS:
@@ -570,7 +576,7 @@ def head_to_head(rows, rounds):
 def eccentric_long_runs(orbit):
     runs = [AdaptiveRun(ehbvm(8, 4), CONSERVE, rtol=1e-14, orbit=orbit),
             AdaptiveRun(hbvm(8, 4), (), rtol=1e-14, orbit=orbit),
-            AdaptiveRun(hbvm(12, 6), (), rtol=1e-14, orbit=orbit),
+            AdaptiveRun(hbvm(12, 6), (), rtol=1e-14, orbit=orbit, verify=False),
             AdaptiveRun(hbvm(8, 4), (), epsilon=0.05, orbit=orbit),
             AdaptiveRun(ehbvm(8, 4), CONSERVE, epsilon=0.05, orbit=orbit)]
     if orbit.e == 0.9:

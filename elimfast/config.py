@@ -504,8 +504,7 @@ class _Builder:
                     method_parameters["r"] = method_parameters["k"]
             method = methods.get(config.method.name, **method_parameters)
             if adaptive:
-                step_control = self.step_control(integration)
-                step_control.check_method(method)
+                step_control = self.step_control(integration).for_method(method, len(config.conserve))
                 from .adaptive import resolve_span
                 t0 = integration.t0
                 t_end = resolve_span(t0, integration.t_end, integration.n_steps)

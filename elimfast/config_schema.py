@@ -94,7 +94,7 @@ class IntegrationSection(_Section):
     atol: Number | None = None
     step_control: Literal["error", "time_scale"] | None = None
     epsilon: Number | None = None
-    verify: StrictBool = False
+    verify: StrictBool | None = None   # None: step doubling where the cheap estimate is not trusted
     h_max: Number | None = None
 
 

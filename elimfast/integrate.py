@@ -614,13 +614,15 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
               y0=None, backward: bool = False, chunk_steps: int = DEFAULT_CHUNK_STEPS,
               solver: str | SolverSettings = DEFAULT_SOLVER, predictor: bool = True,
               max_halvings: int = DEFAULT_MAX_HALVINGS, rtol: float | None = None, atol: float | None = None,
-              step_control: str | None = None, epsilon: float | None = None, verify: bool = False,
+              step_control: str | None = None, epsilon: float | None = None, verify: bool | None = None,
               h_max: float | None = None, t_eval=None, events=None) -> Result:
     """Integrate ``problem`` with ``method``; return a Result.
 
     Fixed steps: give h. Adaptive steps (docs/adaptive.md): give rtol (error-controlled
     steps; atol defaults to rtol, h is then only the first step, chosen from the problem
-    when absent; verify=True estimates by step doubling), or step_control='time_scale'
+    when absent; verify=True estimates by step doubling, verify=False by the cheap estimate,
+    the default None by step doubling where the cheap estimate is not trusted: s > 5, unless
+    ELIM imposes invariants), or step_control='time_scale'
     with epsilon (time-reversible steps for problems with a time scale). Adaptive runs
     take t_end and land on it exactly. t_eval: times at which to sample the solution
     (side steps of the method itself: the integrator's accuracy, every invariant kept);
@@ -724,7 +726,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     solver = solver.resolved_for(method, len(names))
     store_every = resolve_store_every(store_every)
     if control is not None:
-        control.check_method(method)
+        control = control.for_method(method, len(names))
         control.check_problem(problem)
         t_end = resolve_span(float(t0), t_end, n_steps)
     else:

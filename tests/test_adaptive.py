@@ -288,6 +288,39 @@ def test_state_round_trip_resumes_bit_for_bit():
     assert np.array_equal(resumed.y, whole.y) and np.array_equal(resumed.counters, whole.counters)
 
 
+@pytest.mark.parametrize("method, n_imposed, verify, expected", [
+    (hbvm(8, 4), 0, None, False), (hbvm(10, 5), 0, None, False),      # the cheap estimate's range
+    (hbvm(12, 6), 0, None, True), (ghbvm(12, 6), 2, None, True),      # above it: step doubling
+    (ehbvm(12, 6), 0, None, True),                                    # EHBVM imposing nothing is HBVM
+    (ehbvm(12, 6), 2, None, False),                                   # ELIM imposing: the solver bounds its steps
+    (gauss(6), 0, None, True),                                        # k = s needs doubling anyway
+    (hbvm(12, 6), 0, False, False), (hbvm(8, 4), 0, True, True),      # the user's choice stands
+])
+def test_verify_left_to_elimfast_uses_step_doubling_above_s5(method, n_imposed, verify, expected):
+    control = StepControl(rtol=1e-10, verify=verify).for_method(method, n_imposed)
+    assert control.verify is expected
+    assert control.for_method(method, n_imposed) == control
+
+
+def test_gauss_with_the_cheap_estimate_is_refused():
+    with pytest.raises(ParameterError, match="k = s"):
+        StepControl(rtol=1e-10).for_method(gauss(4), 0)
+    with pytest.raises(ParameterError, match="k = s"):
+        StepControl(rtol=1e-10, verify=False).for_method(gauss(6), 0)
+
+
+def test_default_keeps_high_s_runs_near_their_tolerance():
+    """docs/adaptive.md: above s = 5 the cheap estimate let HBVM(12,6) end 0.37 from the exact
+    state (Kepler e = 0.9, 10 periods, rtol 1e-6) where step doubling ends 2e-5 from it; the
+    default now doubles there, and says so in the run's settings."""
+    p = kepler(0.9)
+    default = elimfast.integrate(p, hbvm(12, 6), t_end=10 * PERIOD, rtol=1e-6, store_every=10 ** 6)
+    cheap = elimfast.integrate(p, hbvm(12, 6), t_end=10 * PERIOD, rtol=1e-6, verify=False, store_every=10 ** 6)
+    assert np.max(np.abs(default.y_final - p.y0)) <= 1e-3
+    assert np.max(np.abs(cheap.y_final - p.y0)) > 1e-2      # why: the cheap estimate fails here
+    assert default.to_xarray().attrs["verify"] is True and cheap.to_xarray().attrs["verify"] is False
+
+
 def test_verify_uses_step_doubling():
     p = kepler(0.6)
     cheap = elimfast.integrate(p, ehbvm(8, 4), t_end=PERIOD, rtol=1e-11)
