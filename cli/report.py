@@ -43,19 +43,16 @@ def config_of(run_file) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-def energy_note(attrs, drift: dict, initial: dict) -> str | None:
+def energy_note(attrs, drift: dict, initial: dict, adaptive: bool) -> str | None:
     """Spec 8, "Quadrature of H": a method that should keep H but lost more than round-off
     (relative 1e-12) keeps it only up to the quadrature error of its k nodes at this h."""
-    from elimfast.integrate import H_WARNING_RELATIVE, relative_error
+    from elimfast.integrate import energy_note as note, relative_error
 
     error = drift.get("H", math.nan)
     if not math.isfinite(error):
         return None
     relative = relative_error(error, initial.get("H", math.nan))
-    if not relative > H_WARNING_RELATIVE:
-        return None
-    return (f"H error {relative:.1e} (relative) is above round-off: {attrs.get('method')} keeps H only up to the "
-            f"quadrature error of its k = {attrs.get('k')} nodes at h = {attrs.get('h')}; raise k or reduce h")
+    return note(attrs.get("method"), attrs.get("k"), attrs.get("h"), relative, adaptive)
 
 
 def run_notes(run_file) -> list[str]:
@@ -65,7 +62,8 @@ def run_notes(run_file) -> list[str]:
     if substeps["split"]:
         notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
                      "solver could not converge them whole; every invariant is kept there too")
-    warning = energy_note(run_file.attrs, run_file.invariant_drift(), run_file.initial_invariants())
+    warning = energy_note(run_file.attrs, run_file.invariant_drift(), run_file.initial_invariants(),
+                          run_file.adaptive)
     if warning:
         notes.append(warning)
     return notes
@@ -169,7 +167,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
-    warning = energy_note(a, drift, initial)
+    warning = energy_note(a, drift, initial, run_file.adaptive)
     if warning:
         row("note", warning)
     labels = run_file.multiplier_labels()

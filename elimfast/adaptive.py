@@ -65,7 +65,11 @@ class StepControl:
             if not MIN_RTOL <= rtol <= MAX_RTOL:
                 raise ParameterError("rtol", f"must be between {MIN_RTOL:g} and {MAX_RTOL:g}, got {rtol:g}")
             object.__setattr__(self, "rtol", rtol)
-            object.__setattr__(self, "atol", rtol if self.atol is None else _positive("atol", self.atol, zero=True))
+            if self.atol is not None and self.atol == 0:
+                raise ParameterError("atol", "must be positive: with atol = 0 a component that is zero at both ends "
+                                             "of a step has no scale; leave it out (atol = rtol) or give a small "
+                                             "positive value")
+            object.__setattr__(self, "atol", rtol if self.atol is None else _positive("atol", self.atol))
             if self.epsilon is not None:
                 raise ParameterError("epsilon", "belongs to step_control = 'time_scale'; the error controller takes "
                                                 "rtol (and atol)")
@@ -153,13 +157,13 @@ def resolve_t_eval(times, t0: float, t_end: float) -> np.ndarray:
     return values
 
 
-def _positive(name: str, value, zero: bool = False) -> float:
+def _positive(name: str, value) -> float:
     try:
         number = float(value)
     except (TypeError, ValueError):
         raise ParameterError(name, f"must be a number, got {value!r}") from None
-    if not (math.isfinite(number) and (number > 0.0 or (zero and number == 0.0))):
-        raise ParameterError(name, f"must be a {'non-negative' if zero else 'positive'} finite number, got {value!r}")
+    if not (math.isfinite(number) and number > 0.0):
+        raise ParameterError(name, f"must be a positive finite number, got {value!r}")
     return number
 
 
@@ -241,8 +245,13 @@ class AdaptiveChunk:
 
 def initial_step(problem: Problem, method: Method, y0: np.ndarray, rtol: float, atol: float) -> float:
     """A first step from the problem (Hairer, Norsett & Wanner, Solving ODEs I, II.4): the
-    controller corrects it within a few steps."""
-    weights = atol + rtol * np.abs(y0)
+    controller corrects it within a few steps.
+
+    A component that starts at zero (Kepler's q2 and p1) is weighed at least by 1e-3 of the
+    state's size: with a tiny atol its weight alone made the guess 1e-9 (atol 1e-20), a step
+    at which ELIM's Gamma underflows; the kernel's norm, which takes max(|y0|, |y1|), needs
+    no such floor after the first step."""
+    weights = np.maximum(atol + rtol * np.abs(y0), 1e-3 * rtol * np.max(np.abs(y0)))
     m = problem.degrees_of_freedom
 
     def f(y):

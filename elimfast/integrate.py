@@ -66,6 +66,13 @@ _ADAPTIVE_FAILURE_ADVICE = {
                             "impose fewer or other invariants, or use a lower s (docs/adaptive.md measures s <= 6)"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
 }
+# A solve that stalls with cond(Gamma) above this is blamed on Gamma, not on h (failure_message).
+# Measured: well-posed steps have cond(Gamma) 8-30, up to 4e3 next to a pericentre; Kepler's L with A_x
+# (gradients dependent at the apsides) stalled at 6e8.
+NEARLY_SINGULAR_GAMMA = 1e6
+_NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
+                           "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
+                           "other invariants, whose gradients stay independent along the orbit")
 STATUS_NAMES = {
     codes.STATUS_OK: "ok",
     codes.STATUS_NOT_CONVERGED: "not converged",
@@ -253,7 +260,7 @@ class Result:
 
     def energy_warning(self) -> str | None:
         """A note when H drifts above round-off for a method that keeps H (k too small), else None."""
-        return energy_warning(self.method, self.h, self.invariants["H"])
+        return energy_warning(self.method, self.h, self.invariants["H"], adaptive=self.step_control is not None)
 
     def __repr__(self) -> str:
         errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
@@ -290,7 +297,7 @@ def relative_error(error: float, initial: float, scale: float = 0.0) -> float:
     return float(error) / relative_reference(initial, scale)[0]
 
 
-def energy_warning(method: Method, h: float, H_values) -> str | None:
+def energy_warning(method: Method, h: float, H_values, adaptive: bool = False) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s. Returns a
     one-line note when max |H - H0| / |H0| exceeds H_WARNING_RELATIVE, else None."""
@@ -298,10 +305,19 @@ def energy_warning(method: Method, h: float, H_values) -> str | None:
     if values.size < 2:
         return None
     relative = relative_error(float(np.max(np.abs(values - values[0]))), float(values[0]))
+    return energy_note(method.name, method.k, h, relative, adaptive)
+
+
+def energy_note(method_name: str, k, h, relative: float, adaptive: bool) -> str | None:
+    """The note of energy_warning (and of the run files' summaries, cli/report.py) for a relative
+    H error; None at round-off. An adaptive run's h is only its first step: there the largest
+    steps, which rtol and h_max bound, lose H."""
     if not relative > H_WARNING_RELATIVE:
         return None
-    return (f"H error {relative:.1e} (relative) is above round-off: {method.name} keeps H only up to the "
-            f"quadrature error of its k = {method.k} nodes at h = {h:g}; raise k or reduce h")
+    where = (f"at h = {h:g}; raise k or reduce h" if not adaptive
+             else "at the largest steps the step control allows; raise k, tighten rtol (or epsilon) or set h_max")
+    return (f"H error {relative:.1e} (relative) is above round-off: {method_name} keeps H only up to the "
+            f"quadrature error of its k = {k} nodes {where}")
 
 
 def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) -> tuple[tuple[str, ...], np.ndarray]:
@@ -601,7 +617,11 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
-    if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
+    if status == codes.STATUS_NOT_CONVERGED and d[stepper.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA and depth > 0:
+        # Still nearly singular after halving: not a step symmetric about a pericentre (docs/solver.md),
+        # whose halves are well-conditioned.
+        advice = _NEARLY_SINGULAR_ADVICE
+    elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = (f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now); "
                   "a failed run can be continued with --resume after changing solver settings")
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"

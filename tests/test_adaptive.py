@@ -302,6 +302,17 @@ def test_verify_left_to_elimfast_uses_step_doubling_above_s5(method, n_imposed, 
     assert control.for_method(method, n_imposed) == control
 
 
+def test_atol_zero_is_refused_and_a_tiny_atol_still_runs():
+    """A tester's atol = 0 ran into 0/0 in the first-step guess and a 'singular Gamma' at
+    t = 0; atol = 1e-20 made a first step of 1e-9 that ELIM halved to 1.8e-21 and failed."""
+    with pytest.raises(ParameterError, match="atol.*positive"):
+        StepControl(rtol=1e-10, atol=0.0)
+    p = kepler(0.9)
+    r = elimfast.integrate(p, ehbvm(8, 4), t_end=2 * PERIOD, rtol=1e-13, atol=1e-20, conserve=(L1, AY))
+    assert r.status == "complete" and r.step_h[0] > 1e-6
+    assert np.max(np.abs(r.y_final - p.y0)) <= 1e-9
+
+
 def test_gauss_with_the_cheap_estimate_is_refused():
     with pytest.raises(ParameterError, match="k = s"):
         StepControl(rtol=1e-10).for_method(gauss(4), 0)
@@ -418,6 +429,19 @@ def test_slow_solves_keep_the_step_from_growing_into_failures():
     # the steps still adapt over the orbit, and the invariants hold
     assert r.step_h.max() / r.step_h.min() > 50
     assert max_invariant_error(r, (L1,)) <= 1e-13
+
+
+def test_a_stall_where_gamma_is_nearly_singular_is_not_blamed_on_h():
+    """EHBVM(12,3) imposing L and A_x on Kepler e = 0.6: their gradients become dependent at the
+    apsides, where Gamma is nearly singular (cond 6e8 at the failing substep) and the solve
+    stalls at every halving. The message used to say "reduce h, or allow more step halvings",
+    neither of which helps (a tester tried both)."""
+    from elimfast.errors import ConvergenceError
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, t_end=4.0, conserve=(L1, AX))
+    message = str(failed.value)
+    assert "nearly singular" in message and "cond(Gamma)" in message, message
+    assert "reduce h" not in message and "halvings (" not in message, message
 
 
 def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():

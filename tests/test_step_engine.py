@@ -198,6 +198,15 @@ def test_energy_warning_names_k_and_h_when_quadrature_loses_H():
     assert fine.energy_warning() is None
 
 
+def test_energy_warning_of_an_adaptive_run_speaks_of_rtol_not_of_its_first_step():
+    """A tester's adaptive run at rtol 1e-6 lost H to 2e-9 and the note quoted h = 0.0081, the
+    first step, while its largest steps were 1.7; it must name what bounds those steps."""
+    p = kepler(0.9)
+    loose = elimfast.integrate(p, ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-6, conserve=("angular_momentum", "lrl_y"))
+    warning = loose.energy_warning()
+    assert warning is not None and "rtol" in warning and "h_max" in warning and "h = " not in warning, warning
+
+
 def test_result_repr_is_a_short_summary():
     result = elimfast.integrate(kepler(0.6), hbvm(6, 3), 0.1, n_steps=10)
     text = repr(result)

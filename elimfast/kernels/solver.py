@@ -389,6 +389,10 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
 
     info[0], info[1], info[2], info[3] = d, 0.0, iteration, band
     if not accepted:
+        if not is_lim and nu > 0 and singular == 0 and not plain_sweep:
+            # For the failure's message: an iteration that stalls where Gamma is nearly singular
+            # (Assumption 1 failing, e.g. Kepler's L with A_x at the apsides) is not cured by smaller steps.
+            info[1] = condition_number(work, nu, False)
         return STATUS_NOT_CONVERGED, iteration
     if is_lim or nu == 0 or (cold and iteration <= 2):
         return STATUS_OK, iteration
