@@ -431,6 +431,22 @@ def test_slow_solves_keep_the_step_from_growing_into_failures():
     assert max_invariant_error(r, (L1,)) <= 1e-13
 
 
+def test_an_event_on_the_state_compiles_once_for_a_parameter_scan():
+    """A tester's eccentricity scan recompiled the same event module for every value: its cache
+    key held every numeric parameter of the problem, used or not."""
+    from elimfast.adaptive import EventSpec
+    first = EventSpec.build(kepler(0.58), {"x": {"expression": "q1*p1 + q2*p2"}})
+    second = EventSpec.build(kepler(0.59), {"x": {"expression": "q1*p1 + q2*p2"}})
+    assert first.function is second.function
+    # a parameter the expression does use still makes its own function
+    uses = [EventSpec.build(kepler(e), {"x": {"expression": "q1 - eccentricity"}}).function for e in (0.58, 0.59)]
+    assert uses[0] is not uses[1]
+    y = np.array([0.5, 0.0, 0.0, 1.0])
+    out = np.zeros(1)
+    uses[1](y, np.zeros(0), out)
+    assert out[0] == pytest.approx(0.5 - 0.59, abs=1e-15)
+
+
 def test_a_stall_where_gamma_is_nearly_singular_is_not_blamed_on_h():
     """EHBVM(12,3) imposing L and A_x on Kepler e = 0.6: their gradients become dependent at the
     apsides, where Gamma is nearly singular (cond 6e8 at the failing substep) and the solve

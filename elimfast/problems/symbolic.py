@@ -45,6 +45,7 @@ four Numba cache hits); kernel time, EHBVM(12,3) over 10^4 steps: 0.97-0.98 x th
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
 import importlib.util
 import json
@@ -588,6 +589,10 @@ def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gr
         key = key_prefix if key_prefix == name else f"{key_prefix}.{name}"
         trees.append((name, text, _checked(parse, text, declared, what=what if key == key_prefix else f"{what} {name}",
                                            key=key)))
+    # Only the constants the expressions use: a parameter scan with an event on the state alone
+    # compiles it once (a tester's eccentricity scan compiled the same event module per value).
+    used = {node.id for _, _, tree in trees for node in ast.walk(tree) if isinstance(node, ast.Name)}
+    constants = {name: value for name, value in constants.items() if name in used}
     spec = {"y": coordinate_names, "constants": sorted(constants.items()), "gradient": bool(gradient),
             "expressions": [[name, canonical(tree)] for name, _, tree in trees]}
     key = cache.content_hash(f"state-functions-v{FUNCTIONS_GENERATOR_VERSION}", json.dumps(spec, sort_keys=True))
