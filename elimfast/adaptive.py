@@ -295,6 +295,8 @@ class AdaptiveIntegration:
         self.y_comp = np.zeros(n)
         self.clock = np.array([self.t0, 0.0])
         self.coef = np.zeros((method.s, n))
+        from .integrate import predictor_extra_state
+        self.coef_extra = predictor_extra_state(method, n)
         nu = len(conserve)
         self.multipliers = np.zeros(nu + 1 if method.kernel_family == codes.FAMILY_LIM else nu)
         self.newton_base = np.zeros(n + 3)
@@ -413,14 +415,19 @@ class AdaptiveIntegration:
 
     def state(self) -> dict:
         return {"y": self.y.copy(), "y_comp": self.y_comp.copy(), "clock": self.clock.copy(),
-                "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "last_h": self.last_h.copy(),
-                "newton_base": self.newton_base.copy(), "control_state": self.control_state.copy(),
+                "coef": self.coef.copy(), "coef_extra": self.coef_extra.copy(), "multipliers": self.multipliers.copy(),
+                "last_h": self.last_h.copy(), "newton_base": self.newton_base.copy(),
+                "control_state": self.control_state.copy(),
                 "counters": self.counters.copy(), "finished": int(self.finished_flag),
                 "event_counts": self.event_counts.copy(), "steps_done": self.steps_done}
 
     def restore(self, state: dict) -> None:
-        for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h", "newton_base", "control_state",
-                    "counters"):
+        """Continue from a saved state (one without coef_extra: integrate.restore_predictor_extra)."""
+        from .integrate import restore_predictor_extra
+        state = dict(state)
+        restore_predictor_extra(state, self.coef_extra)
+        for key in ("y", "y_comp", "clock", "coef", "coef_extra", "multipliers", "last_h", "newton_base",
+                    "control_state", "counters"):
             target = getattr(self, key)
             value = np.asarray(state[key], dtype=target.dtype)
             if value.shape != target.shape:
@@ -469,8 +476,8 @@ class AdaptiveIntegration:
                 m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
                 m.newton_weights, self.conserve_idx,
                 self.controls, self.options, self._kernel_t_eval, self.events.directions, self.events.terminal,
-                self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
-                self.control_state, self.counters, max_steps,
+                self.y, self.y_comp, self.clock, self.coef, self.coef_extra, self.multipliers, self.last_h,
+                self.newton_base, self.control_state, self.counters, max_steps,
                 step_t, step_h, mult_out, iter_out, substeps_out, t_out, y_out, inv_out, event_out, event_t, event_y,
                 self._progress, self.diagnostics)
         done, samples, found, finished = (int(v) for v in self._progress)

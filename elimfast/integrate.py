@@ -422,6 +422,23 @@ def resolve_store_every(store_every) -> int:
                          "number of steps")
 
 
+def predictor_extra_state(method: Method, n: int) -> np.ndarray:
+    """The run state's coef_extra: the last step's Legendre terms gamma_s.. that the predictor
+    carries over besides its coefficients (docs/solver.md); as many rows as
+    kernels/stepper.py predictor_extra_rows gives the ensemble kernel's trajectories."""
+    return np.zeros((min(method.k - method.s, stepper.PREDICTOR_EXTRA_ROWS), n))
+
+
+def restore_predictor_extra(state: dict, target: np.ndarray) -> None:
+    """Give a saved state without coef_extra (saved before the predictor kept extra terms) zero
+    rows, in place: its first step is then predicted from the coefficients alone, as that
+    version predicted it (bit for bit), and the later steps with the extra terms. Such a
+    resumed run is therefore not bit for bit an uninterrupted run of this version; a state
+    saved by this version is."""
+    if "coef_extra" not in state:
+        state["coef_extra"] = np.zeros(target.shape)
+
+
 class Integration:
     """A run in progress: validated arguments, the kernel state, and ``advance``.
 
@@ -460,6 +477,7 @@ class Integration:
         self.clock = np.array([float(t0), 0.0])
         self.t0 = float(t0)
         self.coef = np.zeros((method.s, n))
+        self.coef_extra = predictor_extra_state(method, n)
         self.multipliers = np.zeros(method.multiplier_count(len(self.conserve)))
         self.last_h = np.array([self.signed_h])
         self.newton_base = np.zeros(n + 3)   # where the Newton matrix was factorised (kernels/stepper.py)
@@ -511,17 +529,19 @@ class Integration:
     def state(self) -> dict[str, np.ndarray | int]:
         """Everything needed to continue the run exactly (for resume)."""
         return {"y": self.y.copy(), "y_comp": self.y_comp.copy(), "clock": self.clock.copy(),
-                "coef": self.coef.copy(), "multipliers": self.multipliers.copy(), "last_h": self.last_h.copy(),
-                "newton_base": self.newton_base.copy(), "steps_done": self.steps_done}
+                "coef": self.coef.copy(), "coef_extra": self.coef_extra.copy(), "multipliers": self.multipliers.copy(),
+                "last_h": self.last_h.copy(), "newton_base": self.newton_base.copy(), "steps_done": self.steps_done}
 
     def restore(self, state: dict) -> None:
         """Continue from a saved state. A state saved before the step engine has no last_h and
         no newton_base: the previous step is then taken to have been a whole step (theta =
-        1), and the first step factorises its Newton matrix afresh."""
+        1), and the first step factorises its Newton matrix afresh. One saved before the
+        predictor kept extra terms has no coef_extra (see restore_predictor_extra)."""
         state = dict(state)
         state.setdefault("last_h", np.array([self.signed_h]))
         state.setdefault("newton_base", np.zeros(self.newton_base.size))
-        for key in ("y", "y_comp", "clock", "coef", "multipliers", "last_h", "newton_base"):
+        restore_predictor_extra(state, self.coef_extra)
+        for key in ("y", "y_comp", "clock", "coef", "coef_extra", "multipliers", "last_h", "newton_base"):
             target = getattr(self, key)
             value = np.asarray(state[key], dtype=np.float64)
             if value.shape != target.shape:
@@ -576,8 +596,8 @@ class Integration:
         with remembered_addresses():
             status = stepper.time_loop(
                 *self.kernel_settings(),
-                self.y, self.y_comp, self.clock, self.coef, self.multipliers, self.last_h, self.newton_base,
-                self.steps_done, n_run, self.n_steps, self.store_every,
+                self.y, self.y_comp, self.clock, self.coef, self.coef_extra, self.multipliers, self.last_h,
+                self.newton_base, self.steps_done, n_run, self.n_steps, self.store_every,
                 t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self._progress, self.diagnostics)
         done, samples = int(self._progress[0]), int(self._progress[1])
         first = self.steps_done

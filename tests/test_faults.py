@@ -664,6 +664,50 @@ def test_a_format_1_file_without_the_state_record_still_resumes_exactly(tmp_path
         assert f.attrs["format_version"] == 1 and "record" not in f["state"]
 
 
+def as_written_before_coef_extra(path: Path) -> None:
+    """Turn a run file into what elimfast wrote before the predictor kept its extra term: no
+    /state/coef_extra, and a state record without it (both rows repacked, their CRCs anew)."""
+    from elimfast.io import runfile
+    with h5py.File(path, "r+") as f:
+        state = f["state"]
+        n, s, n_mult = state["y"].shape[0], state["coef"].shape[0], state["multipliers"].shape[0]
+        n_extra = state["coef_extra"].shape[0]
+        rows = [runfile._unpack_record(np.asarray(row, dtype=np.float64), n, s, n_mult, None, n_extra)
+                for row in state["record"][()]]
+        for name in ("record", "coef_extra", "extra_coefficient", "record_slot", "record_field"):
+            del state[name]
+        old_rows = [runfile._pack_record({key: value for key, value in row.items() if key != "coef_extra"},
+                                         row["sequence"], row["n_samples"], row["wall_time_s"],
+                                         row["kernel_time_s"]) for row in rows]
+        record = runfile._record_dataset(state, old_rows[0].size)
+        for row in old_rows:
+            runfile._write_record_row(record, int(row[0]) % 2, row)   # the slot of its sequence number
+        runfile.attach(record, runfile.dimension(state, "record_slot", 2),
+                       runfile.dimension(state, "record_field", old_rows[0].size))
+
+
+def test_a_file_written_before_the_predictor_kept_gamma_s_resumes_without_it(tmp_path, killed_run,
+                                                                              long_reference):
+    """A file of the previous version has no /state/coef_extra: it resumes (and stays in its
+    format), its first step predicted from the coefficients alone, so the continued run equals
+    an uninterrupted one only to round-off, not bit for bit (docs/solver.md#the-predictor)."""
+    path = copy_of(killed_run, tmp_path)
+    hdf5.clear_consistency_flags(path)
+    as_written_before_coef_extra(path)
+    with hdf5.RunFile(path) as f:
+        saved = f.saved_state()
+        assert "coef_extra" not in saved and f.steps_done >= STEPS_BEFORE_SIGNAL
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), *LONG, "--resume"])
+    assert result.exit_code == 0 and f"resumed at step {saved['steps_done']}" in result.stderr, result.output
+    with h5py.File(path, "r") as f:
+        assert f.attrs["status"] == "complete" and "coef_extra" not in f["state"]
+        done = saved["steps_done"]
+        np.testing.assert_array_equal(f["steps/iterations"][:done], long_reference["iterations"][:done])
+        assert np.max(np.abs(f["state/y"][:] - long_reference["y_final"])) < 1e-9
+    with hdf5.RunFile(path) as f:
+        assert f.steps_done == long_reference["n_steps"] and "coef_extra" not in f.saved_state()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_signal_stops_a_sweep_whose_run_never_returns(tmp_path, workers):

@@ -92,12 +92,18 @@ def test_ehbvm_keeps_imposed_kepler_invariants_over_ten_periods(kepler):
     (lim(8, 10, 3), ("lrl_y",)),
 ], ids=lambda v: getattr(v, "name", "-".join(v) if isinstance(v, tuple) else str(v)))
 def test_methods_are_symmetric(kepler, method, conserve):
-    """Forward n steps with h, then n steps with -h, returns y0 (paper Theorems 2 and 6)."""
+    """Forward n steps with h, then n steps with -h, returns y0 (paper Theorems 2 and 6), to
+    round-off: each solve stops within eps of its solution, from a start that depends on the
+    predictor. Measured over h = 2 pi / n, n = 50..79: median 2-3e-14 for every family, up to
+    1e-13 (HBVM, GHBVM, LIM) and 2e-12 (EHBVM, ELIM, whose steps nearly symmetric about the
+    pericentre are ill-conditioned, docs/solver.md), alike with the predictor of degree s-1
+    and s; at n = 60, ELIM(9,12,3) returns within 1.3e-13 (3.4e-14 with degree s-1). The
+    bound stays far below the methods' errors over the period (ELIM(9,12,3): 2.3e-6 in A_y)."""
     n, h = 60, TWO_PI / 60
     forward = elimfast.integrate(kepler, method, h, n_steps=n, conserve=conserve)
     back = elimfast.integrate(kepler, method, h, n_steps=n, conserve=conserve, y0=forward.y_final,
                               t0=forward.t_final, backward=True)
-    assert max_error(back.y_final, kepler.y0) < 1e-13
+    assert max_error(back.y_final, kepler.y0) < 2e-13
     assert abs(back.t_final) < 1e-13
 
 

@@ -4,7 +4,9 @@ Layout (format ``elimfast-run``): the run group of ``layout.py`` at the root, pl
 
     /state/...              what resume needs, rewritten after every flushed chunk:
                             y, y_comp (Kahan compensation), clock = [t, its compensation],
-                            coef (s, 2m) last step's coefficients, multipliers, last_h,
+                            coef (s, 2m) last step's coefficients, coef_extra (e, 2m) its
+                            Legendre terms gamma_s.. for the predictor (absent in files written
+                            before the predictor kept them), multipliers, last_h,
                             newton_base, steps_done, n_samples, wall_time_s, kernel_time_s
     /state/record           (2, L) float64: the same state as one row, written alternately
                             into row 0 and row 1 (see "Saved state" below)
@@ -93,6 +95,9 @@ def _state_dimensions(f, state, record) -> None:
     attach(datasets["y"], component)
     attach(datasets["y_comp"], component)
     attach(datasets["coef"], dimension(state, "coefficient", datasets["coef"].shape[0]), component)
+    if "coef_extra" in datasets:
+        attach(datasets["coef_extra"], dimension(state, "extra_coefficient", datasets["coef_extra"].shape[0]),
+               component)
     for name, axis in (("clock", "clock_term"), ("multipliers", "multiplier"), ("last_h", "last_h_entry"),
                        ("newton_base", "newton_base_entry"), ("control_state", "control_entry"),
                        ("counters", "counter"), ("event_counts", "event")):
@@ -218,10 +223,15 @@ def _record_length(n: int, s: int, n_mult: int, extras: int = 0) -> int:
     return len(_RECORD_HEADER) + 2 + 2 * n + s * n + n_mult + 1 + (n + 3) + extras + 1
 
 
-def _adaptive_extras(state: dict) -> list[np.ndarray]:
-    if "control_state" not in state:
-        return []
-    return [np.asarray(state[key], dtype=np.float64).ravel() for key in _ADAPTIVE_STATE]
+def _record_tail(state: dict) -> list[np.ndarray]:
+    """The record's tail after newton_base: the adaptive state, then coef_extra (the predictor's
+    extra terms, last: a file written before them has a record without it, and keeps it so)."""
+    tail = []
+    if "control_state" in state:
+        tail = [np.asarray(state[key], dtype=np.float64).ravel() for key in _ADAPTIVE_STATE]
+    if "coef_extra" in state:
+        tail.append(np.asarray(state["coef_extra"], dtype=np.float64).ravel())
+    return tail
 
 
 def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float, kernel_time_s: float) -> np.ndarray:
@@ -230,14 +240,17 @@ def _pack_record(state: dict, sequence: int, n_samples: int, wall_time_s: float,
         np.asarray(state["clock"], dtype=np.float64).ravel(), np.asarray(state["y"], dtype=np.float64).ravel(),
         np.asarray(state["y_comp"], dtype=np.float64).ravel(), np.asarray(state["coef"], dtype=np.float64).ravel(),
         np.asarray(state["multipliers"], dtype=np.float64).ravel(), np.asarray(state["last_h"], dtype=np.float64).ravel(),
-        np.asarray(state["newton_base"], dtype=np.float64).ravel(), *_adaptive_extras(state)])
+        np.asarray(state["newton_base"], dtype=np.float64).ravel(), *_record_tail(state)])
     return np.append(body, float(zlib.crc32(body.astype("<f8").tobytes())))
 
 
-def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int, adaptive=None) -> dict | None:
+def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int, adaptive=None,
+                   n_extra: int | None = None) -> dict | None:
     """The state in a record row, or None if its CRC does not match (a torn or damaged row).
-    adaptive: (n_control_state, n_counters, n_events) for an adaptive run, else None."""
+    adaptive: (n_control_state, n_counters, n_events) for an adaptive run, else None;
+    n_extra: the rows of coef_extra, None for a file written before it was kept."""
     extras = 0 if adaptive is None else adaptive[0] + adaptive[1] + 1 + adaptive[2]
+    extras += 0 if n_extra is None else n_extra * n
     if row.shape != (_record_length(n, s, n_mult, extras),) or not np.all(np.isfinite(row[:5])):
         return None
     if float(zlib.crc32(row[:-1].astype("<f8").tobytes())) != row[-1]:
@@ -255,6 +268,9 @@ def _unpack_record(row: np.ndarray, n: int, s: int, n_mult: int, adaptive=None) 
             parts[key] = row[at:at + size].astype(dtype)
             at += size
         parts["finished"] = int(parts["finished"][0])
+    if n_extra is not None:
+        parts["coef_extra"] = row[at:at + n_extra * n].reshape((n_extra, n)).copy()
+        at += n_extra * n
     return {**parts, "steps_done": int(header["steps_done"]), "n_samples": int(header["n_samples"]),
             "wall_time_s": header["wall_time_s"], "kernel_time_s": header["kernel_time_s"],
             "sequence": int(header["sequence"])}
@@ -376,7 +392,7 @@ class RunWriter:
             datasets["state"] = {key: _small_dataset(state, key, value) for key, value in initial.items()}
             n, s = run.y.size, run.coef.shape[0]
             record = _record_dataset(state, _record_length(n, s, run.multipliers.size,
-                                                           sum(v.size for v in _adaptive_extras(run.state()))))
+                                                           sum(v.size for v in _record_tail(run.state()))))
             _state_dimensions(f, state, record)
             for sequence in (0, 1):
                 _write_record_row(record, sequence, _pack_record(run.state(), sequence, 1, 0.0, 0.0))
@@ -535,13 +551,15 @@ class RunWriter:
         n_samples = self._t.rows
         if self._record is not None:
             self._sequence += 1
+            if "coef_extra" not in self._state:   # a file written before it was kept: its record has no room
+                state = {key: value for key, value in state.items() if key != "coef_extra"}
             _write_record_row(self._record, self._sequence % 2,
                               _pack_record(state, self._sequence, n_samples, wall_time_s, kernel_time_s))
         values = dict(state, n_samples=n_samples, wall_time_s=wall_time_s, kernel_time_s=kernel_time_s)
         for key, value in values.items():
             dataset = self._state.get(key)
-            if dataset is None:     # last_h, newton_base: a file written before the step engine (no record)
-                continue
+            if dataset is None:     # last_h, newton_base: a file written before the step engine (no record);
+                continue            # coef_extra: one written before the predictor kept it
             dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
         self._file.flush()
         self.saved = {"steps_done": int(state["steps_done"]), "n_samples": n_samples,
@@ -737,6 +755,8 @@ class RunFile:
         state = self._root["state"]
         with self._reading("/state"):
             named = {key: np.array(state[key][()]) for key in _STATE_MEMBERS}
+            if "coef_extra" in state:   # absent in files written before the predictor kept it
+                named["coef_extra"] = np.array(state["coef_extra"][()])
         if "record" not in state:
             return {**named, "steps_done": int(named["steps_done"]), "n_samples": int(named["n_samples"]),
                     "wall_time_s": float(named["wall_time_s"]), "kernel_time_s": float(named["kernel_time_s"])}
@@ -753,7 +773,8 @@ class RunFile:
             except (KeyError, OSError, RuntimeError, ValueError) as err:
                 problems.append(f"row {slot}: {_hdf5_reason(err)}")
                 continue
-            values = _unpack_record(np.asarray(row, dtype=np.float64), n, s, n_mult, adaptive)
+            values = _unpack_record(np.asarray(row, dtype=np.float64), n, s, n_mult, adaptive,
+                                    named["coef_extra"].shape[0] if "coef_extra" in named else None)
             if values is None:
                 problems.append(f"row {slot} fails its CRC")
             elif best is None or values["sequence"] > best["sequence"]:

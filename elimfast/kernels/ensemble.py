@@ -25,7 +25,7 @@ from numba.extending import intrinsic
 
 from .codes import STATUS_EXCEPTION, STATUS_OK, internal_allocating
 from .signatures import INT_VECTOR, MATRIX, VECTOR
-from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, try_step
+from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, predictor_extra_rows, try_step
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
@@ -54,6 +54,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     inv_values = np.zeros(n_inv)
     inv_initial = np.zeros(n_inv)
     coef = np.zeros((tables.Is.shape[1], n))
+    coef_extra = np.zeros((predictor_extra_rows(tables.Is.shape[0], tables.Is.shape[1]), n))
     multipliers = np.zeros(n_mult)
     y_comp = np.zeros(n)
     clock = np.array([t0, 0.0])
@@ -77,12 +78,12 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     params_view, conserve_view, y_view = borrowed(params), borrowed(conserve_idx), borrowed(y)
     y_comp_view, clock_view, coef_view = borrowed(y_comp), borrowed(clock), borrowed(coef)
     mult_view, last_h_view, diagnostics_view = borrowed(multipliers), borrowed(last_h), borrowed(diagnostics)
-    base_view = borrowed(newton_base)
+    base_view, extra_view = borrowed(newton_base), borrowed(coef_extra)
     status = STATUS_OK
     for step in range(n_steps):
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
-            y_view, y_comp_view, clock_view, coef_view, mult_view, h, last_h_view, base_view, step > 0,
+            y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view, step > 0,
             diagnostics_view)
         counts[1] += iterations
         if status != STATUS_OK:
@@ -103,7 +104,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
             error = abs(inv_values[a] - inv_initial[a])
             if error > errors[1 + a]:
                 errors[1 + a] = error
-    keep_alive((owners, y_comp, clock, coef, multipliers, last_h, newton_base))
+    keep_alive((owners, y_comp, clock, coef, coef_extra, multipliers, last_h, newton_base))
     return status
 
 

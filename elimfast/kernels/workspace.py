@@ -86,10 +86,12 @@ Workspace = namedtuple("Workspace", [
     "coef_base",         # (s, n) the previous (sub)step's coefficients, base of the predictor
     "mult_base",         # (n_mult,)
     "predictor_points",  # (s + 1,) 1 + theta x_q
-    "predictor_values",  # (s + 1, s) P_j(1 + theta x_q)
-    "extrapolation",     # (s, s) E(theta)
+    "predictor_values",  # (s + 1, s + e_max) P_j(1 + theta x_q), e_max = min(k - s, 3) extra terms
+    #                      (stepper.extrapolate: the (s+1)-point rule is exact up to 3 of them)
+    "extrapolation",     # (s, s + e_max) E(theta)
     "info",              # (5,) of the last solve: last increment, cond(Gamma), iterations, rounding band;
     #                      then the count of Newton factorisations (Hessian evaluations) of the call
+    "extra_start",       # (e_max, n) the predictor's extra terms before the step (restored on failure)
 ])
 
 
@@ -149,7 +151,8 @@ def borrow_workspace(w):
         borrowed(w.newton_block_scratch), borrowed(w.newton_scale), borrowed(w.newton_point),
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
-        borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info))
+        borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info),
+        borrowed(w.extra_start))
 
 
 # The Newton matrix is factorised in blocks whenever the method has an eigenbasis of X
@@ -173,6 +176,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
     n_scratch = n if n_blocks > 0 and n <= INVERSE_MAX_N else 0
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
+    e_max = min(k - s, 3)   # room for the predictor's extra terms (stepper.predictor_extra_rows)
     return Workspace(
         np.zeros((k, n)), np.zeros((k, n)), np.zeros((n_big, n)), np.zeros((n_big, n)), np.zeros((r, n)),
         np.zeros((n_tilde + 1, r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)), np.zeros((n_big, n)),
@@ -185,4 +189,4 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
         np.zeros(n), np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
-        np.zeros(s + 1), np.zeros((s + 1, s)), np.zeros((s, s)), np.zeros(5))
+        np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(5), np.zeros((e_max, n)))
