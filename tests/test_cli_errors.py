@@ -76,6 +76,11 @@ def make_case(name, tmp: Path):
         "tableau of lim": (["tableau", "ghbvm", "--k", "3", "--s", "2"], "no fixed Runge-Kutta form"),
         "tableau k < s": (["tableau", "hbvm", "--k", "2", "--s", "3"], "k must be >= s"),
         "tableau bad eta": (["tableau", "ehbvm", "--k", "3", "--s", "2", "--eta", "x"], "not a number"),
+        "duplicate section": (["run", write(tmp, "dup.yaml", GOOD + "integration: {h: 0.2, n_steps: 5}\n"), "-o",
+                               tmp / "o.h5"], "dup.yaml:5: duplicate key 'integration' at the top level (first at "
+                                              "line 4)"),
+        "duplicate key in a flow mapping": (["run", write(tmp, "dup2.yaml", GOOD.replace("s: 3}", "s: 3, s: 4}")),
+                                             "-o", tmp / "o.h5"], "dup2.yaml:3: duplicate key 's' in method"),
     }
     return cases[name]
 
@@ -84,7 +89,8 @@ CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad
          "impossible method s <= nu", "existing output", "unwritable path", "unwritable file system",
          "no output path", "overwrite and resume", "inspect a text file", "inspect a foreign hdf5 file",
          "inspect a missing file", "plot a foreign file", "check a bad config", "unknown command", "unknown option",
-         "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta"]
+         "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta", "duplicate section",
+         "duplicate key in a flow mapping"]
 
 
 def assert_one_line_error(stderr: str, fragment: str):

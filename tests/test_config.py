@@ -323,6 +323,25 @@ def test_errors_name_the_line_of_the_key(tmp_path, label, change, key, line, mat
         assert named.startswith(expected), named
 
 
+@pytest.mark.parametrize("change,line,message", [
+    (lambda c: c + "integration:\n  h: 0.2\n  t_end: 10\n", 17,
+     "duplicate key 'integration' at the top level (first at line 12)"),
+    (_edit(11, "  s: 3\n  s: 4"), 12, "duplicate key 's' in method (first at line 11)"),
+    (_edit(4, "    eccentricity: 0.6\n    eccentricity: 0.7"), 5,
+     "duplicate key 'eccentricity' in problem.parameters (first at line 4)"),
+    (lambda c: c.replace("method:\n  name: ehbvm\n  k: 12\n  s: 3", "method: {name: ehbvm, k: 12, s: 3, s: 4}"), 8,
+     "duplicate key 's' in method (first at column 30 of this line)"),
+], ids=["section", "key", "nested key", "flow mapping"])
+def test_a_key_given_twice_is_refused_naming_both_places(tmp_path, change, line, message):
+    """YAML loaders keep the last of two equal keys silently: two integration sections ran the
+    second, and s: 3, s: 4 ran s = 4."""
+    path = write(tmp_path, change(LINED))
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    assert str(info.value) == f"{path}:{line}: {message}; keep one of them"
+    assert info.value.line == line
+
+
 def test_every_schema_error_of_a_file_names_a_line(tmp_path):
     text = LINED.replace("  k: 12", "  k: twelve").replace("  every: 10", "  every: 10\n  evry: 3") + TIMES + EVENTS
     path = write(tmp_path, text)

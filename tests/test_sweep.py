@@ -231,3 +231,12 @@ def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
     path.write_text("base: [unclosed\n")
     with pytest.raises(SweepError, match="line 2"):
         load_sweep(path)
+
+
+def test_duplicate_keys_in_a_sweep_file_are_refused(tmp_path):
+    path = tmp_path / "dup.yaml"
+    path.write_text("base: kepler.yaml\nset:\n  integration: {t_end: 10}\n  integration: {t_end: 20}\n")
+    with pytest.raises(SweepError) as caught:
+        load_sweep(path)
+    assert str(caught.value) == (f"{path}:4: duplicate key 'integration' in set (first at line 3); keep one of "
+                                 "them")
