@@ -522,6 +522,9 @@ class _Builder:
         if not isinstance(data, dict):
             raise ConfigError(f"{self.source}: the config must be a mapping of sections (problem, method, "
                               f"integration, ...), got {type(data).__name__}")
+        if "base" in data and "problem" not in data:   # the sweep's key, where a run config has its problem
+            raise ConfigError(f"{self.source}: a sweep file (it has base: and no problem:), not a run config; run it "
+                              f"with elimfast sweep {self.source}", key="base", line=self.lines.get(("base",)))
         self.check_keys(data)
         config = self.validate(data)
 

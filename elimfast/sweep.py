@@ -232,6 +232,9 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     if not isinstance(data, dict):
         _fail(source, "(top level)", "a sweep file is a mapping with keys base, set, grid, error, order_axis")
     known = {"base", "set", "grid", "error", "order_axis", "description", "ensemble"}
+    if "base" not in data and "problem" in data:
+        _fail(source, "(top level)", f"a run config (it has problem: and no base:), not a sweep file; run it with "
+                                     f"elimfast run {source}, or name it as the base: of a sweep file")
     unknown = sorted(set(data) - known)
     if unknown:
         _fail(source, unknown[0], f"unknown key; a sweep file has {', '.join(sorted(known))}")
@@ -924,7 +927,7 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
     this process stays the only writer of ``path``. ``on_message(line)``: what is being
     done (cluster, resume), for the progress display.
     """
-    from .io.sweepfile import SweepWriter
+    from .io.sweepfile import RUNS_PLANNED, SweepWriter
 
     if client is not None and scheduler is not None:
         raise SweepError("give either a Dask client or a scheduler address, not both")
@@ -942,7 +945,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
         nonlocal writer
         if path is not None:
             writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
-                                 attributes={"source": spec.source, "axes": list(spec.axes) or [""]},
+                                 attributes={"source": spec.source, "axes": list(spec.axes) or [""],
+                                             RUNS_PLANNED: len(spec.runs)},
                                  overwrite=overwrite or resume, resume=resume, ensemble=ensemble)
 
     with contextlib.ExitStack() as stack:

@@ -81,6 +81,12 @@ def make_case(name, tmp: Path):
                                               "line 4)"),
         "duplicate key in a flow mapping": (["run", write(tmp, "dup2.yaml", GOOD.replace("s: 3}", "s: 3, s: 4}")),
                                              "-o", tmp / "o.h5"], "dup2.yaml:3: duplicate key 's' in method"),
+        "run a sweep file": (["run", write(tmp, "sw.yaml", "base: g.yaml\ngrid: []\n"), "-o", tmp / "o.h5"],
+                             "a sweep file (it has base: and no problem:), not a run config; run it with elimfast "
+                             "sweep"),
+        "check a sweep file": (["check", write(tmp, "sw.yaml", "base: g.yaml\nset: {}\n")], "elimfast sweep"),
+        "sweep a run config": (["sweep", write(tmp, "g.yaml", GOOD)], "a run config (it has problem: and no base:), "
+                                                                       "not a sweep file; run it with elimfast run"),
     }
     return cases[name]
 
@@ -90,7 +96,7 @@ CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad
          "no output path", "overwrite and resume", "inspect a text file", "inspect a foreign hdf5 file",
          "inspect a missing file", "plot a foreign file", "check a bad config", "unknown command", "unknown option",
          "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta", "duplicate section",
-         "duplicate key in a flow mapping"]
+         "duplicate key in a flow mapping", "run a sweep file", "check a sweep file", "sweep a run config"]
 
 
 def assert_one_line_error(stderr: str, fragment: str):

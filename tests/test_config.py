@@ -342,6 +342,14 @@ def test_a_key_given_twice_is_refused_naming_both_places(tmp_path, change, line,
     assert info.value.line == line
 
 
+def test_a_sweep_file_given_as_a_run_config_says_to_use_sweep(tmp_path):
+    path = write(tmp_path, "base: kepler.yaml\ngrid:\n  - {name: h, key: integration.h, values: [0.1]}\n")
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    assert str(info.value) == (f"{path}: a sweep file (it has base: and no problem:), not a run config; run it with "
+                               f"elimfast sweep {path}")
+
+
 def test_every_schema_error_of_a_file_names_a_line(tmp_path):
     text = LINED.replace("  k: 12", "  k: twelve").replace("  every: 10", "  every: 10\n  evry: 3") + TIMES + EVENTS
     path = write(tmp_path, text)

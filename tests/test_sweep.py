@@ -240,3 +240,78 @@ def test_duplicate_keys_in_a_sweep_file_are_refused(tmp_path):
         load_sweep(path)
     assert str(caught.value) == (f"{path}:4: duplicate key 'integration' in set (first at line 3); keep one of "
                                  "them")
+
+
+def test_a_run_config_given_as_a_sweep_file_says_to_use_run(tmp_path):
+    path = write_sweep(tmp_path, BASE, name="run.yaml")
+    with pytest.raises(SweepError, match=r"run.yaml: \(top level\): a run config .*elimfast run .*run.yaml"):
+        load_sweep(path)
+
+
+def small_sweep(tmp_path, values, t_end="2*pi"):
+    return write_sweep(tmp_path, {"base": BASE, "set": {"integration": {"t_end": t_end}},
+                                  "grid": [{"name": "h", "key": "integration.h", "values": values}]})
+
+
+def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.io.hdf5 import NotAnElimfastFile, RunFile
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(small_sweep(tmp_path, ["2*pi/40", "2*pi/60"]), out, workers=1)
+    expected = (f"{out}: a sweep file, not a single run: give one of its runs as {out}:/runs/2*pi/40 (in Python: "
+                f"elimfast.load('{out}', run='2*pi/40')); 2 of 2 runs stored (2*pi/40, 2*pi/60)")
+    for read in (RunFile, elimfast.load):
+        with pytest.raises(NotAnElimfastFile) as caught:
+            read(out)
+        assert str(caught.value) == expected
+    result = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert result.exit_code == 2 and result.stderr == f"error: {expected}\n"
+    assert CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/40"]).exit_code == 0
+
+
+def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_completes_it(tmp_path):
+    """kill -9 leaves a grid sweep's file (written outside SWMR mode) marked open for writing:
+    HDF5 refuses it, yet every run stored before is whole and --resume completes it. Readers
+    must say so, not call it damaged and advise --overwrite (which would lose the runs)."""
+    import signal
+    import subprocess
+    import sys
+
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.io.hdf5 import OutputError, RunFile, consistency_flags
+    from elimfast.sweep import run_to_file
+
+    path = small_sweep(tmp_path, [f"2*pi/{n}" for n in (100, 110, 120, 130)], t_end="500*pi")
+    out = tmp_path / "killed.h5"
+    process = subprocess.Popen([str(Path(sys.executable).with_name("elimfast")), "sweep", str(path), "-o", str(out),
+                                "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    for line in process.stderr:
+        if line.startswith("[2/"):
+            process.send_signal(signal.SIGKILL)
+            break
+    process.wait(timeout=120)
+    assert process.returncode == -signal.SIGKILL and consistency_flags(out)
+    command = f"elimfast sweep {path} -o {out} --resume"
+    for where in (str(out), f"{out}:/runs/2*pi/100"):
+        for read in (RunFile, elimfast.load):
+            with pytest.raises(OutputError) as caught:
+                read(where)
+            message = str(caught.value)
+            assert message.startswith(f"{out}: an interrupted sweep (its writer was killed, so HDF5 still sees it "
+                                      "open): ") and " of 4 runs stored (2*pi/100, " in message, message
+            assert f"complete it with {command}" in message and "--overwrite" not in message
+            assert "damaged" not in message and "\n" not in message
+    result = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert result.exit_code == 2 and command in result.stderr
+    assert consistency_flags(out)   # reading touched nothing
+    run_to_file(path, out, resume=True, workers=1)
+    with pytest.raises(OutputError, match="4 of 4 runs stored"):
+        RunFile(out)
