@@ -233,6 +233,20 @@ def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
         load_sweep(path)
 
 
+def test_a_failed_run_of_a_sweep_advises_what_works_in_a_sweep(tmp_path):
+    """A run file continues with --resume --set solver.*=...; a sweep has no --set and its
+    --resume refuses an edited sweep file, so its failed runs say to edit and --overwrite."""
+    from elimfast.sweep import SWEEP_RERUN_ADVICE
+
+    path = write_sweep(tmp_path, {"base": {**BASE, "solver": {"max_iter": 3, "max_halvings": 1}},
+                                  "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/4"]}]})
+    (outcome,), _ = run_sweep(load_sweep(path), workers=1)
+    assert outcome.status.startswith("failed: EHBVM(12,3): the simplified Newton did not converge")
+    assert "allow more step halvings (solver.max_halvings = 1 now)" in outcome.status
+    assert "continued with --resume" not in outcome.status
+    assert outcome.status.endswith(f"; {SWEEP_RERUN_ADVICE}") and "--overwrite" in SWEEP_RERUN_ADVICE
+
+
 def test_duplicate_keys_in_a_sweep_file_are_refused(tmp_path):
     path = tmp_path / "dup.yaml"
     path.write_text("base: kepler.yaml\nset:\n  integration: {t_end: 10}\n  integration: {t_end: 20}\n")
