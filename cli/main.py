@@ -286,13 +286,34 @@ def _stored_spec(path, overrides):
     """The run spec of the config stored in a run file, with --set overrides on top (--resume
     continues the run it holds: the CONFIG argument and its earlier --set values are not
     needed again; changes other than solver.* are refused by the resume itself)."""
-    from elimfast.config import load_run_from_dict, parse_yaml
+    from elimfast.config import ConfigError, load_run_from_dict, parse_yaml
     from elimfast.io.hdf5 import RunFile
+    from elimfast.streaming import SOLVER_SECTIONS, resume_refusal
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
     source = f"{path} (its stored config)"
-    return load_run_from_dict(parse_yaml(text, source), source=source, overrides=list(overrides))
+    data = parse_yaml(text, source)
+    try:
+        return load_run_from_dict(data, source=source, overrides=list(overrides))
+    except ConfigError:
+        # A --set of integration.h or t_end contradicts the stored n_steps before the resume can
+        # compare configs: when the solver overrides alone load, the others are at fault.
+        kept = [item for item in overrides if _set_key(item).split(".")[0] in SOLVER_SECTIONS]
+        if len(kept) == len(overrides):
+            raise
+        load_run_from_dict(data, source=source, overrides=kept)
+        others = [item for item in overrides if item not in kept]
+        for item in others:   # the one that fails alone (an equal value repeated from the first run loads)
+            try:
+                load_run_from_dict(data, source=source, overrides=[*kept, item])
+            except ConfigError:
+                raise resume_refusal(path, _set_key(item)) from None
+        raise resume_refusal(path, _set_key(others[0])) from None
+
+
+def _set_key(item: str) -> str:
+    return str(item).partition("=")[0].strip()
 
 
 def _resume_command(config, path) -> str:
