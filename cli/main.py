@@ -371,12 +371,19 @@ def check(config, overrides):
     from elimfast.problems.check import (DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_derivatives,
                                          require_invariants)
 
+    from .report import adaptive_text
+
     spec = _load(config, overrides)
     problem, method = spec.problem, spec.method
+    if spec.step_control is not None:
+        settings = spec.resolved["integration"]   # the step control's settings, as a run file stores them
+        first = f", first step h = {spec.h!r}" if spec.h is not None else ""
+        steps = f"{adaptive_text(settings)} from t = {spec.t0!r} to {spec.t_end!r}{first}"
+    else:
+        steps = f"{spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"
     lines = [f"# {config}: valid",
              f"# problem {problem.name}, {method.name}"
-             + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "")
-             + f", {spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"]
+             + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "") + f", {steps}"]
     reports = check_derivatives(problem)
     lines.append("# derivative check (error / what central differences allow; fails above 1):")
     width = max(len(report.name) for report in reports)
