@@ -645,7 +645,8 @@ def _format_tableau(method, A, b, c, eta) -> str:
 @click.option("--scheduler", metavar="ADDRESS", default=None,
               help="Run on a Dask cluster: its scheduler (tcp://host:8786), or 'local' for a LocalCluster of "
                    "--workers processes (docs/dask.md; pip install 'elimfast[dask]').")
-@click.option("-q", "--quiet", is_flag=True, help="No progress lines (the table is still printed).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress lines (the table is still printed, and the one line "
+              "saying that Numba compiles, on a cold cache).")
 def sweep(sweep_file, output, workers, table_format, overwrite, resume, scheduler, quiet):
     """Run a grid of configs in parallel and print the error, order, iteration and invariant table.
 
