@@ -612,7 +612,9 @@ class _Builder:
         try:
             config = sections(RunConfig.model_validate(data))
         except ValidationError as err:
-            errors = err.errors()
+            # An unknown key first: a misspelt section (methd:) also makes its section missing,
+            # and the misspelling is the thing to fix.
+            errors = sorted(err.errors(), key=lambda e: e["type"] != "extra_forbidden")
             messages = tuple(self.message(e["loc"], self.describe(e)) for e in errors)
             raise ConfigError(messages[0], messages=messages, key=_join(errors[0]["loc"]),
                               line=self.line_of(errors[0]["loc"])) from None
@@ -700,7 +702,7 @@ class _Builder:
         if kind == "extra_forbidden":
             from .config_schema import SECTIONS
             parent = tuple(p for p in loc[:-1] if isinstance(p, str))
-            model = SECTIONS.get(parent)
+            model = SECTIONS.get(parent) or SECTIONS.get(parent[:-1] + ("*",))   # events.<name>: ("events", "*")
             allowed = list(model.model_fields) if model else []
             return f"unknown key; {_suggest(loc[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"
         if kind == "missing":

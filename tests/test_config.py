@@ -302,6 +302,10 @@ LINE_FAULTS = [
     ("missing key: its section's line", _edit(13, None), "integration.h", 12, "missing; give the step size"),
     ("missing section: no line", lambda c: c.replace("method:\n  name: ehbvm\n  k: 12\n  s: 3\n", ""), "method",
      None, "missing; add e.g. method:"),
+    ("misspelt section: the unknown key before the missing one", _edit(8, "methd:"), "methd", 8,
+     "unknown key; did you mean 'method'"),
+    ("abbreviated key", lambda c: c + EVENTS.replace("directoin", "dir"), "events.pericentre.dir", 20,
+     "unknown key; did you mean 'direction'"),
 ]
 
 
@@ -321,6 +325,14 @@ def test_errors_name_the_line_of_the_key(tmp_path, label, change, key, line, mat
         if label.startswith("missing key"):
             expected = "integration:"
         assert named.startswith(expected), named
+
+
+def test_a_misspelt_section_is_reported_before_the_section_it_leaves_missing(tmp_path):
+    with pytest.raises(ConfigError) as info:
+        load_run(write(tmp_path, _edit(8, "methd:")(LINED)))
+    assert [m.split(": ", 1)[1] for m in info.value.messages] == [
+        "methd: unknown key; did you mean 'method'? (allowed here: problem, conserve, method, integration, solver, "
+        "output, events)", "method: missing; add e.g. method: {name: ehbvm, k: 12, s: 3}"]
 
 
 @pytest.mark.parametrize("change,line,message", [

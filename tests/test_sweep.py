@@ -329,3 +329,19 @@ def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_complet
     run_to_file(path, out, resume=True, workers=1)
     with pytest.raises(OutputError, match="4 of 4 runs stored"):
         RunFile(out)
+
+
+def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast.sweep
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(elimfast.sweep, "run_to_file", interrupted)
+    path, out = small_sweep(tmp_path, ["2*pi/40"]), tmp_path / "sw.h5"
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out)])
+    assert result.exit_code == 130
+    assert result.stderr == (f"error: interrupted; the finished runs (of an ensemble: its stored blocks) are in {out}; "
+                             f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
