@@ -205,6 +205,13 @@ def cli(ctx):
         click.echo(ctx.get_help())
 
 
+def _file_name(ctx, param, value):
+    """An output option's value: a file name, refused when empty (as a path, '' would be '.')."""
+    if value is not None and not value.strip():
+        raise click.BadParameter(f"the output path is empty; give a file name ({param.metavar})")
+    return value
+
+
 # --- run, check -------------------------------------------------------------------------
 SET_HELP = "Override a config key, e.g. --set method.s=4 --set integration.t_end=100 (repeatable)."
 
@@ -226,7 +233,8 @@ def _resolved_yaml(spec, output_path=None) -> str:
 
 @cli.command(context_settings=CONTEXT)
 @click.argument("config", metavar="CONFIG")
-@click.option("-o", "--output", metavar="OUT.h5", help="The HDF5 file to write (overrides output.path).")
+@click.option("-o", "--output", metavar="OUT.h5", callback=_file_name,
+              help="The HDF5 file to write (overrides output.path).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
 @click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
 @click.option("--resume", is_flag=True, help="Continue the interrupted or killed run stored in OUT.h5.")
@@ -286,13 +294,34 @@ def _stored_spec(path, overrides):
     """The run spec of the config stored in a run file, with --set overrides on top (--resume
     continues the run it holds: the CONFIG argument and its earlier --set values are not
     needed again; changes other than solver.* are refused by the resume itself)."""
-    from elimfast.config import load_run_from_dict, parse_yaml
+    from elimfast.config import ConfigError, load_run_from_dict, parse_yaml
     from elimfast.io.hdf5 import RunFile
+    from elimfast.streaming import SOLVER_SECTIONS, resume_refusal
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
     source = f"{path} (its stored config)"
-    return load_run_from_dict(parse_yaml(text, source), source=source, overrides=list(overrides))
+    data = parse_yaml(text, source)
+    try:
+        return load_run_from_dict(data, source=source, overrides=list(overrides))
+    except ConfigError:
+        # A --set of integration.h or t_end contradicts the stored n_steps before the resume can
+        # compare configs: when the solver overrides alone load, the others are at fault.
+        kept = [item for item in overrides if _set_key(item).split(".")[0] in SOLVER_SECTIONS]
+        if len(kept) == len(overrides):
+            raise
+        load_run_from_dict(data, source=source, overrides=kept)
+        others = [item for item in overrides if item not in kept]
+        for item in others:   # the one that fails alone (an equal value repeated from the first run loads)
+            try:
+                load_run_from_dict(data, source=source, overrides=[*kept, item])
+            except ConfigError:
+                raise resume_refusal(path, _set_key(item)) from None
+        raise resume_refusal(path, _set_key(others[0])) from None
+
+
+def _set_key(item: str) -> str:
+    return str(item).partition("=")[0].strip()
 
 
 def _resume_command(config, path) -> str:
@@ -350,12 +379,19 @@ def check(config, overrides):
     from elimfast.problems.check import (DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_derivatives,
                                          require_invariants)
 
+    from .report import adaptive_text
+
     spec = _load(config, overrides)
     problem, method = spec.problem, spec.method
+    if spec.step_control is not None:
+        settings = spec.resolved["integration"]   # the step control's settings, as a run file stores them
+        first = f", first step h = {spec.h!r}" if spec.h is not None else ""
+        steps = f"{adaptive_text(settings)} from t = {spec.t0!r} to {spec.t_end!r}{first}"
+    else:
+        steps = f"{spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"
     lines = [f"# {config}: valid",
              f"# problem {problem.name}, {method.name}"
-             + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "")
-             + f", {spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"]
+             + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "") + f", {steps}"]
     reports = check_derivatives(problem)
     lines.append("# derivative check (error / what central differences allow; fails above 1):")
     width = max(len(report.name) for report in reports)
@@ -426,8 +462,8 @@ def inspect(file):
               show_default=True, help="orbit: the trajectory; invariants: |I(t) - I(t0)| on a log scale; "
                                       "alpha: the multipliers per step (lambda for LIM); iterations: per step; "
                                       "section: the states at the run's first event (a surface of section).")
-@click.option("-o", "--output", metavar="FIG.png", help="Image file (default: OUT_<kind>.png beside OUT.h5); "
-                                                        "the suffix picks the format (png, pdf, svg).")
+@click.option("-o", "--output", metavar="FIG.png", callback=_file_name,
+              help="Image file (default: OUT_<kind>.png beside OUT.h5); the suffix picks the format (png, pdf, svg).")
 @click.option("--overwrite", is_flag=True, help="Replace FIG if it exists.")
 def plot(file, kind, output, overwrite):
     """Plot a run file (or one run of a sweep file, SWEEP.h5:/runs/<label>) with matplotlib (headless).
@@ -606,7 +642,8 @@ def _format_tableau(method, A, b, c, eta) -> str:
 # --- sweep, paper -------------------------------------------------------------------------
 @cli.command(context_settings=CONTEXT)
 @click.argument("sweep_file", metavar="SWEEP.yaml")
-@click.option("-o", "--output", metavar="OUT.h5", help="Store every run under /runs/<label>/ of this file.")
+@click.option("-o", "--output", metavar="OUT.h5", callback=_file_name,
+              help="Store every run under /runs/<label>/ of this file.")
 @click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
               help="Worker processes (default: all cores).")
 @click.option("--format", "table_format", type=click.Choice(["markdown", "csv"]), default="markdown",
@@ -617,7 +654,8 @@ def _format_tableau(method, A, b, c, eta) -> str:
 @click.option("--scheduler", metavar="ADDRESS", default=None,
               help="Run on a Dask cluster: its scheduler (tcp://host:8786), or 'local' for a LocalCluster of "
                    "--workers processes (docs/dask.md; pip install 'elimfast[dask]').")
-@click.option("-q", "--quiet", is_flag=True, help="No progress lines (the table is still printed).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress lines (the table is still printed, and the one line "
+              "saying that Numba compiles, on a cold cache).")
 def sweep(sweep_file, output, workers, table_format, overwrite, resume, scheduler, quiet):
     """Run a grid of configs in parallel and print the error, order, iteration and invariant table.
 
@@ -654,9 +692,14 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
              "replaces them", EXIT_USAGE)
 
     def hard_stop(signal_name):
-        kept = (f"; the finished runs (of an ensemble: its stored blocks) are in {output}; --resume runs the rest"
-                if output is not None else "")
-        return f"error: interrupted by {signal_name}{kept}"
+        """The line of an interrupted sweep (also after a kernel call that did not return)."""
+        import shlex
+        why = f" by {signal_name}" if signal_name else ""
+        if output is None:
+            return f"error: interrupted{why} (no -o OUT.h5: nothing was stored)"
+        command = shlex.join(["elimfast", "sweep", str(sweep_file), "-o", str(output), "--resume"])
+        return (f"error: interrupted{why}; the finished runs (of an ensemble: its stored blocks) are in {output}; "
+                f"run the rest with: {command}")
 
     def on_start(n_trajectories):
         if not quiet:
@@ -669,10 +712,16 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
             click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
 
     # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
-    with StopOnSignals(raising=True, hard_stop=hard_stop):
-        outcome = sweeps.run_to_file(sweep_file, output, workers=workers, overwrite=overwrite, on_start=on_start,
-                                     on_done=on_done, resume=resume, scheduler=scheduler,
-                                     on_message=None if quiet else (lambda line: click.echo(line, err=True)))
+    with StopOnSignals(raising=True, hard_stop=hard_stop) as stop:
+        try:
+            outcome = sweeps.run_to_file(sweep_file, output, workers=workers, overwrite=overwrite,
+                                         on_start=on_start, on_done=on_done, resume=resume, scheduler=scheduler,
+                                         on_message=None if quiet else (lambda line: click.echo(line, err=True)))
+        except KeyboardInterrupt:
+            import signal
+            name = signal.Signals(stop.signal).name if stop.signal else None
+            click.echo(hard_stop(name), err=True)
+            raise _Exit(EXIT_INTERRUPTED) from None
     if outcome.ensemble is not None:
         result = outcome.ensemble
         click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "

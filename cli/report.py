@@ -69,6 +69,16 @@ def run_notes(run_file) -> list[str]:
     return notes
 
 
+def adaptive_text(settings) -> str:
+    """How an adaptive run chooses its steps, from its step control's settings (a run
+    file's attributes, or StepControl.as_dict() with the key step_control for controller)."""
+    control = str(settings.get("step_control"))
+    how = (f"rtol {settings.get('rtol')!r}, atol {settings.get('atol')!r}"
+           + (", step doubling" if settings.get("verify") else "")
+           if control == "error" else f"epsilon {settings.get('epsilon')!r}")
+    return f"adaptive ({control}: {how}; docs/adaptive.md)"
+
+
 def summary(run_file, integrity: dict | None = None) -> str:
     """The inspect summary of an open RunFile (``integrity``: what RunFile.verify returned)."""
     a = run_file.attrs
@@ -87,11 +97,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     samples = (f"samples at {a.get('output_times')} requested times" if "output_times" in a
                else f"a sample every {a.get('output_every')} steps")
     if run_file.adaptive:
-        control = str(a.get("step_control"))
-        how = (f"rtol {a.get('rtol')!r}, atol {a.get('atol')!r}" + (", step doubling" if a.get("verify") else "")
-               if control == "error" else f"epsilon {a.get('epsilon')!r}")
-        row("steps", f"adaptive ({control}: {how}; docs/adaptive.md), t0 = {a.get('t0')!r}, "
-                     f"t_end = {a.get('t_end')!r}, {samples}")
+        row("steps", f"{adaptive_text(a)}, t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, {samples}")
         sizes = run_file.step_sizes()
         if sizes is not None and sizes.size:
             row("h", f"min {sizes.min():.3e}, median {np.median(sizes):.3e}, max {sizes.max():.3e}")

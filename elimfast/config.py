@@ -35,7 +35,8 @@ Format (every section but ``problem``, ``method`` and ``integration`` is optiona
 Numbers may be arithmetic on numbers, ``pi`` and ``e`` (``pi/30``, ``2*pi*10``, ``1e-15``),
 evaluated in double precision exactly as Python would (``pi/30 == math.pi/30``); initial
 values may also use the problem's parameters. Nothing in a config can run code: YAML is
-read with a safe loader (no tags, no aliases) and expressions are parsed as data.
+read with a safe loader (no tags, no aliases; a key given twice is an error) and expressions
+are parsed as data.
 
 The keys and types are validated by pydantic (config_schema.py); ``load_run`` keeps each
 validation in elimfast's cache, so that a config run again skips pydantic (_Builder.validate).
@@ -344,6 +345,7 @@ def parse_yaml_with_lines(text: str, source: str = "<text>"):
         loader = _SafeLoader(text)
         try:
             node = loader.get_single_node()
+            _refuse_duplicate_keys(loader, node, source)
             data = loader.construct_document(node) if node is not None else None
             lines = _key_lines(loader, node)
         finally:
@@ -358,6 +360,39 @@ def parse_yaml_with_lines(text: str, source: str = "<text>"):
         raise ConfigError(f"{source}: the YAML is nested too deeply; simplify the file") from None
 
 
+def _refuse_duplicate_keys(loader: yaml.SafeLoader, root, source: str) -> None:
+    """ConfigError for the first key (in file order) given twice in one mapping: YAML's
+    loaders keep the last silently, so a second ``integration:`` section or ``s: 4`` after
+    ``s: 3`` would quietly replace the first. Merge keys (<<) are left to the loader (an
+    explicit key overrides a merged one, as YAML says)."""
+    found = []   # (line and column of the repeat, key, key path of the mapping, mark of the first)
+    stack = [(root, ())] if root is not None else []
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, yaml.MappingNode):
+            first = {}
+            for key_node, value_node in node.value:
+                if isinstance(key_node, yaml.ScalarNode) and key_node.tag != "tag:yaml.org,2002:merge":
+                    key = loader.construct_object(key_node)
+                    key = key if isinstance(key, str) else str(key)
+                    mark = key_node.start_mark
+                    if key in first:
+                        found.append((mark.line + 1, mark.column, key, path, first[key]))
+                    else:
+                        first[key] = mark
+                    stack.append((value_node, path + (key,)))
+                else:
+                    stack.append((value_node, path))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend((item, path + (index,)) for index, item in enumerate(node.value))
+    if found:
+        line, _, key, path, first = min(found, key=lambda item: item[:2])
+        where = f"in {_join(path)}" if path else "at the top level"
+        earlier = f"line {first.line + 1}" if first.line + 1 != line else f"column {first.column + 1} of this line"
+        raise ConfigError(f"{source}:{line}: duplicate key {key!r} {where} (first at {earlier}); keep one of them",
+                          key=_join(path + (key,)), line=line)
+
+
 def _key_lines(loader: yaml.SafeLoader, root) -> dict:
     """{key path: line} of the nodes under root (iterative: depth is bounded later, by check_keys)."""
     lines = {}
@@ -370,7 +405,7 @@ def _key_lines(loader: yaml.SafeLoader, root) -> dict:
                     continue   # a list or mapping as key: refused by check_keys, which has no line for it
                 key = loader.construct_object(key_node)
                 key = key if isinstance(key, str) else str(key)
-                lines[path + (key,)] = key_node.start_mark.line + 1   # a repeated key: the last wins, as in data
+                lines[path + (key,)] = key_node.start_mark.line + 1   # repeats only by << (explicit wins, as in data)
                 stack.append((value_node, path + (key,)))
         elif isinstance(node, yaml.SequenceNode):
             for index, item in enumerate(node.value):
@@ -487,6 +522,9 @@ class _Builder:
         if not isinstance(data, dict):
             raise ConfigError(f"{self.source}: the config must be a mapping of sections (problem, method, "
                               f"integration, ...), got {type(data).__name__}")
+        if "base" in data and "problem" not in data:   # the sweep's key, where a run config has its problem
+            raise ConfigError(f"{self.source}: a sweep file (it has base: and no problem:), not a run config; run it "
+                              f"with elimfast sweep {self.source}", key="base", line=self.lines.get(("base",)))
         self.check_keys(data)
         config = self.validate(data)
 
@@ -574,7 +612,9 @@ class _Builder:
         try:
             config = sections(RunConfig.model_validate(data))
         except ValidationError as err:
-            errors = err.errors()
+            # An unknown key first: a misspelt section (methd:) also makes its section missing,
+            # and the misspelling is the thing to fix.
+            errors = sorted(err.errors(), key=lambda e: e["type"] != "extra_forbidden")
             messages = tuple(self.message(e["loc"], self.describe(e)) for e in errors)
             raise ConfigError(messages[0], messages=messages, key=_join(errors[0]["loc"]),
                               line=self.line_of(errors[0]["loc"])) from None
@@ -662,7 +702,7 @@ class _Builder:
         if kind == "extra_forbidden":
             from .config_schema import SECTIONS
             parent = tuple(p for p in loc[:-1] if isinstance(p, str))
-            model = SECTIONS.get(parent)
+            model = SECTIONS.get(parent) or SECTIONS.get(parent[:-1] + ("*",))   # events.<name>: ("events", "*")
             allowed = list(model.model_fields) if model else []
             return f"unknown key; {_suggest(loc[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"
         if kind == "missing":

@@ -137,10 +137,11 @@ class RunConfig(_Section):
     events: dict[str, EventSection] | None = None
 
 
-# The model of each section, by its key path (config._Builder.describe names the allowed keys).
+# The model of each section, by its key path (config._Builder.describe names the allowed keys); "*" stands
+# for the name of an entry of a mapping of sections (an event).
 SECTIONS = {(): RunConfig, ("problem",): ProblemSection, ("problem", "coordinates"): CoordinatesSection,
             ("method",): MethodSection, ("integration",): IntegrationSection, ("solver",): SolverSection,
-            ("output",): OutputSection, ("output", "times"): TimesSection}
+            ("output",): OutputSection, ("output", "times"): TimesSection, ("events", "*"): EventSection}
 
 
 def sections(value):

@@ -356,6 +356,9 @@ def suggest(word, options, label: str) -> str:
     options = [str(o) for o in options]
     listed = ", ".join(options) or "none"
     close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    if not close:   # an abbreviation (dir for direction) is too short for difflib's ratio
+        close = [o for o in options if len(str(word)) >= 2 and o.startswith(str(word))][:2]
+        close = close if len(close) == 1 else []
     return f"did you mean {close[0]!r}? ({label}: {listed})" if close else f"{label}: {listed}"
 
 

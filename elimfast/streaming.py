@@ -509,6 +509,13 @@ def _problem_raised(integration, before: int, err: BaseException, writer, resume
 SOLVER_SECTIONS = ("solver",)
 
 
+def resume_refusal(path, key: str, prefix: str = "") -> OutputError:
+    """The refusal of a --resume that would change ``key``, a key outside SOLVER_SECTIONS."""
+    return OutputError(f"{path}: {prefix}only {'/'.join(s + '.*' for s in SOLVER_SECTIONS)} may change on --resume; "
+                       f"{key} changes the trajectory: start a new run (-o NEW.h5), or replace this one with "
+                       "--overwrite")
+
+
 def config_difference(stored: str, current: str, ignore: tuple[str, ...] = ()) -> str | None:
     """The first key where two resolved YAML configs differ (output.path and the sections
     in ``ignore`` left out), or None."""
@@ -582,9 +589,7 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             stored = str(attrs.get("config", ""))
             difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS)
             if difference is not None:
-                raise OutputError(f"{path}: was written from a different config (first difference at "
-                                  f"'{difference}', which changes the trajectory); only solver.* may change on "
-                                  f"--resume: use --overwrite to start again")
+                raise resume_refusal(path, difference, prefix="was written from a different config; ")
             solver_changed = config_difference(stored, config_text) is not None
             if status == STATUS_COMPLETE:
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,

@@ -232,6 +232,9 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     if not isinstance(data, dict):
         _fail(source, "(top level)", "a sweep file is a mapping with keys base, set, grid, error, order_axis")
     known = {"base", "set", "grid", "error", "order_axis", "description", "ensemble"}
+    if "base" not in data and "problem" in data:
+        _fail(source, "(top level)", f"a run config (it has problem: and no base:), not a sweep file; run it with "
+                                     f"elimfast run {source}, or name it as the base: of a sweep file")
     unknown = sorted(set(data) - known)
     if unknown:
         _fail(source, unknown[0], f"unknown key; a sweep file has {', '.join(sorted(known))}")
@@ -481,6 +484,22 @@ def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:
 
 # --- running ----------------------------------------------------------------------
 
+# What changes the solver settings of a sweep's runs. A failed run's message
+# (integrate.failure_message) says how to continue a run file: --resume with other solver
+# settings (--set solver.*). A sweep has no --set, and its --resume refuses an edited sweep
+# file (SweepWriter._reopen, ensemblefile.check_resumable) and reruns a failed run as it was.
+SWEEP_RERUN_ADVICE = ("in a sweep, change the settings in the sweep file (e.g. set: {solver: {max_halvings: 8}}) "
+                      "and run it again with --overwrite (--resume refuses an edited sweep file)")
+
+
+def for_sweep(message: str) -> str:
+    """A run's failure message with its advice about --resume (which is for run files)
+    replaced by what works in a sweep (SWEEP_RERUN_ADVICE); other messages as they are."""
+    clauses = message.split("; ")
+    kept = [clause for clause in clauses if "--resume" not in clause]
+    return message if len(kept) == len(clauses) else "; ".join(kept + [SWEEP_RERUN_ADVICE])
+
+
 def _execute(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool) -> RunOutcome:
     """Worker: load one run's config, integrate it, summarise. Never raises for a run's
     own failure: a bad config or a failed integration becomes the outcome's status."""
@@ -533,7 +552,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.t_final = run.t
     result = run.result(chunks) if run.adaptive_kernel else collect_result(run, chunks)
     if run.status != 0:
-        outcome.status = result.status = "failed: " + run.failure_message()
+        outcome.status = result.status = "failed: " + for_sweep(run.failure_message())
     _summarise(outcome, result, spec.solver.rhs)
     if store_arrays:
         outcome.result = result
@@ -876,7 +895,7 @@ class SweepOutcome:
             if not result.n_failed:
                 return []
             return [f"{result.n_failed} of {result.n_trajectories} trajectories failed: "
-                    f"{result.failure_message(int(result.ok.argmin()))}"]
+                    f"{for_sweep(result.failure_message(int(result.ok.argmin())))}"]
         lines = []
         if self.reference is not None and not self.reference.ok:
             lines.append(f"the reference run failed, so there are no errors: {self.reference.status}")
@@ -924,7 +943,7 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
     this process stays the only writer of ``path``. ``on_message(line)``: what is being
     done (cluster, resume), for the progress display.
     """
-    from .io.sweepfile import SweepWriter
+    from .io.sweepfile import RUNS_PLANNED, SweepWriter
 
     if client is not None and scheduler is not None:
         raise SweepError("give either a Dask client or a scheduler address, not both")
@@ -942,7 +961,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
         nonlocal writer
         if path is not None:
             writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
-                                 attributes={"source": spec.source, "axes": list(spec.axes) or [""]},
+                                 attributes={"source": spec.source, "axes": list(spec.axes) or [""],
+                                             RUNS_PLANNED: len(spec.runs)},
                                  overwrite=overwrite or resume, resume=resume, ensemble=ensemble)
 
     with contextlib.ExitStack() as stack:

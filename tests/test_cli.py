@@ -102,6 +102,16 @@ def test_check_prints_the_resolved_config_as_yaml():
     assert "EHBVM(12,4) imposing angular_momentum, lrl_y, 10000 steps" in result.stdout
 
 
+def test_check_describes_an_adaptive_run_by_its_step_control():
+    result = invoke("check", ROOT / "configs" / "kepler_adaptive.yaml")
+    assert result.exit_code == 0, result.output
+    line = result.stdout.splitlines()[1]
+    assert line == ("# problem kepler, EHBVM(8,4) imposing angular_momentum, lrl_y, adaptive (error: rtol 1e-13, "
+                    f"atol 1e-13; docs/adaptive.md) from t = 0.0 to {200 * np.pi!r}"), line
+    first = invoke("check", ROOT / "configs" / "kepler_adaptive.yaml", "--set", "integration.h=0.01")
+    assert first.stdout.splitlines()[1].endswith(", first step h = 0.01")
+
+
 def test_problems_lists_the_library():
     result = invoke("problems")
     assert result.exit_code == 0, result.output

@@ -76,6 +76,23 @@ def make_case(name, tmp: Path):
         "tableau of lim": (["tableau", "ghbvm", "--k", "3", "--s", "2"], "no fixed Runge-Kutta form"),
         "tableau k < s": (["tableau", "hbvm", "--k", "2", "--s", "3"], "k must be >= s"),
         "tableau bad eta": (["tableau", "ehbvm", "--k", "3", "--s", "2", "--eta", "x"], "not a number"),
+        "tableau without r and k": (["tableau", "elim", "--s", "3"], "--r is missing, and so is k;"),
+        "empty output path": (["run", write(tmp, "g.yaml", GOOD), "-o", ""], "the output path is empty"),
+        "duplicate section": (["run", write(tmp, "dup.yaml", GOOD + "integration: {h: 0.2, n_steps: 5}\n"), "-o",
+                               tmp / "o.h5"], "dup.yaml:5: duplicate key 'integration' at the top level (first at "
+                                              "line 4)"),
+        "duplicate key in a flow mapping": (["run", write(tmp, "dup2.yaml", GOOD.replace("s: 3}", "s: 3, s: 4}")),
+                                             "-o", tmp / "o.h5"], "dup2.yaml:3: duplicate key 's' in method"),
+        "misspelt section": (["run", write(tmp, "methd.yaml", GOOD.replace("method:", "methd:")), "-o", tmp / "o.h5"],
+                             "methd.yaml:3: methd: unknown key; did you mean 'method'?"),
+        "misspelt event key": (["run", write(tmp, "ev.yaml", GOOD + "events: {x: {expression: q1, dir: 1}}\n"),
+                                "-o", tmp / "o.h5"], "events.x.dir: unknown key; did you mean 'direction'?"),
+        "run a sweep file": (["run", write(tmp, "sw.yaml", "base: g.yaml\ngrid: []\n"), "-o", tmp / "o.h5"],
+                             "a sweep file (it has base: and no problem:), not a run config; run it with elimfast "
+                             "sweep"),
+        "check a sweep file": (["check", write(tmp, "sw.yaml", "base: g.yaml\nset: {}\n")], "elimfast sweep"),
+        "sweep a run config": (["sweep", write(tmp, "g.yaml", GOOD)], "a run config (it has problem: and no base:), "
+                                                                       "not a sweep file; run it with elimfast run"),
     }
     return cases[name]
 
@@ -84,7 +101,9 @@ CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad
          "impossible method s <= nu", "existing output", "unwritable path", "unwritable file system",
          "no output path", "overwrite and resume", "inspect a text file", "inspect a foreign hdf5 file",
          "inspect a missing file", "plot a foreign file", "check a bad config", "unknown command", "unknown option",
-         "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta"]
+         "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta", "tableau without r and k",
+         "empty output path", "duplicate section", "duplicate key in a flow mapping", "misspelt section",
+         "misspelt event key", "run a sweep file", "check a sweep file", "sweep a run config"]
 
 
 def assert_one_line_error(stderr: str, fragment: str):

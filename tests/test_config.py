@@ -302,6 +302,10 @@ LINE_FAULTS = [
     ("missing key: its section's line", _edit(13, None), "integration.h", 12, "missing; give the step size"),
     ("missing section: no line", lambda c: c.replace("method:\n  name: ehbvm\n  k: 12\n  s: 3\n", ""), "method",
      None, "missing; add e.g. method:"),
+    ("misspelt section: the unknown key before the missing one", _edit(8, "methd:"), "methd", 8,
+     "unknown key; did you mean 'method'"),
+    ("abbreviated key", lambda c: c + EVENTS.replace("directoin", "dir"), "events.pericentre.dir", 20,
+     "unknown key; did you mean 'direction'"),
 ]
 
 
@@ -321,6 +325,41 @@ def test_errors_name_the_line_of_the_key(tmp_path, label, change, key, line, mat
         if label.startswith("missing key"):
             expected = "integration:"
         assert named.startswith(expected), named
+
+
+def test_a_misspelt_section_is_reported_before_the_section_it_leaves_missing(tmp_path):
+    with pytest.raises(ConfigError) as info:
+        load_run(write(tmp_path, _edit(8, "methd:")(LINED)))
+    assert [m.split(": ", 1)[1] for m in info.value.messages] == [
+        "methd: unknown key; did you mean 'method'? (allowed here: problem, conserve, method, integration, solver, "
+        "output, events)", "method: missing; add e.g. method: {name: ehbvm, k: 12, s: 3}"]
+
+
+@pytest.mark.parametrize("change,line,message", [
+    (lambda c: c + "integration:\n  h: 0.2\n  t_end: 10\n", 17,
+     "duplicate key 'integration' at the top level (first at line 12)"),
+    (_edit(11, "  s: 3\n  s: 4"), 12, "duplicate key 's' in method (first at line 11)"),
+    (_edit(4, "    eccentricity: 0.6\n    eccentricity: 0.7"), 5,
+     "duplicate key 'eccentricity' in problem.parameters (first at line 4)"),
+    (lambda c: c.replace("method:\n  name: ehbvm\n  k: 12\n  s: 3", "method: {name: ehbvm, k: 12, s: 3, s: 4}"), 8,
+     "duplicate key 's' in method (first at column 30 of this line)"),
+], ids=["section", "key", "nested key", "flow mapping"])
+def test_a_key_given_twice_is_refused_naming_both_places(tmp_path, change, line, message):
+    """YAML loaders keep the last of two equal keys silently: two integration sections ran the
+    second, and s: 3, s: 4 ran s = 4."""
+    path = write(tmp_path, change(LINED))
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    assert str(info.value) == f"{path}:{line}: {message}; keep one of them"
+    assert info.value.line == line
+
+
+def test_a_sweep_file_given_as_a_run_config_says_to_use_sweep(tmp_path):
+    path = write(tmp_path, "base: kepler.yaml\ngrid:\n  - {name: h, key: integration.h, values: [0.1]}\n")
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    assert str(info.value) == (f"{path}: a sweep file (it has base: and no problem:), not a run config; run it with "
+                               f"elimfast sweep {path}")
 
 
 def test_every_schema_error_of_a_file_names_a_line(tmp_path):

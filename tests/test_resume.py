@@ -119,6 +119,22 @@ def test_resume_of_a_complete_run_changes_nothing(tmp_path):
     assert path.read_bytes() == before
 
 
+@pytest.mark.parametrize("change", ["integration.h=0.05", "integration.t_end=20000", "method.s=4"])
+def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
+    """The stored config holds h, t_end and n_steps: a --set of h or t_end contradicted n_steps
+    and was reported as that contradiction, not as what --resume allows."""
+    path = tmp_path / "part.h5"
+    args = ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--quiet"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", change])
+    assert result.exit_code == 2
+    assert result.stderr.endswith(f"only solver.* may change on --resume; {change.split('=')[0]} changes the "
+                                  "trajectory: start a new run (-o NEW.h5), or replace this one with --overwrite\n")
+    # a value repeated from the first run, and a solver setting, are no change
+    repeated = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", "solver.max_halvings=6"])
+    assert repeated.exit_code == 0, repeated.stderr
+
+
 def test_resume_without_a_file_starts_a_new_run(tmp_path):
     path = tmp_path / "new.h5"
     result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])

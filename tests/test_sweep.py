@@ -231,3 +231,117 @@ def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
     path.write_text("base: [unclosed\n")
     with pytest.raises(SweepError, match="line 2"):
         load_sweep(path)
+
+
+def test_a_failed_run_of_a_sweep_advises_what_works_in_a_sweep(tmp_path):
+    """A run file continues with --resume --set solver.*=...; a sweep has no --set and its
+    --resume refuses an edited sweep file, so its failed runs say to edit and --overwrite."""
+    from elimfast.sweep import SWEEP_RERUN_ADVICE
+
+    path = write_sweep(tmp_path, {"base": {**BASE, "solver": {"max_iter": 3, "max_halvings": 1}},
+                                  "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/4"]}]})
+    (outcome,), _ = run_sweep(load_sweep(path), workers=1)
+    assert outcome.status.startswith("failed: EHBVM(12,3): the simplified Newton did not converge")
+    assert "allow more step halvings (solver.max_halvings = 1 now)" in outcome.status
+    assert "continued with --resume" not in outcome.status
+    assert outcome.status.endswith(f"; {SWEEP_RERUN_ADVICE}") and "--overwrite" in SWEEP_RERUN_ADVICE
+
+
+def test_duplicate_keys_in_a_sweep_file_are_refused(tmp_path):
+    path = tmp_path / "dup.yaml"
+    path.write_text("base: kepler.yaml\nset:\n  integration: {t_end: 10}\n  integration: {t_end: 20}\n")
+    with pytest.raises(SweepError) as caught:
+        load_sweep(path)
+    assert str(caught.value) == (f"{path}:4: duplicate key 'integration' in set (first at line 3); keep one of "
+                                 "them")
+
+
+def test_a_run_config_given_as_a_sweep_file_says_to_use_run(tmp_path):
+    path = write_sweep(tmp_path, BASE, name="run.yaml")
+    with pytest.raises(SweepError, match=r"run.yaml: \(top level\): a run config .*elimfast run .*run.yaml"):
+        load_sweep(path)
+
+
+def small_sweep(tmp_path, values, t_end="2*pi"):
+    return write_sweep(tmp_path, {"base": BASE, "set": {"integration": {"t_end": t_end}},
+                                  "grid": [{"name": "h", "key": "integration.h", "values": values}]})
+
+
+def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.io.hdf5 import NotAnElimfastFile, RunFile
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(small_sweep(tmp_path, ["2*pi/40", "2*pi/60"]), out, workers=1)
+    expected = (f"{out}: a sweep file, not a single run: give one of its runs as {out}:/runs/2*pi/40 (in Python: "
+                f"elimfast.load('{out}', run='2*pi/40')); 2 of 2 runs stored (2*pi/40, 2*pi/60)")
+    for read in (RunFile, elimfast.load):
+        with pytest.raises(NotAnElimfastFile) as caught:
+            read(out)
+        assert str(caught.value) == expected
+    result = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert result.exit_code == 2 and result.stderr == f"error: {expected}\n"
+    assert CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/40"]).exit_code == 0
+
+
+def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_completes_it(tmp_path):
+    """kill -9 leaves a grid sweep's file (written outside SWMR mode) marked open for writing:
+    HDF5 refuses it, yet every run stored before is whole and --resume completes it. Readers
+    must say so, not call it damaged and advise --overwrite (which would lose the runs)."""
+    import signal
+    import subprocess
+    import sys
+
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.io.hdf5 import OutputError, RunFile, consistency_flags
+    from elimfast.sweep import run_to_file
+
+    path = small_sweep(tmp_path, [f"2*pi/{n}" for n in (100, 110, 120, 130)], t_end="500*pi")
+    out = tmp_path / "killed.h5"
+    process = subprocess.Popen([str(Path(sys.executable).with_name("elimfast")), "sweep", str(path), "-o", str(out),
+                                "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    for line in process.stderr:
+        if line.startswith("[2/"):
+            process.send_signal(signal.SIGKILL)
+            break
+    process.wait(timeout=120)
+    assert process.returncode == -signal.SIGKILL and consistency_flags(out)
+    command = f"elimfast sweep {path} -o {out} --resume"
+    for where in (str(out), f"{out}:/runs/2*pi/100"):
+        for read in (RunFile, elimfast.load):
+            with pytest.raises(OutputError) as caught:
+                read(where)
+            message = str(caught.value)
+            assert message.startswith(f"{out}: an interrupted sweep (its writer was killed, so HDF5 still sees it "
+                                      "open): ") and " of 4 runs stored (2*pi/100, " in message, message
+            assert f"complete it with {command}" in message and "--overwrite" not in message
+            assert "damaged" not in message and "\n" not in message
+    result = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert result.exit_code == 2 and command in result.stderr
+    assert consistency_flags(out)   # reading touched nothing
+    run_to_file(path, out, resume=True, workers=1)
+    with pytest.raises(OutputError, match="4 of 4 runs stored"):
+        RunFile(out)
+
+
+def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast.sweep
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(elimfast.sweep, "run_to_file", interrupted)
+    path, out = small_sweep(tmp_path, ["2*pi/40"]), tmp_path / "sw.h5"
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out)])
+    assert result.exit_code == 130
+    assert result.stderr == (f"error: interrupted; the finished runs (of an ensemble: its stored blocks) are in {out}; "
+                             f"run the rest with: elimfast sweep {path} -o {out} --resume\n")

@@ -61,7 +61,7 @@ from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimf
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
                      _writer_lock_held, clear_consistency_flags, consistency_flags, ensure_not_busy,
-                     set_consistency_flags)
+                     open_unflagged, set_consistency_flags)
 
 SWEEP_FORMAT = "elimfast-sweep"
 RUNS_GROUP = "runs"
@@ -651,6 +651,22 @@ _STATE_MEMBERS = ("y", "y_comp", "clock", "coef", "multipliers", "steps_done", "
 _LAYOUT = ("t", "y", "invariants", "steps", "steps/iterations", "method", "state",
            *(f"state/{name}" for name in _STATE_MEMBERS))
 
+def _killed_sweep(path: Path) -> str | None:
+    """What a sweep file whose writer was killed holds (sweepfile.describe_sweep_file), or None
+    for any other file HDF5 cannot open. A grid sweep writes outside SWMR mode, so HDF5 refuses
+    its file after a kill although every run flushed before is whole (--resume keeps them)."""
+    from .sweepfile import describe_sweep_file
+    if not consistency_flags(path) & 1:
+        return None
+    try:
+        with open_unflagged(path) as f:
+            if _plain(f.attrs.get("format", "")) != SWEEP_FORMAT:
+                return None
+            return describe_sweep_file(path, f, killed=True)
+    except Exception:   # noqa: BLE001 -- unreadable even so: the damage it was reported as
+        return None
+
+
 def _require_ours(path, f) -> None:
     """The format attribute, a version this reader knows, and every member of the layout."""
     try:
@@ -659,6 +675,13 @@ def _require_ours(path, f) -> None:
         version = int(f.attrs["format_version"]) if "format_version" in names else 0
     except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
         raise _damaged(path, "its root attributes", err) from None
+    if fmt == SWEEP_FORMAT:
+        from .sweepfile import describe_sweep_file
+        try:
+            message = describe_sweep_file(path, f)
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:
+            raise _damaged(path, "/runs", err) from None
+        raise NotAnElimfastFile(message)
     if fmt != FORMAT:
         what = f"its format is {fmt!r}" if fmt else f"no '{FORMAT}' format attribute"
         raise NotAnElimfastFile(f"{path}: not an elimfast run file ({what}); give a file written by 'elimfast run'")
@@ -689,7 +712,13 @@ class RunFile:
         path, run = split_run_path(path, run)
         self.path = Path(path)
         self.run = run
-        self._file = _open(self.path)
+        try:
+            self._file = _open(self.path)
+        except DamagedFileError:
+            message = _killed_sweep(self.path)
+            if message is None:
+                raise
+            raise OutputError(message) from None
         try:
             if run is None:
                 _require_ours(self.path, self._file)

@@ -32,6 +32,7 @@ import ctypes
 import ctypes.util
 import errno
 import fcntl
+import io
 import os
 import socket
 import stat
@@ -509,6 +510,40 @@ def _open(path) -> h5py.File:
         raise FileBusyError(f"{path}: is open for writing in another process (a run finishing, or another HDF5 "
                             "program); try again when it is done") from None
     raise _damaged(path, "its start (HDF5 cannot open it)", first) from None
+
+
+class _UnflaggedView(io.FileIO):
+    """A file read as if its superblock's consistency flags were clear (what ``repair`` would
+    write), without changing the file: for h5py's file-object driver, so that the file of a
+    writer killed outside SWMR mode (a sweep's) can be read to say what it holds."""
+
+    def __init__(self, path):
+        raw, end = _superblock(path)
+        raw[11] = 0
+        raw[end:end + 4] = struct.pack("<I", lookup3(bytes(raw[:end])))
+        self._head = bytes(raw[:end + 4])
+        super().__init__(path, "r")
+
+    def readinto(self, buffer):
+        start = self.tell()
+        n = super().readinto(buffer)
+        if n and start < len(self._head):
+            stop = min(len(self._head), start + n)
+            memoryview(buffer).cast("B")[:stop - start] = self._head[start:stop]
+        return n
+
+
+@contextlib.contextmanager
+def open_unflagged(path):
+    """The h5py.File of a killed non-SWMR writer's file, read-only, its flags ignored (see
+    _UnflaggedView); the file is not touched. Raises OSError or OutputError where HDF5 cannot
+    read it even so. For diagnosis: data written after the writer's last flush may be torn."""
+    view = _UnflaggedView(path)
+    try:
+        with h5py.File(view, "r") as f:
+            yield f
+    finally:
+        view.close()
 
 
 def _held_exclusively(path: Path) -> bool:

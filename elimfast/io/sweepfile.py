@@ -1,7 +1,8 @@
 """The sweep file: every run of a sweep under /runs/<label>/, in the layout of a run group.
 
 Format ``elimfast-sweep``: root attributes as a run file's versions and date, plus
-``sweep`` (the sweep file's text), ``source`` and ``axes``. Each run's group is written
+``sweep`` (the sweep file's text), ``source``, ``axes`` and ``runs_planned`` (the number
+of runs of the grid; absent in files of earlier elimfast versions). Each run's group is written
 by ``layout.create_run_group``, the function that writes a run file's root, so it holds
 t, component, y, invariants/<name>, steps/..., method/... on the same dimension scales,
 and a run file's attributes (config, problem, method, h, n_steps, steps_done, status,
@@ -33,6 +34,39 @@ def sweep_group_name(label: str) -> str:
     and a label of only dots ('.', '..': not names HDF5 accepts) prefixed with '_'."""
     name = label.replace("/", "|")
     return "_" + name if not name.strip(".") else name
+
+
+RUNS_PLANNED = "runs_planned"   # root attribute: how many runs the sweep has (files of elimfast before: absent)
+SHOWN_LABELS = 4                # run labels a message lists
+
+
+def describe_sweep_file(path, f, *, killed: bool = False) -> str:
+    """One line for a reader given a sweep file where it wants one run (``inspect``,
+    ``load``, ``plot``), or given a run of a sweep file whose writer was killed (``killed``:
+    HDF5 refuses the file until ``repair`` or ``--resume`` clears its flags; ``f`` is then
+    read through ``safety.open_unflagged``). Says what the file holds, how to name one run,
+    and, for a sweep that did not end, how many runs are stored and that --resume completes it."""
+    if ensemblefile.GROUP in f:
+        return (f"{path}: the file of an ensemble sweep (no single runs); read it with elimfast inspect {path} or "
+                f"elimfast.load('{path}')")
+    runs = f["runs"] if "runs" in f else {}
+    stored = [str(_plain(runs[name].attrs.get("label", name))) for name in runs
+              if runs[name].attrs.get("stored", False)]
+    planned = int(f.attrs.get(RUNS_PLANNED, 0))
+    count = f"{len(stored)} of {planned}" if planned else f"{len(stored)}"
+    shown = ", ".join(stored[:SHOWN_LABELS]) + (", ..." if len(stored) > SHOWN_LABELS else "")
+    listing = f"{count} runs stored" + (f" ({shown})" if shown else "")
+    source = str(_plain(f.attrs.get("source", ""))) or "SWEEP.yaml"
+    resume = f"complete it with elimfast sweep {source} -o {path} --resume"
+    example = f"{path}:/runs/{stored[0]}" if stored else f"{path}:/runs/<label>"
+    if killed:
+        return (f"{path}: an interrupted sweep (its writer was killed, so HDF5 still sees it open): {listing}; "
+                f"{resume}, or run elimfast repair {path} to read the stored runs as they are (e.g. {example})")
+    if planned and len(stored) < planned:
+        return f"{path}: an incomplete sweep file, not a single run: {listing}; {resume}; read one run as {example}"
+    label = stored[0] if stored else "<label>"
+    return (f"{path}: a sweep file, not a single run: give one of its runs as {example} (in Python: "
+            f"elimfast.load('{path}', run='{label}')); {listing}")
 
 
 class SweepWriter:

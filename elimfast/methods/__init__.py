@@ -36,9 +36,10 @@ def get(name: str, **parameters) -> Method:
     for parameter in parameters:
         if parameter not in kind.parameters:
             raise ParameterError(parameter, f"does not apply: {signature} takes no {parameter}; remove it")
-    for parameter in kind.parameters:
-        if parameter not in parameters:
-            raise ParameterError(parameter, f"is missing; {signature} needs {', '.join(kind.parameters)}")
+    missing = [parameter for parameter in kind.parameters if parameter not in parameters]
+    if missing:
+        also = f", and so {'is' if len(missing) == 2 else 'are'} {' and '.join(missing[1:])}" if missing[1:] else ""
+        raise ParameterError(missing[0], f"is missing{also}; {signature} needs {', '.join(kind.parameters)}")
     return kind.constructor(**parameters)
 
 
