@@ -395,11 +395,11 @@ class AdaptiveIntegration:
             step_h=np.concatenate([c.step_h for c in chunks]), step_control=self.control, stats=self.stats(),
             events=found)
 
-    def failure_message(self) -> str:
+    def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
                                float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics,
-                               adaptive=self.control is not None)
+                               adaptive=self.control is not None, run_file=run_file)
 
     @property
     def t(self) -> float:

@@ -617,16 +617,19 @@ class Integration:
         return Chunk(t_out, y_out, inv_out, mult_out[:done], iter_out[:n_iter], substeps_out[:done], first,
                      int(status))
 
-    def failure_message(self) -> str:
-        """One line naming the step and time of a failure, what the solver saw, and what to do."""
+    def failure_message(self, run_file: bool = False) -> str:
+        """One line naming the step and time of a failure, what the solver saw, and what to do
+        (run_file: the run is in a run file, which --resume continues)."""
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t, self.signed_h,
-                               self.diagnostics)
+                               self.diagnostics, run_file=run_file)
 
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
-                    diagnostics, adaptive: bool = False) -> str:
+                    diagnostics, adaptive: bool = False, run_file: bool = False) -> str:
     """The one-line report of a step that failed at every level of splitting (docs/solver.md);
-    adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h."""
+    adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h;
+    run_file: the run is in a run file, which `elimfast run --resume` continues with other
+    solver settings (not said to the Python API or a sweep, which cannot)."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -645,8 +648,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         # whose halves are well-conditioned.
         advice = _NEARLY_SINGULAR_ADVICE
     elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
-        advice = (f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now); "
-                  "a failed run can be continued with --resume after changing solver settings")
+        advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"
+        if run_file:
+            advice += "; a failed run can be continued with --resume after changing solver settings"
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
 
 

@@ -431,7 +431,7 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     if stopped is not None:
         status = STOPPED_PREFIX + stopped[0]
     elif integration.status != 0:
-        status = FAILED_PREFIX + integration.failure_message()
+        status = FAILED_PREFIX + integration.failure_message(run_file=True)
     elif integration.complete:
         status = STATUS_COMPLETE
     else:

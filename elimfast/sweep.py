@@ -484,20 +484,17 @@ def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:
 
 # --- running ----------------------------------------------------------------------
 
-# What changes the solver settings of a sweep's runs. A failed run's message
-# (integrate.failure_message) says how to continue a run file: --resume with other solver
-# settings (--set solver.*). A sweep has no --set, and its --resume refuses an edited sweep
-# file (SweepWriter._reopen, ensemblefile.check_resumable) and reruns a failed run as it was.
+# What changes the solver settings of a sweep's runs: a sweep has no --set, and its --resume
+# refuses an edited sweep file (SweepWriter._reopen, ensemblefile.check_resumable) and reruns a
+# failed run as it was.
 SWEEP_RERUN_ADVICE = ("in a sweep, change the settings in the sweep file (e.g. set: {solver: {max_halvings: 8}}) "
                       "and run it again with --overwrite (--resume refuses an edited sweep file)")
 
 
 def for_sweep(message: str) -> str:
-    """A run's failure message with its advice about --resume (which is for run files)
-    replaced by what works in a sweep (SWEEP_RERUN_ADVICE); other messages as they are."""
-    clauses = message.split("; ")
-    kept = [clause for clause in clauses if "--resume" not in clause]
-    return message if len(kept) == len(clauses) else "; ".join(kept + [SWEEP_RERUN_ADVICE])
+    """A run's failure message (integrate.failure_message, which leaves --resume to run files)
+    with what works in a sweep added."""
+    return f"{message}; {SWEEP_RERUN_ADVICE}"
 
 
 def _execute(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool) -> RunOutcome:

@@ -139,6 +139,8 @@ def test_a_failed_run_exits_1_and_keeps_its_data(tmp_path):
     assert result.exit_code == 1
     assert_one_line_error(result.stderr, "run failed: EHBVM(6,3): the simplified Newton did not converge "
                                          "(max_iter = 3) at step 1")
+    # a run file is continued with --resume and other solver settings (the Python API is not told so)
+    assert "continued with --resume after changing solver settings" in result.stderr
     with h5py.File(out, "r") as f:
         assert f.attrs["status"].startswith("failed: EHBVM(6,3)")
     inspect = CliRunner().invoke(cli, ["inspect", str(out)])

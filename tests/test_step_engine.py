@@ -99,6 +99,8 @@ def test_an_exactly_symmetric_step_is_split_not_accepted_with_a_spurious_alpha()
         elimfast.integrate(p, method, h, n_steps=1, y0=y0, conserve=[L1, AY], max_halvings=0)
     message = str(caught.value)
     assert "step 1" in message and "t = " in message and "increment" in message and "max_halvings" in message
+    # --resume is for run files (elimfast run): not advice the Python API can take
+    assert "--resume" not in message, message
 
 
 def test_newton_and_fixed_point_converge_to_the_same_solution():
