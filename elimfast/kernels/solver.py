@@ -81,7 +81,20 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     if work.newton_blocks.shape[0] > 0:
         blocks, pivots, scratch = work.newton_blocks, work.newton_block_pivots, work.newton_block_scratch
         inverted = scratch.shape[0] > 0
+        real_inverse = work.newton_real_inverse
         for b in range(values.shape[0]):
+            if inverted and values[b].imag == 0.0 and real_inverse.shape[0] > 0:
+                # X's real eigenvalue (odd s): its block in real arithmetic, a quarter of the work;
+                # the Hessian's array is free once J0~ is built
+                real_factor = -h * values[b].real
+                real_block = hessian
+                for p in range(n):
+                    for q in range(n):
+                        real_block[p, q] = real_factor * jacobian[p, q]
+                    real_block[p, p] += 1.0
+                if invert(real_block, real_inverse) != 0:
+                    return STATUS_SINGULAR
+                continue
             factor = -h * values[b]
             block = scratch if inverted else blocks[b]
             for p in range(n):
@@ -126,15 +139,31 @@ def newton_solve(tables, work, delta):
         blocks, pivots, rhs = work.newton_blocks, work.newton_block_pivots, work.newton_block_rhs
         for b in range(values.shape[0]):
             for p in range(n):
-                acc = 0.0 + 0.0j
+                # real and imaginary parts apart: a complex / float division is Numba's general
+                # complex division (Smith's algorithm, branches); two real divisions give the same bits
+                acc_re = 0.0
+                acc_im = 0.0
                 for j in range(s):
-                    acc += V_inverse[b, j] * delta[j * n + p]
-                rhs[b, p] = acc / unit[p]
+                    x = delta[j * n + p]
+                    acc_re += V_inverse[b, j].real * x
+                    acc_im += V_inverse[b, j].imag * x
+                rhs[b, p] = complex(acc_re / unit[p], acc_im / unit[p])
         if work.newton_block_scratch.shape[0] > 0:
             # delta <- D Re(sum_b weight_b V[:, b] (B_b^-1 w_b)), row p of each B_b^-1 at a time
+            real_inverse = work.newton_real_inverse
             for i in range(s * n):
                 delta[i] = 0.0
             for b in range(values.shape[0]):
+                if values[b].imag == 0.0 and real_inverse.shape[0] > 0:
+                    # the real eigenvalue's block (newton_factor): w_b, V[:, b] and the inverse are real
+                    for p in range(n):
+                        z_re = 0.0
+                        for q in range(n):
+                            z_re += real_inverse[p, q] * rhs[b, q].real
+                        z_re *= weights[b] * unit[p]
+                        for j in range(s):
+                            delta[j * n + p] += V[j, b].real * z_re
+                    continue
                 inverse = blocks[b]
                 for p in range(n):
                     z = 0.0 + 0.0j

@@ -269,11 +269,20 @@ def _newton_point(tables, work, y, h, coef, at_start):
     if at_start:
         return
     # The step restricted to its first half, as dense output's side steps take it: its
-    # coefficient 0 is the mean of u' over [0, h/2], so u(h/2) = y + h/2 half_0.
-    half = work.new_coef      # free until the solve's first map writes it
-    extrapolate(tables, work, 0.0, 0.5, coef, coef, 0, half)
+    # coefficient 0 is the mean of u' over [0, h/2], so u(h/2) = y + h/2 half_0, half_0 =
+    # sum_j E_0j coef_j with E = E(offset 0, theta 1/2). That row is the method's own: taken
+    # once per kernel call from extrapolate (work.half_row, 0 until then; E_00 = 1).
+    row = work.half_row
+    if row[0] == 0.0:
+        half = work.new_coef      # free until the solve's first map writes it
+        extrapolate(tables, work, 0.0, 0.5, coef, coef, 0, half)
+        for j in range(row.shape[0]):
+            row[j] = work.extrapolation[0, j]
     for p in range(point.shape[0]):
-        point[p] += 0.5 * h * half[0, p]
+        acc = 0.0
+        for j in range(row.shape[0]):
+            acc += row[j] * coef[j, p]
+        point[p] += 0.5 * h * acc
 
 
 @njit(cache=True, inline="always", error_model="numpy")

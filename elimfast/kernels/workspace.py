@@ -75,8 +75,12 @@ Workspace = namedtuple("Workspace", [
     "newton_block_pivots",   # (n_b, n) int64 (LU blocks)
     "newton_block_rhs",  # (n_b, n) complex
     "newton_block_scratch",  # (n, n) complex: I - h lambda_b J0~ before inversion (inverse form; else 0 x 0)
+    "newton_real_inverse",   # (n, n): the inverse of the block of X's real eigenvalue, in real arithmetic
+    #                          (inverse form with an odd s; else 0 x 0)
     "newton_scale",      # (n,) d_p, the equilibration of the Newton matrix
     "newton_point",      # (n,) where its Jacobian is taken (stepper._newton_point)
+    "half_row",          # (s,) row 0 of E(offset 0, theta 1/2), the mean of u' over the step's first half
+    #                      (stepper._newton_point; zero until its first use)
     "hessian",           # (n, n) Hess(H)(y0)
     "jacobian",          # (n, n) J0 = J Hess(H)(y0)
     "y_start",           # (n,) the state at the start of the step (restored on failure)
@@ -148,7 +152,8 @@ def borrow_workspace(w):
         borrowed(w.component_increment), borrowed(w.carried), borrowed(w.h_powers), borrowed(w.new_coef),
         borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
         borrowed(w.newton_blocks), borrowed(w.newton_block_pivots), borrowed(w.newton_block_rhs),
-        borrowed(w.newton_block_scratch), borrowed(w.newton_scale), borrowed(w.newton_point),
+        borrowed(w.newton_block_scratch), borrowed(w.newton_real_inverse), borrowed(w.newton_scale),
+        borrowed(w.newton_point), borrowed(w.half_row),
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
         borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info),
@@ -174,6 +179,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
     n_blocks = n_eigenvalues
     n_full = 0 if n_blocks > 0 else s * n
     n_scratch = n if n_blocks > 0 and n <= INVERSE_MAX_N else 0
+    n_real = n_scratch if s % 2 == 1 else 0     # an odd s has one real eigenvalue of X
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
     e_max = min(k - s, 3)   # room for the predictor's extra terms (stepper.predictor_extra_rows)
@@ -187,6 +193,8 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_full, n_full)), np.zeros(n_full, dtype=np.int64),
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
-        np.zeros(n), np.zeros(n), np.zeros((n, n)), np.zeros((n, n)),
+        np.zeros((n_real, n_real)),
+        np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
-        np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(5), np.zeros((e_max, n)))
+        np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(5),
+        np.zeros((e_max, n)))

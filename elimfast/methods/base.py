@@ -366,7 +366,9 @@ def newton_eigenbasis(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     rows = []
     index = 0
     for weight in weights:
-        rows.append(inverse_full[index])
+        # A real eigenvalue's row of V^-1 is real: its rounding's imaginary part (~1e-17) dropped,
+        # so that the kernels can take that block in real arithmetic (solver.newton_factor).
+        rows.append(inverse_full[index] if weight == 2.0 else inverse_full[index].real.astype(complex))
         index += 2 if weight == 2.0 else 1
     return (np.array(representatives, dtype=complex), np.column_stack(columns).astype(complex),
             np.array(rows, dtype=complex), np.array(weights))
