@@ -46,7 +46,8 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     X = V Lambda V^-1 (tables newton_values, newton_vectors, newton_inverse), M~ is block
     diagonal in the eigenbasis, one complex n x n matrix I - h lambda J0~ per eigenvalue
     (one per conjugate pair), as in Hairer & Wanner's RADAU5; each block is inverted
-    (small n, linalg.invert) or LU-factorised (large n). Without an eigenbasis (large s,
+    (small n, linalg.invert; the real eigenvalue of an odd s in real arithmetic, into
+    work.newton_real_inverse) or LU-factorised (large n). Without an eigenbasis (large s,
     where V is ill-conditioned), one real (s n) x (s n) LU of M~.
     Returns STATUS_OK, STATUS_NONFINITE (Hessian not finite) or STATUS_SINGULAR.
     """
