@@ -43,16 +43,19 @@ def config_of(run_file) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-def energy_note(attrs, drift: dict, initial: dict, adaptive: bool) -> str | None:
-    """Spec 8, "Quadrature of H": a method that should keep H but lost more than round-off
-    (relative 1e-12) keeps it only up to the quadrature error of its k nodes at this h."""
+def energy_note(run_file) -> str | None:
+    """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
+    invariant lost more than round-off (relative 1e-12) in a run file."""
     from elimfast.integrate import energy_note as note, relative_error
 
-    error = drift.get("H", math.nan)
-    if not math.isfinite(error):
-        return None
-    relative = relative_error(error, initial.get("H", math.nan))
-    return note(attrs.get("method"), attrs.get("k"), attrs.get("h"), relative, adaptive)
+    attrs, drift, initial, scales = (run_file.attrs, run_file.invariant_drift(), run_file.initial_invariants(),
+                                     run_file.invariant_scales())
+    relative = {}
+    for name in ("H", *list(attrs.get("conserve") or [])):
+        error, first = drift.get(name, math.nan), initial.get(name, math.nan)
+        if math.isfinite(error) and math.isfinite(first):
+            relative[name] = relative_error(error, first, scales.get(name, 0.0))
+    return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive)
 
 
 def run_notes(run_file) -> list[str]:
@@ -62,8 +65,7 @@ def run_notes(run_file) -> list[str]:
     if substeps["split"]:
         notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
                      "solver could not converge them whole; every invariant is kept there too")
-    warning = energy_note(run_file.attrs, run_file.invariant_drift(), run_file.initial_invariants(),
-                          run_file.adaptive)
+    warning = energy_note(run_file)
     if warning:
         notes.append(warning)
     return notes
@@ -173,7 +175,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
-    warning = energy_note(a, drift, initial, run_file.adaptive)
+    warning = energy_note(run_file)
     if warning:
         row("note", warning)
     labels = run_file.multiplier_labels()

@@ -8,7 +8,7 @@ from __future__ import annotations
 import difflib
 import math
 from dataclasses import dataclass, field, replace
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -259,8 +259,14 @@ class Result:
         return int(np.count_nonzero(self.substeps > 1))
 
     def energy_warning(self) -> str | None:
-        """A note when H drifts above round-off for a method that keeps H (k too small), else None."""
-        return energy_warning(self.method, self.h, self.invariants["H"], adaptive=self.step_control is not None)
+        """A note when H or an imposed invariant drifts above round-off (k or r too small for
+        the steps, energy_note), else None."""
+        if self.invariants["H"].size < 2:
+            return None
+        errors = self.relative_invariant_errors()
+        return energy_note(self.method.name, self.method.k, self.method.r, self.h,
+                           {name: errors[name] for name in ("H", *self.conserve) if name in errors},
+                           adaptive=self.step_control is not None)
 
     def __repr__(self) -> str:
         errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
@@ -297,27 +303,32 @@ def relative_error(error: float, initial: float, scale: float = 0.0) -> float:
     return float(error) / relative_reference(initial, scale)[0]
 
 
-def energy_warning(method: Method, h: float, H_values, adaptive: bool = False) -> str | None:
+def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
-    quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s. Returns a
-    one-line note when max |H - H0| / |H0| exceeds H_WARNING_RELATIVE, else None."""
-    values = np.asarray(H_values, dtype=float)
-    if values.size < 2:
+    quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
+    and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
+    note naming the relative errors (``relative``: H's and the imposed invariants') above
+    H_WARNING_RELATIVE, else None; for Result.energy_warning and the run files' summaries
+    (cli/report.py). An adaptive run's h is only its first step: there the largest steps,
+    which rtol (or epsilon) and h_max bound, lose them."""
+    above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
+    if not above:
         return None
-    relative = relative_error(float(np.max(np.abs(values - values[0]))), float(values[0]))
-    return energy_note(method.name, method.k, h, relative, adaptive)
-
-
-def energy_note(method_name: str, k, h, relative: float, adaptive: bool) -> str | None:
-    """The note of energy_warning (and of the run files' summaries, cli/report.py) for a relative
-    H error; None at round-off. An adaptive run's h is only its first step: there the largest
-    steps, which rtol and h_max bound, lose H."""
-    if not relative > H_WARNING_RELATIVE:
-        return None
-    where = (f"at h = {h:g}; raise k or reduce h" if not adaptive
-             else "at the largest steps the step control allows; raise k, tighten rtol (or epsilon) or set h_max")
-    return (f"H error {relative:.1e} (relative) is above round-off: {method_name} keeps H only up to the "
-            f"quadrature error of its k = {k} nodes {where}")
+    listed = ", ".join(f"{name} {value:.1e}" if len(above) > 1 else f"{name} error {value:.1e}"
+                       for name, value in above.items())
+    imposed = [name for name in above if name != "H"]
+    kept = []
+    if "H" in above:
+        kept.append(f"H only up to the quadrature error of its k = {k} nodes")
+    if imposed:
+        kept.append(f"{'and ' if kept else ''}the imposed invariants only up to "
+                    f"{'that' if kept else 'the quadrature error'} of its r = {r} nodes")
+    nodes = " and ".join((["k"] if "H" in above else []) + (["r"] if imposed else []))
+    where = (f"at h = {h:g}; raise {nodes} or reduce h" if not adaptive
+             else f"at the largest steps the step control allows; raise {nodes}, tighten rtol (or epsilon) or "
+                  "set h_max")
+    return (f"{listed} (relative) {'are' if len(above) > 1 else 'is'} above round-off: {method_name} keeps "
+            f"{', '.join(kept)} {where}")
 
 
 def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) -> tuple[tuple[str, ...], np.ndarray]:

@@ -112,6 +112,19 @@ def test_check_describes_an_adaptive_run_by_its_step_control():
     assert first.stdout.splitlines()[1].endswith(", first step h = 0.01")
 
 
+def test_a_loose_adaptive_run_is_told_which_invariants_its_steps_lose(tmp_path):
+    """A tester's run at rtol 1e-6 lost H to 2e-9 and the imposed A_y to 2e-10 (relative): the
+    end-of-run note and inspect must name both and say what bounds the steps (not h)."""
+    out = tmp_path / "loose.h5"
+    result = invoke("run", ROOT / "configs" / "kepler_adaptive.yaml", "-o", str(out), "--set", "integration.rtol=1e-6",
+                    "--set", "integration.t_end=4*pi", "--set", "events={}")
+    assert result.exit_code == 0, result.output
+    note = [line for line in result.output.splitlines() if "above round-off" in line]
+    assert len(note) == 1 and "H " in note[0] and "lrl_y" in note[0] and "rtol" in note[0], result.output
+    inspect = invoke("inspect", str(out))
+    assert any(line.startswith("note") and "lrl_y" in line and "r = 8" in line for line in inspect.stdout.splitlines())
+
+
 def test_problems_lists_the_library():
     result = invoke("problems")
     assert result.exit_code == 0, result.output

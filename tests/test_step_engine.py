@@ -301,6 +301,12 @@ def test_energy_warning_of_an_adaptive_run_speaks_of_rtol_not_of_its_first_step(
     loose = elimfast.integrate(p, ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-6, conserve=("angular_momentum", "lrl_y"))
     warning = loose.energy_warning()
     assert warning is not None and "rtol" in warning and "h_max" in warning and "h = " not in warning, warning
+    # the imposed A_y is kept only up to the quadrature error of the r nodes too (4.5e-11 here), and
+    # said so; L (quadratic) stays at round-off and is not named
+    assert loose.relative_invariant_errors()["lrl_y"] > 1e-12
+    assert "lrl_y" in warning and "r = 8" in warning and "angular_momentum" not in warning, warning
+    tight = elimfast.integrate(p, ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-13, conserve=("angular_momentum", "lrl_y"))
+    assert tight.energy_warning() is None
 
 
 def test_result_repr_is_a_short_summary():
