@@ -125,6 +125,12 @@ class StepControl:
 
     def check_problem(self, problem: Problem) -> None:
         if self.controller == "time_scale" and problem.time_scale is None:
+            from .problems import PROBLEMS
+            if problem.name in PROBLEMS and problem.hessian_source == "analytic":
+                # a built-in takes no time_scale key: only kepler, perturbed_kepler and nbody define one
+                raise ParameterError("step_control", f"the built-in problem {problem.name!r} defines no time scale: "
+                                                     "use step_control = 'error' with rtol, or write the problem as "
+                                                     "expressions with time_scale: \"<expression>\"")
             raise ParameterError("step_control", f"problem {problem.name!r} defines no time scale: declare "
                                                  "time_scale: \"<expression>\" in the problem, or use "
                                                  "step_control = 'error' with rtol")

@@ -302,6 +302,12 @@ def test_verify_left_to_elimfast_uses_step_doubling_above_s5(method, n_imposed, 
     assert control.for_method(method, n_imposed) == control
 
 
+def test_time_scale_steps_on_a_built_in_without_one_say_what_can_be_done():
+    """A tester was told to declare time_scale "in the problem", which a built-in cannot take."""
+    with pytest.raises(ParameterError, match="built-in problem 'henon_heiles' defines no time scale.*rtol"):
+        elimfast.integrate(henon_heiles(), hbvm(8, 4), t_end=1.0, step_control="time_scale")
+
+
 def test_atol_zero_is_refused_and_a_tiny_atol_still_runs():
     """A tester's atol = 0 ran into 0/0 in the first-step guess and a 'singular Gamma' at
     t = 0; atol = 1e-20 made a first step of 1e-9 that ELIM halved to 1.8e-21 and failed."""
