@@ -24,6 +24,7 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
+from .maps import apply_J, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
@@ -121,23 +122,14 @@ def extrapolate(tables, work, offset, theta, base, extra, n_extra, out):
 @njit(cache=True, inline="always", error_model="numpy")
 def extra_terms(tables, work, s, coef_extra):
     """coef_extra[j] = gamma_{s+j} = J sum_l b_l P_{s+j}(c_l) grad H(u_l), j < coef_extra.shape[0]:
-    the Legendre coefficients beyond the method's s of the solve just accepted, from the
-    gradients of its last map evaluation (work.grads: no new evaluation of grad H; they
-    were taken one increment, at round-off, before the accepted iterate)."""
-    projection, grads = tables.projection, work.grads
-    k = grads.shape[0]
-    n = grads.shape[1]
-    m = n // 2
-    for j in range(coef_extra.shape[0]):
-        for p in range(m):   # J = [[0, I], [-I, 0]]
-            acc_q = 0.0
-            acc_p = 0.0
-            for l in range(k):
-                w = projection[s + j, l]
-                acc_q += w * grads[l, m + p]
-                acc_p += w * grads[l, p]
-            coef_extra[j, p] = acc_q
-            coef_extra[j, m + p] = -acc_p
+    the Legendre coefficients beyond the method's s of the solve just accepted, projected as
+    the maps project gamma_j (maps.project, apply_J; work.proj is the maps' scratch, free
+    between solves) from the gradients of its last map evaluation (work.grads: no new
+    evaluation of grad H; they were taken one increment, at round-off, before the accepted
+    iterate)."""
+    rows = coef_extra.shape[0]
+    project(tables.projection[s:s + rows], work.grads, rows, work.proj)
+    apply_J(work.proj, rows, coef_extra)
 
 
 def _copy(source, target):
