@@ -583,7 +583,7 @@ class _Builder:
             integration_record["step_control"] = integration_record.pop("controller")
         output_record = {"path": config.output.path, "every": every}
         if t_eval is not None:
-            output_record["times"] = t_eval.tolist()
+            output_record["times"] = self.times_record(config.output.times, t_eval)
         resolved = {
             "problem": resolved_problem,
             "conserve": list(conserve),
@@ -655,6 +655,21 @@ class _Builder:
                     raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")
                 values = times.start + times.step * np.arange(count)
         return resolve_t_eval(values, t0, t_end)
+
+    @staticmethod
+    def times_record(times, t_eval) -> list | dict:
+        """output.times as the resolved config stores it: a grid as its {start, stop, step|n}
+        (the numbers evaluated), which reproduces the same times bit for bit; a list as the
+        times. Expanded, a grid of 125,664 times made a stored config that --resume refused
+        (more entries than a config may have)."""
+        if isinstance(times, list):
+            return t_eval.tolist()
+        record = {"start": float(times.start), "stop": float(times.stop)}
+        if times.n is not None:
+            record["n"] = int(times.n)
+        else:
+            record["step"] = float(times.step)
+        return record
 
     def events(self, problem: Problem, events):
         """The events section compiled for the problem (EventSpec owns the rules); None when absent."""

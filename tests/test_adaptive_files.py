@@ -208,3 +208,50 @@ def test_rtol_sweep_prints_error_against_work(tmp_path):
     steps = [int(row[column["steps"]]) for row in ehbvm]
     assert len(ehbvm) == 6 and errors[-1] < errors[0] / 1000     # tighter rtol: smaller error ...
     assert steps == sorted(steps) and work[-1] > work[0]          # ... for more work
+
+
+def test_a_long_output_grid_is_stored_as_its_grid_and_resolves_again():
+    """output.times {start, stop, step} is stored in the run file's config as that grid, not
+    as its times: 125,664 stored times made a config that --resume refused ("more than
+    100000 entries"). Reloaded, the stored grid gives the same times bit for bit."""
+    config = {**CONFIG, "integration": {"rtol": 1e-12, "t_end": "20000*pi"},
+              "output": {"times": {"start": 0, "stop": "20000*pi", "step": 0.5}}}
+    spec = load_run_from_dict(config)
+    stored = spec.resolved["output"]["times"]
+    assert stored == {"start": 0.0, "stop": 20000 * math.pi, "step": 0.5}
+    again = load_run_from_dict(yaml.safe_load(yaml.safe_dump(spec.resolved)))
+    assert again.t_eval.size == spec.t_eval.size > 100_000
+    np.testing.assert_array_equal(again.t_eval, spec.t_eval)
+    listed = load_run_from_dict({**config, "output": {"times": [0.0, 1.5, 3.0]}})
+    assert listed.resolved["output"]["times"] == [0.0, 1.5, 3.0]
+
+
+@pytest.mark.slow
+def test_kill_9_and_resume_keep_every_sample_of_a_dense_output_grid(tmp_path):
+    """Output times denser than the steps (here ~15 samples per step): resume used to cut the
+    samples back to one per step (the fixed-step rule for a failed run's extra sample) and
+    lost 18% of them."""
+    config = {**CONFIG, "integration": {"rtol": 1e-13, "t_end": "200*pi"},
+              "output": {"every": 1, "times": {"start": 0, "stop": "200*pi", "step": 0.004}}}
+    config.pop("events")
+    path = write_config(tmp_path, config)
+    whole, out = tmp_path / "whole.h5", tmp_path / "run.h5"
+    done = subprocess.run([ELIMFAST, "run", str(path), "-o", str(whole), "--quiet"], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    process = subprocess.Popen([ELIMFAST, "run", str(path), "-o", str(out), "--quiet"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 600
+    while steps_on_disk(out) < 2000:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+    resumed = subprocess.run([ELIMFAST, "run", str(path), "-o", str(out), "--resume", "--quiet"],
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    with h5py.File(whole, "r") as a, h5py.File(out, "r") as b:
+        assert a["t"].shape[0] > 10 * a["steps/h"].shape[0]
+        for name in ("t", "y", "invariants/H", "steps/h"):
+            np.testing.assert_array_equal(b[name][:], a[name][:])

@@ -443,10 +443,14 @@ class RunWriter:
         with RunFile(path) as existing:
             saved = existing.saved_state()
             existing.verify(stop=stop)
-            # A failed run ends with a sample of its last good state, off the output grid:
-            # the continuation samples the grid again, as an uninterrupted run does.
-            saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
-                saved["steps_done"], int(existing.attrs.get("output_every", 1))))
+            # A failed fixed-step run ends with a sample of its last good state, off the output
+            # grid (integrate.Integration.advance): the continuation samples the grid again, as an
+            # uninterrupted run does. Runs of the adaptive kernel (a step_control attribute, also
+            # "fixed") add no such sample, and with output times they may hold more samples
+            # than steps: cutting them to the step grid lost samples.
+            if "step_control" not in existing.attrs:
+                saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
+                    saved["steps_done"], int(existing.attrs.get("output_every", 1))))
             n_datasets = 4 + len(existing.invariant_names) + (existing.multiplier_name is not None)
         # A format 1 file (no checksums, no record) is continued in its own format.
         if restore is not None:
