@@ -249,7 +249,9 @@ def run(config, output, overrides, overwrite, resume, quiet):
     after kill -9, and ends bit for bit where an uninterrupted run ends. --resume uses the
     config stored in OUT.h5 (the --set values of the first run need not be repeated); a
     --set on resume may change solver.* only, e.g. to continue a failed run with more
-    step halvings. A relative output path is taken from the current directory.
+    step halvings, and integration.t_end (with output.times, keeping the times written), to
+    continue a run, complete or not, to a later end. A relative output path is taken from
+    the current directory.
 
     \b
     Examples:
@@ -257,6 +259,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
       elimfast run configs/kepler.yaml -o out/k.h5 --set method.s=4 --set integration.t_end=100
       elimfast run configs/kepler.yaml -o out/kepler.h5 --resume
       elimfast run configs/kepler.yaml -o out/kepler.h5 --resume --set solver.max_halvings=8
+      elimfast run configs/kepler.yaml -o out/kepler.h5 --resume --set integration.t_end=2000
     """
     if overwrite and resume:
         raise click.UsageError("--overwrite and --resume contradict each other; give one of them")
@@ -302,6 +305,15 @@ def _stored_spec(path, overrides):
         text = str(run_file.attrs.get("config", ""))
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
+    # The stored config resolves both t_end and n_steps: a run continued to a later end
+    # (--set integration.t_end=LATER, or n_steps) gets the other from the one given.
+    keys = {_set_key(item) for item in overrides}
+    stored_integration = data.get("integration") if isinstance(data, dict) else None
+    if isinstance(stored_integration, dict):
+        if "integration.t_end" in keys and "integration.n_steps" not in keys:
+            stored_integration.pop("n_steps", None)
+        elif "integration.n_steps" in keys and "integration.t_end" not in keys:
+            stored_integration.pop("t_end", None)
     try:
         return load_run_from_dict(data, source=source, overrides=list(overrides))
     except ConfigError:

@@ -33,6 +33,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from .errors import DiskFullError
 from .io import hdf5
 from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
@@ -507,6 +509,8 @@ def _problem_raised(integration, before: int, err: BaseException, writer, resume
 # Config sections that only decide how a step is solved, not which steps are taken: a
 # run may be resumed with other values there (a failed run with more halvings, say).
 SOLVER_SECTIONS = ("solver",)
+# Keys that may grow on --resume: a run continued to a later end (docs/files.md#continuing-a-run).
+EXTENSION_KEYS = ("integration.t_end", "integration.n_steps", "output.times")
 
 
 def resume_refusal(path, key: str, prefix: str = "") -> OutputError:
@@ -516,9 +520,10 @@ def resume_refusal(path, key: str, prefix: str = "") -> OutputError:
                        "--overwrite")
 
 
-def config_difference(stored: str, current: str, ignore: tuple[str, ...] = ()) -> str | None:
-    """The first key where two resolved YAML configs differ (output.path and the sections
-    in ``ignore`` left out), or None."""
+def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
+                      ignore_keys: tuple[str, ...] = ()) -> str | None:
+    """The first key where two resolved YAML configs differ (output.path, the sections in
+    ``ignore`` and the dotted keys in ``ignore_keys`` left out), or None."""
     import yaml
     try:
         old, new = yaml.safe_load(stored) or {}, yaml.safe_load(current) or {}
@@ -530,6 +535,10 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = ()) -
         if isinstance(tree, dict):
             for section in ignore:
                 tree.pop(section, None)
+            for key in ignore_keys:
+                section, _, name = key.partition(".")
+                if isinstance(tree.get(section), dict):
+                    tree[section].pop(name, None)
 
     def first_difference(a, b, prefix=""):
         if isinstance(a, dict) and isinstance(b, dict):
@@ -541,6 +550,52 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = ()) -
         return None if a == b else prefix.rstrip(".") or "config"
 
     return first_difference(old, new)
+
+
+def integration_t_eval(integration) -> np.ndarray:
+    """The run's requested output times (empty without them)."""
+    return np.asarray(getattr(integration, "t_eval", np.zeros(0)))
+
+
+def run_extension(path, attrs: dict, status: str, clock, stored_t, integration) -> dict | None:
+    """A --resume that continues the run stored in ``path`` to a later end: None when the end
+    is the stored one, else the root attributes the continued run has (RunWriter.resume's
+    ``extension``). Raises OutputError for an end that is earlier, a run that a terminal event
+    ended, or output times that do not begin with the ones already written (``stored_t``).
+
+    A fixed-step run continued so is the uninterrupted run to the new end, bit for bit; an
+    adaptive one is the run that stopped at the old end and went on (its last step was cut
+    to land there; the controller's next step is the one it had proposed before that).
+    """
+    old_end = float(attrs.get("t_end", math.nan))
+    new_end = float(getattr(integration, "t_end", None) or integration.t0 + integration.n_steps * integration.h)
+    new_times = integration_t_eval(integration)
+    if new_end == old_end:
+        times_changed = stored_t is not None and int(attrs.get("output_times", new_times.size)) != new_times.size
+        if times_changed:
+            raise OutputError(f"{path}: output.times may change on --resume only to add times after a later "
+                              "integration.t_end (the run's samples are written); start a new run (-o NEW.h5) for "
+                              "other times")
+        return None
+    if not new_end > old_end:
+        raise OutputError(f"{path}: integration.t_end = {new_end:.10g} is before the end of the stored run, "
+                          f"{old_end:.10g}: --resume continues a run to a later t_end, never an earlier one; start "
+                          "a new run (-o NEW.h5) for a shorter one")
+    t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else old_end
+    if status == STATUS_COMPLETE and t_final < old_end:
+        raise OutputError(f"{path}: the run was ended by a terminal event at t = {t_final:.10g}; a later t_end "
+                          "does not continue it past the event: start a new run from there, without terminal")
+    if stored_t is not None:
+        count = stored_t.size
+        if not (new_times.size >= count and np.array_equal(new_times[:count], stored_t)):
+            raise OutputError(f"{path}: output.times must keep the {count} times already written and add later "
+                              "ones: keep its start and step and give a later stop, e.g. --set "
+                              f"output.times.stop={new_end:.17g}")
+        if status == STATUS_COMPLETE and new_times.size > count and new_times[count] <= old_end:
+            raise OutputError(f"{path}: output.times adds times before the stored run's end, {old_end:.10g}: "
+                              "only later times can be added")
+    return {"t_end": new_end, "n_steps": getattr(integration, "n_steps", None),
+            "output_times": new_times.size if new_times.size else None}
 
 
 def _python_file(config_text: str) -> str | None:
@@ -586,25 +641,40 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             with hdf5.RunFile(path) as existing:
                 status, attrs = existing.status, existing.attrs
                 steps_done = existing.steps_done
+                stored_t = existing.t() if integration_t_eval(integration).size else None
+                clock = existing.saved_state().get("clock")
             stored = str(attrs.get("config", ""))
-            difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS)
+            difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS, ignore_keys=EXTENSION_KEYS)
             if difference is not None:
                 raise resume_refusal(path, difference, prefix="was written from a different config; ")
-            solver_changed = config_difference(stored, config_text) is not None
-            if status == STATUS_COMPLETE:
+            extension = run_extension(path, attrs, status, clock, stored_t, integration)
+            solver_changed = config_difference(stored, config_text, ignore_keys=EXTENSION_KEYS) is not None
+            if status == STATUS_COMPLETE and extension is None:
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,
                                n_steps=int(attrs["n_steps"]), wall_time_s=float(attrs.get("wall_time_s", 0.0)),
                                kernel_time_s=float(attrs.get("kernel_time_s", 0.0)),
-                               note="already complete; nothing to resume")
+                               note="already complete; nothing to resume; to continue it to a later end: --resume --set "
+                                    "integration.t_end=LATER")
             if status.startswith(FAILED_PREFIX) and not solver_changed:
                 raise OutputError(f"{path}: the run {status}; resuming with the same solver settings would fail the "
                                   "same way: resume with other ones (e.g. --set solver.max_halvings=8), or start "
                                   "again with --overwrite")
             opening = time.perf_counter()
-            writer, saved = hdf5.RunWriter.resume(path, restore=integration.restore, stop=stop,
-                                                  config_text=config_text if solver_changed else None)
+            restore = integration.restore
+            if extension is not None:
+                def restore(saved):   # the stored run reached its end; this one goes on
+                    integration.restore({**saved, "finished": 0})
+            writer, saved = hdf5.RunWriter.resume(
+                path, restore=restore, stop=stop, extension=extension,
+                config_text=config_text if (solver_changed or extension is not None) else None)
             wall_offset, kernel_offset = float(saved["wall_time_s"]), float(saved["kernel_time_s"])
             note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
+            if extension is not None:
+                note += f", continued to t_end = {extension['t_end']:.10g} (it ended at {float(attrs['t_end']):.10g})"
+                times = integration_t_eval(integration)
+                if times.size and times[-1] <= float(attrs["t_end"]):
+                    note += (f"; output.times stops at {times[-1]:.10g}: no samples were added (--set "
+                             "output.times.stop=LATER, with the same start and step, adds them)")
             started_with = saved["attrs"].get("elimfast_version")
             if started_with != hdf5.version_attributes()["elimfast_version"]:
                 note += (f"; the run was started by elimfast {started_with}: a continuation by another version "

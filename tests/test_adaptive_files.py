@@ -255,3 +255,41 @@ def test_kill_9_and_resume_keep_every_sample_of_a_dense_output_grid(tmp_path):
         assert a["t"].shape[0] > 10 * a["steps/h"].shape[0]
         for name in ("t", "y", "invariants/H", "steps/h"):
             np.testing.assert_array_equal(b[name][:], a[name][:])
+
+
+def test_an_adaptive_run_continued_to_a_later_end_with_more_output_times(tmp_path):
+    """--resume --set integration.t_end=LATER --set output.times.stop=LATER: the times written
+    are kept, the new ones follow, and the state is that of a run that stopped at the old end
+    and went on (its last step was cut to land there): within 1e-9 of the uninterrupted run,
+    whose own error is 1e-9 here; an output grid that changes the times written is refused."""
+    config = {**CONFIG, "integration": {"rtol": 1e-13, "t_end": "20*pi"},
+              "output": {"times": {"start": 0, "stop": "20*pi", "step": 0.25}}}
+    config.pop("events")
+    path = write_config(tmp_path, config)
+    out, whole = tmp_path / "run.h5", tmp_path / "whole.h5"
+    assert CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--quiet"]).exit_code == 0
+    later = ["--set", "integration.t_end=40*pi", "--set", "output.times.stop=40*pi"]
+    result = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", *later])
+    assert result.exit_code == 0, result.stderr
+    assert CliRunner().invoke(cli, ["run", str(path), "-o", str(whole), "--quiet", *later]).exit_code == 0
+    with h5py.File(out, "r") as a, h5py.File(whole, "r") as b:
+        assert a.attrs["output_times"] == b["t"].shape[0] == 503
+        np.testing.assert_array_equal(a["t"][:], b["t"][:])
+        np.testing.assert_allclose(a["y"][:], b["y"][:], rtol=0, atol=1e-9)
+        assert np.max(np.abs(a["state/y"][:] - a["y"][0])) < 1e-8
+    other_step = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set",
+                                          "integration.t_end=60*pi", "--set", "output.times.step=0.5"])
+    assert other_step.exit_code == 2
+    assert "output.times must keep the 503 times already written" in other_step.stderr
+
+
+def test_a_run_ended_by_a_terminal_event_is_not_continued_past_it(tmp_path):
+    config = {**CONFIG, "integration": {"rtol": 1e-12, "t_end": "10*pi"},
+              "events": {"apocentre": {"expression": "q1*p1 + q2*p2", "direction": -1, "terminal": True}}}
+    path = write_config(tmp_path, config)
+    out = tmp_path / "run.h5"
+    assert CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--quiet"]).exit_code == 0
+    result = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set",
+                                      "integration.t_end=20*pi"])
+    assert result.exit_code == 2
+    assert "was ended by a terminal event at t = 3.14159" in result.stderr

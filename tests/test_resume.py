@@ -116,10 +116,44 @@ def test_resume_of_a_complete_run_changes_nothing(tmp_path):
     before = path.read_bytes()
     result = CliRunner().invoke(cli, [*args[:-1], "--resume"])
     assert result.exit_code == 0 and "already complete; nothing to resume" in result.stderr
+    assert "--resume --set integration.t_end=LATER" in result.stderr
     assert path.read_bytes() == before
 
 
-@pytest.mark.parametrize("change", ["integration.h=0.05", "integration.t_end=20000", "method.s=4"])
+def test_a_run_continued_to_a_later_end_is_the_run_to_that_end(tmp_path):
+    """--resume --set integration.t_end=LATER on a complete fixed-step run: the file is then,
+    row for row and bit for bit, that of a run to the later end (output.every = 7 does not
+    divide the first run's 50 steps: its extra last sample is dropped, as a failed run's is),
+    and the root attributes and extension_history say so."""
+    extended, whole = tmp_path / "extended.h5", tmp_path / "whole.h5"
+    base = ["run", KEPLER, "--set", "output.every=7", "--quiet"]
+    assert CliRunner().invoke(cli, [*base, "-o", str(extended), "--set", "integration.t_end=5"]).exit_code == 0
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(extended), "--resume", "--set",
+                                      "integration.t_end=12"])
+    assert result.exit_code == 0, result.stderr
+    assert "resumed at step 50, continued to t_end = 12 (it ended at 5)" in result.stderr
+    assert CliRunner().invoke(cli, [*base, "-o", str(whole), "--set", "integration.t_end=12"]).exit_code == 0
+    with h5py.File(extended, "r") as a, h5py.File(whole, "r") as b:
+        assert a.attrs["status"] == "complete" and a.attrs["t_end"] == 12.0 and a.attrs["n_steps"] == 120
+        assert list(a.attrs["extension_history"]) == ["from step 50: t_end 12.0 (before: 5.0)"]
+        for name in ("t", "y", "invariants/H", "invariants/angular_momentum", "steps/alpha", "steps/iterations",
+                     "state/y", "state/y_comp", "state/clock", "state/coef"):
+            np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
+
+
+def test_a_run_is_never_continued_to_an_earlier_end(tmp_path):
+    path = tmp_path / "done.h5"
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5",
+                                    "--quiet"]).exit_code == 0
+    before = path.read_bytes()
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "integration.t_end=3"])
+    assert result.exit_code == 2
+    assert "integration.t_end = 3 is before the end of the stored run, 5: --resume continues a run to a later" \
+        in result.stderr and "Traceback" not in result.stderr
+    assert path.read_bytes() == before
+
+
+@pytest.mark.parametrize("change", ["integration.h=0.05", "integration.t0=1", "method.s=4"])
 def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
     """The stored config holds h, t_end and n_steps: a --set of h or t_end contradicted n_steps
     and was reported as that contradiction, not as what --resume allows."""

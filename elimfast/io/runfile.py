@@ -421,7 +421,8 @@ class RunWriter:
             raise
 
     @classmethod
-    def resume(cls, path, *, restore=None, stop=None, config_text: str | None = None) -> tuple["RunWriter", dict]:
+    def resume(cls, path, *, restore=None, stop=None, config_text: str | None = None,
+               extension: dict | None = None) -> tuple["RunWriter", dict]:
         """Reopen a run for writing; return (writer, saved) with saved = the state and the root attributes.
 
         Nothing is changed until everything the run will build on has been read back and
@@ -430,8 +431,11 @@ class RunWriter:
         state (it raises ValueError or KeyError if the state does not fit the run). A file
         left by a killed writer (SWMR flags still set) is then repaired; if reopening it
         still fails, the flags are put back as they were. ``config_text``: the resolved
-        config the run continues with, when its solver settings differ from the stored
-        one's; it replaces the stored config, and ``solver_history`` records the change.
+        config the run continues with, when its solver settings or its end differ from the
+        stored one's; it replaces the stored config, and ``solver_history`` records a change of
+        the solver. ``extension``: a run continued to a later t_end, {"t_end", "n_steps",
+        "output_times" (None: unchanged)}: the root attributes take the new values, and
+        ``extension_history`` records the change.
         """
         path = Path(path)
         if not path.exists():
@@ -486,10 +490,23 @@ class RunWriter:
             _cut_back(f, saved["n_samples"], saved["steps_done"], saved.get("event_counts", ()))
             f.attrs["status"] = STATUS_RUNNING
             if config_text is not None:
-                history = list(_plain(f.attrs.get("solver_history", [])) or [])
-                history.append(f"from step {saved['steps_done']}: {_solver_line(config_text)} "
-                               f"(before: {_solver_line(str(attrs.get('config', '')))})")
-                _replace_attributes(f, {"config": config_text, "solver_history": history})
+                replaced = {"config": config_text}
+                before = _solver_line(str(attrs.get("config", "")))
+                if _solver_line(config_text) != before:
+                    history = list(_plain(f.attrs.get("solver_history", [])) or [])
+                    history.append(f"from step {saved['steps_done']}: {_solver_line(config_text)} (before: {before})")
+                    replaced["solver_history"] = history
+                if extension is not None:
+                    history = list(_plain(f.attrs.get("extension_history", [])) or [])
+                    history.append(f"from step {saved['steps_done']}: t_end {extension['t_end']!r} "
+                                   f"(before: {attrs.get('t_end')!r})")
+                    replaced["extension_history"] = history
+                    replaced["t_end"] = float(extension["t_end"])
+                    if extension.get("n_steps") is not None:
+                        replaced["n_steps"] = int(extension["n_steps"])
+                    if extension.get("output_times") is not None:
+                        replaced["output_times"] = int(extension["output_times"])
+                _replace_attributes(f, replaced)
             for key in ("failed_step_iterations",):
                 if key in f.attrs:
                     del f.attrs[key]
