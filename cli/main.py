@@ -486,21 +486,22 @@ def plot(file, kind, output, overwrite):
       elimfast plot out/table1.h5:/runs/GAUSS3/pi/30 --kind invariants -o gauss3.png
       elimfast plot out/kepler.h5 --kind orbit -o orbit.png
       elimfast plot out/kepler.h5 --kind alpha -o alpha.pdf
+
+    Missing directories of FIG are created, as `elimfast run` creates those of OUT.h5.
     """
-    from elimfast.io.hdf5 import OutputError, RunFile
+    from elimfast.io.hdf5 import OutputError, RunFile, check_creatable
+    from elimfast.io.runfile import split_run_path
 
     from .plots import check_image_path, plot_run
 
-    from elimfast.io.runfile import split_run_path
-
     run_path, run = split_run_path(file)
     default_name = f"{run_path.stem}_{run.replace('/', '_')}_{kind}.png" if run else f"{run_path.stem}_{kind}.png"
-    path = Path(output) if output else run_path.with_name(default_name)
+    path = Path(output).expanduser() if output else run_path.with_name(default_name)
     check_image_path(path)   # before reading the run: a usage error, exit 2
     if path.exists() and not overwrite:
         raise OutputError(f"{path}: already exists; pass --overwrite to replace it or -o another name")
-    if not path.parent.is_dir():
-        raise OutputError(f"{path}: directory {path.parent} does not exist; create it first")
+    if not path.exists():
+        check_creatable(path)   # missing directories are made as `run` makes them, once the figure is drawn
     with RunFile(file) as run_file:
         plot_run(run_file, kind, path)
     click.echo(str(path))

@@ -96,11 +96,16 @@ def _bodies(names):
 
 
 def plot_run(run_file, kind: str, path) -> None:
+    """Draw one plot kind of a run into the image file ``path``, creating its missing
+    directories (as a run file's writer does)."""
     import matplotlib.pyplot as plt
+
+    from elimfast.io.safety import create_parent_directories
 
     check_image_path(path)
     figure = draw(run_file, kind)
     try:
+        create_parent_directories(path)
         figure.savefig(path)
     finally:
         plt.close(figure)

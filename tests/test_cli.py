@@ -91,6 +91,23 @@ def test_plot_default_name(kepler_file):
     assert result.exit_code == 0 and result.stdout.strip() == str(expected) and expected.stat().st_size > 1000
 
 
+def test_plot_creates_missing_directories_as_run_does(kepler_file, tmp_path):
+    """run -o some/missing/dir/OUT.h5 makes the directories; plot -o some/missing/dir/FIG.png did not."""
+    figure = tmp_path / "some" / "missing" / "dir" / "fig.png"
+    result = invoke("plot", kepler_file, "-o", figure)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == str(figure) and figure.stat().st_size > 1000
+
+
+def test_plot_into_a_directory_that_cannot_be_made_is_one_line_naming_the_path(kepler_file, tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    figure = a_file / "dir" / "fig.png"
+    result = invoke("plot", kepler_file, "-o", figure)
+    assert result.exit_code == 2 and result.stdout == ""
+    assert result.stderr == f"error: {figure}: {a_file} is a file, not a directory; choose another output path\n"
+
+
 def test_check_prints_the_resolved_config_as_yaml():
     result = invoke("check", KEPLER, "--set", "method.s=4")
     assert result.exit_code == 0, result.output

@@ -220,6 +220,23 @@ def test_output_path_checks(tmp_path):
     assert not (tmp_path / "new").exists()                      # ... but not created by the check
 
 
+def test_missing_directories_of_an_output_are_created_or_named_in_one_line(tmp_path):
+    """The one rule of the writers (run and sweep files, figures): make the missing directories;
+    where that fails, say which file and which directory."""
+    path = tmp_path / "a" / "b" / "fig.png"
+    hdf5.create_parent_directories(path)
+    assert path.parent.is_dir() and not path.exists()
+    with pytest.raises(hdf5.OutputError) as caught:
+        hdf5.create_parent_directories("/proc/elimfast-test/sub/fig.png")   # /proc takes no new directories
+    message = str(caught.value)
+    assert message.startswith("/proc/elimfast-test/sub/fig.png: cannot create the directory /proc/elimfast-test (")
+    assert message.endswith("); choose another output path") and "\n" not in message
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    with pytest.raises(hdf5.OutputError, match=f"^{a_file / 'd' / 'x.h5'}: {a_file} is a file, not a directory;"):
+        hdf5.create_parent_directories(a_file / "d" / "x.h5")
+
+
 def test_reader_rejects_foreign_files(tmp_path):
     text = tmp_path / "notes.h5"
     text.write_text("hello")

@@ -10,13 +10,14 @@ from __future__ import annotations
 from .layout import (FAILED_PREFIX, FORMAT, FORMAT_VERSION, STATUS_COMPLETE, STATUS_INTERRUPTED,
                      STATUS_KILLED, STATUS_RUNNING, STOPPED_PREFIX, multiplier_name, version_attributes)
 from .runfile import SWEEP_FORMAT, RunFile, RunWriter, repair, split_run_path
-from .safety import (DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
-                     _is_disk_full, check_output_path, clear_consistency_flags, consistency_flags, ensure_not_busy,
-                     lookup3, set_consistency_flags)
+from .safety import (DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError, _is_disk_full,
+                     check_creatable, check_output_path, clear_consistency_flags, consistency_flags,
+                     create_parent_directories, ensure_not_busy, lookup3, set_consistency_flags)
 from .sweepfile import SweepWriter, sweep_group_name
 
 __all__ = ["FAILED_PREFIX", "FORMAT", "FORMAT_VERSION", "STATUS_COMPLETE", "STATUS_INTERRUPTED", "STATUS_KILLED",
            "STATUS_RUNNING", "STOPPED_PREFIX", "multiplier_name", "version_attributes", "SWEEP_FORMAT", "RunFile",
            "RunWriter", "repair", "split_run_path", "DamagedFileError", "FileBusyError", "NotAnElimfastFile",
-           "OutputError", "_is_disk_full", "check_output_path", "clear_consistency_flags", "consistency_flags",
-           "ensure_not_busy", "lookup3", "set_consistency_flags", "SweepWriter", "sweep_group_name"]
+           "OutputError", "_is_disk_full", "check_creatable", "check_output_path", "clear_consistency_flags",
+           "consistency_flags", "create_parent_directories", "ensure_not_busy", "lookup3", "set_consistency_flags",
+           "SweepWriter", "sweep_group_name"]

@@ -60,8 +60,8 @@ from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, S
 from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
-                     _writer_lock_held, clear_consistency_flags, consistency_flags, ensure_not_busy,
-                     open_unflagged, set_consistency_flags)
+                     _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
+                     ensure_not_busy, open_unflagged, set_consistency_flags)
 
 SWEEP_FORMAT = "elimfast-sweep"
 RUNS_GROUP = "runs"
@@ -350,10 +350,7 @@ class RunWriter:
         """
         path = Path(path)
         run, problem, method = integration, integration.problem, integration.method
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise OutputError(f"{path}: cannot create: {_one_line(err)}") from None
+        create_parent_directories(path)
         ensure_not_busy(path)
         free = _free_bytes(path.parent)
         if free is not None and free < SPACE_BASE:

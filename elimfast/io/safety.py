@@ -317,9 +317,15 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
             raise OutputError(f"{path}: not writable ({err.strerror}); choose another output path") from None
         ensure_not_busy(path)
         return path
-    ancestor = path.absolute().parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
+    return check_creatable(path)
+
+
+def check_creatable(path) -> Path:
+    """OutputError unless a new file ``path`` can be created, its missing directories included
+    (which ``create_parent_directories`` makes when the file is written): the nearest existing
+    ancestor must be a directory in which files can be created (tested by creating one)."""
+    path = Path(path)
+    ancestor = _nearest_existing_ancestor(path)
     if not ancestor.is_dir():
         raise OutputError(f"{path}: {ancestor} is a file, not a directory; choose another output path")
     try:
@@ -330,6 +336,30 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
         raise OutputError(f"{path}: cannot create files in {ancestor} ({err.strerror}); "
                           "choose another output path") from None
     return path
+
+
+def create_parent_directories(path) -> None:
+    """Create the missing directories above a new output file (a run file, a sweep file, a
+    figure): the one rule of every writer, so that ``elimfast run``, ``sweep`` and ``plot``
+    treat ``-o some/missing/dir/NAME`` alike. OutputError naming the file and the
+    directory that could not be made."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        ancestor = _nearest_existing_ancestor(path)
+        if not ancestor.is_dir():
+            raise OutputError(f"{path}: {ancestor} is a file, not a directory; choose another output path") from None
+        directory = err.filename or path.parent
+        raise OutputError(f"{path}: cannot create the directory {directory} ({err.strerror or _one_line(err)}); "
+                          "choose another output path") from None
+
+
+def _nearest_existing_ancestor(path: Path) -> Path:
+    ancestor = path.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    return ancestor
 
 
 def _mkstemp(directory: Path):

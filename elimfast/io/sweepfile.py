@@ -26,7 +26,8 @@ from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _set_attr
                      version_attributes)
 from .runfile import SWEEP_FORMAT, _now, run_attributes
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
-                     _publish, _temporary_path, clear_consistency_flags, consistency_flags, ensure_not_busy)
+                     _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
+                     ensure_not_busy)
 
 
 def sweep_group_name(label: str) -> str:
@@ -99,10 +100,7 @@ class SweepWriter:
         if resume and self.path.exists():
             self._reopen(sweep_text, ensemble)
             return
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise OutputError(f"{self.path}: cannot create: {_one_line(err)}") from None
+        create_parent_directories(self.path)
         ensure_not_busy(self.path)
         temporary = _temporary_path(self.path)
         try:
