@@ -268,6 +268,64 @@ def test_reader_summaries(tmp_path, kepler):
         assert f.multiplier_labels() == ["alpha[angular_momentum]", "alpha[lrl_y]"]
 
 
+def _damage_chunk_at_row(path, dataset: str, row: int) -> None:
+    """Flip 16 bytes inside the stored chunk of ``dataset`` that holds ``row`` (its fletcher32 then fails)."""
+    with h5py.File(path, "r") as f:
+        chunks = f[dataset].id
+        info = next(chunks.get_chunk_info(i) for i in range(chunks.get_num_chunks())
+                    if chunks.get_chunk_info(i).chunk_offset[0] <= row < chunks.get_chunk_info(i).chunk_offset[0]
+                    + f[dataset].chunks[0])
+    data = bytearray(path.read_bytes())
+    middle = info.byte_offset + info.size // 2
+    data[middle:middle + 16] = bytes(b ^ 0x5A for b in data[middle:middle + 16])
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture(scope="module")
+def long_file(tmp_path_factory, kepler):
+    """5000 steps, a sample each: /y has 5001 rows in chunks of 512, /invariants/H in chunks of 2048."""
+    path = tmp_path_factory.mktemp("damage") / "long.h5"
+    write(kepler_run(kepler, n_steps=5000, every=1), path)
+    with h5py.File(path, "r") as f:
+        assert f["y"].shape == (5001, 4) and f["y"].chunks == (512, 4) and f["invariants/H"].chunks == (2048,)
+    return path
+
+
+@pytest.mark.parametrize("rows,expected", [
+    ((2600,), "rows 2560-3071"),
+    ((2600, 4100), "rows 2560-3071 and 4096-4607"),
+    ((2600, 3100), "rows 2560-3583"),                     # adjacent chunks: one range
+    ((10, 600, 1100, 2600, 4100), "rows 0-1535, 2560-3071 and 4096-4607"),
+    ((10, 1100, 2600, 4100), "rows 0-511, 1024-1535, 2560-3071 and 1 more damaged range"),
+], ids=["one chunk", "two chunks", "adjacent chunks", "merged ranges", "more than three ranges"])
+def test_damage_names_the_rows_of_the_damaged_chunks(long_file, tmp_path, rows, expected):
+    """A damaged chunk of /y holding rows 2560-3071 was reported as '/y rows 0-5000' (the
+    whole block read at once): the message names the damaged chunks' rows, on one line."""
+    path = tmp_path / "damaged.h5"
+    path.write_bytes(long_file.read_bytes())
+    for row in rows:
+        _damage_chunk_at_row(path, "y", row)
+    message = (f"{path} is damaged at /y {expected} (a data chunk fails its fletcher32 checksum); restore it "
+               "from a copy, or start the run again with --overwrite")
+    with hdf5.RunFile(path) as f:
+        with pytest.raises(hdf5.DamagedFileError) as verified:
+            f.verify()
+        assert str(verified.value) == message
+        with pytest.raises(hdf5.DamagedFileError) as read:   # what plot and load read
+            f.y()
+        assert str(read.value) == message
+        np.testing.assert_array_equal(f.t()[:3], [0.0, 0.1, 0.2])   # the other datasets still read
+
+
+def test_damage_found_by_a_reduction_names_the_chunk(long_file, tmp_path):
+    path = tmp_path / "damaged.h5"
+    path.write_bytes(long_file.read_bytes())
+    _damage_chunk_at_row(path, "invariants/H", 2100)
+    with hdf5.RunFile(path) as f, pytest.raises(hdf5.DamagedFileError, match=r" is damaged at /invariants/H rows "
+                                                                          r"2048-4095 \(a data chunk fails"):
+        f.invariant_drift()
+
+
 # --- SWMR and the consistency flags ---------------------------------------------------------
 def test_lookup3_matches_jenkins_and_hdf5():
     # Test vectors from lookup3.c (driver5).

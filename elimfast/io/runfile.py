@@ -57,11 +57,11 @@ from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, S
                      STATUS_RUNNING, VERIFY_BLOCK_BYTES, _Growing, _plain, _replace_attributes, _set_attributes,
                      _small_dataset, append_rows, attach, component_names, create_run_group, dimension,
                      multiplier_datasets, multiplier_name, PER_STEP_RECORDS, version_attributes)
-from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
+from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
                      _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
-                     ensure_not_busy, open_unflagged, set_consistency_flags)
+                     damaged_row_ranges, ensure_not_busy, open_unflagged, rows_text, set_consistency_flags)
 
 SWEEP_FORMAT = "elimfast-sweep"
 RUNS_GROUP = "runs"
@@ -209,6 +209,17 @@ def _cut_back(f, n_samples: int, steps_done: int, event_counts=()) -> None:
         for member in ("t", "y"):
             if f["events"][name][member].shape[0] > int(count):
                 f["events"][name][member].resize(int(count), axis=0)
+
+
+def _merged(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Row ranges of damage found block by block, adjacent ones (across a block's end) joined."""
+    merged: list[tuple[int, int]] = []
+    for first, last in ranges:
+        if merged and merged[-1][1] >= first - 1:
+            merged[-1] = (merged[-1][0], max(last, merged[-1][1]))
+        else:
+            merged.append((first, last))
+    return merged
 
 
 _RECORD_HEADER = ("sequence", "steps_done", "n_samples", "wall_time_s", "kernel_time_s")
@@ -849,9 +860,11 @@ class RunFile:
     def verify(self, stop=None) -> dict:
         """Read every stored row the saved state counts (and the method tables) block by
         block, so that HDF5 checks every metadata checksum and every chunk's fletcher32;
-        DamagedFileError at the first failure, also if a dataset is shorter than the state
-        says. ``stop``: an object whose ``requested`` ends the check early (KeyboardInterrupt).
-        Returns {"chunks": HDF5 chunks read, "checksummed": whether they carry fletcher32}."""
+        DamagedFileError for the first dataset that fails, naming the rows of its damaged
+        chunks (every block of that dataset is read, so all of them), also if a dataset is
+        shorter than the state says. ``stop``: an object whose ``requested`` ends the check
+        early (KeyboardInterrupt). Returns {"chunks": HDF5 chunks read, "checksummed":
+        whether they carry fletcher32}."""
         f = self._root
         targets = [("/t", "t", self._saved["n_samples"]), ("/y", "y", self._saved["n_samples"])]
         targets += [(f"/invariants/{name}", f"invariants/{name}", self._saved["n_samples"])
@@ -871,12 +884,18 @@ class RunFile:
                 chunk_rows = dataset.chunks[0] if dataset.chunks else max(count, 1)
                 row_bytes = dataset.dtype.itemsize * int(np.prod(dataset.shape[1:], dtype=np.int64))
                 block = max(1, VERIFY_BLOCK_BYTES // max(row_bytes, 1) // chunk_rows) * chunk_rows
+            damaged, first_error = [], None
             for start in range(0, count, block):
                 if stop is not None and stop.requested:
                     raise KeyboardInterrupt
                 end = min(count, start + block)
-                with self._reading(f"{where} rows {start}-{end - 1}"):
+                try:
                     dataset[start:end]
+                except READ_ERRORS as err:
+                    first_error = first_error or err
+                    damaged += damaged_row_ranges(dataset, start, end) or [(start, end - 1)]
+            if first_error is not None:
+                raise _damaged(self.path, f"{where} {rows_text(_merged(damaged))}", first_error)
             chunks += -(-count // chunk_rows)
         with self._reading("/method"):
             for name in f["method"]:
@@ -899,8 +918,19 @@ class RunFile:
 
     # --- data ---
     def _rows(self, name: str, count: int, stride: int) -> np.ndarray:
-        with self._reading(f"/{name}"):
-            return self._root[name][:count:stride]
+        return self._read_rows(name, 0, count, stride)
+
+    def _read_rows(self, name: str, start: int, stop: int, stride: int = 1) -> np.ndarray:
+        """Rows start:stop:stride of a dataset; DamagedFileError naming the rows of the chunks
+        that cannot be read (safety.damaged_row_ranges) when HDF5 fails to read them."""
+        where = f"/{name}"
+        with self._reading(where):
+            dataset = self._root[name]
+        try:
+            return dataset[start:stop:stride]
+        except READ_ERRORS as err:
+            ranges = damaged_row_ranges(dataset, start, stop) or [(start, stop - 1)]
+            raise _damaged(self.path, f"{where} {rows_text(ranges)}", err) from None
 
     def t(self, stride: int = 1) -> np.ndarray:
         return self._rows("t", self.n_samples, stride)
@@ -985,9 +1015,7 @@ class RunFile:
         row_bytes = dataset.dtype.itemsize * int(np.prod(dataset.shape[1:], dtype=np.int64))
         block = max(1, VERIFY_BLOCK_BYTES // max(row_bytes, 1))
         for start in range(0, stop, block):
-            end = min(stop, start + block)
-            with self._reading(f"/{name} rows {start}-{end - 1}"):
-                yield dataset[start:end]
+            yield self._read_rows(name, start, min(stop, start + block))
 
     def invariant_drift(self) -> dict[str, float]:
         """max over the stored samples of |I(t) - I(t0)| for H and every invariant."""

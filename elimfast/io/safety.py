@@ -635,6 +635,42 @@ def _damaged(path, where: str, err: BaseException) -> DamagedFileError:
     return DamagedFileError(f"{path} is damaged at {where} ({_hdf5_reason(err)}); {_DAMAGE_ADVICE}")
 
 
+# What HDF5 raises for a read it cannot do (a checksum, a chunk it cannot find or decode).
+READ_ERRORS = (KeyError, OSError, RuntimeError, ValueError, TypeError, IndexError)
+SHOWN_DAMAGED_RANGES = 3   # row ranges a damage message names; more are counted
+
+
+def damaged_row_ranges(dataset, start: int, stop: int) -> list[tuple[int, int]]:
+    """(first, last) rows of the HDF5 chunks of ``dataset`` between rows ``start`` and ``stop``
+    that cannot be read, found by reading chunk by chunk (after a read of the whole range
+    failed); adjacent damaged chunks make one range. [] for a dataset not chunked along its
+    rows (nothing smaller to blame) or when every chunk reads (the damage is elsewhere)."""
+    if not dataset.chunks or stop <= start:
+        return []
+    rows, length = dataset.chunks[0], dataset.shape[0]
+    ranges: list[tuple[int, int]] = []
+    for first in range(start - start % rows, stop, rows):
+        try:
+            dataset[max(first, start):min(first + rows, stop)]
+        except READ_ERRORS:
+            last = min(first + rows, length) - 1
+            if ranges and ranges[-1][1] == first - 1:
+                ranges[-1] = (ranges[-1][0], last)
+            else:
+                ranges.append((first, last))
+    return ranges
+
+
+def rows_text(ranges: list[tuple[int, int]]) -> str:
+    """'rows 2560-3071', 'rows 2560-3071 and 8192-8703', or the first SHOWN_DAMAGED_RANGES
+    ranges and how many more: where in a dataset a damage message points."""
+    shown = [f"{first}-{last}" if last > first else f"{first}" for first, last in ranges[:SHOWN_DAMAGED_RANGES]]
+    more = len(ranges) - len(shown)
+    if more:
+        return f"rows {', '.join(shown)} and {more} more damaged range{'s' if more > 1 else ''}"
+    return "rows " + (" and ".join(shown) if len(shown) <= 2 else f"{', '.join(shown[:-1])} and {shown[-1]}")
+
+
 def _plain(value):
     if isinstance(value, bytes):
         return value.decode("utf-8", errors="replace")
