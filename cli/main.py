@@ -676,7 +676,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     README): each point is one run, labelled by its coordinates. Errors are taken against
     the exact solution (error: {exact: initial}, a periodic orbit over whole periods) or a
     reference run named in the sweep file; orders between successive values of order_axis.
-    A failed run does not stop the others: it is marked with its reason and the exit code is 1.
+    A failed run does not stop the others: it is marked with its reason (its figures read
+    'failed': they would cover only the steps before the failure) and the exit code is 1.
 
     An ensemble sweep (an ensemble: section, one config from many initial states) runs
     in the parallel Numba kernel on N threads instead, and stores /ensemble in OUT.h5 block

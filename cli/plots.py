@@ -196,6 +196,9 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
     from elimfast.integrate import relative_reference
 
     n = run_file.n_samples
+    if run_file.steps_done < 1:   # its samples are all of the initial state (integrate.invariant_drift)
+        raise PlotError(f"{run_file.name}: no step done ({status_text(run_file.status)}); no invariant error to "
+                        "draw")
     if n < 2:
         raise PlotError(f"{run_file.name}: only {n} sample(s) stored; nothing to draw")
     stride = _stride(n)

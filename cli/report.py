@@ -145,7 +145,15 @@ def summary(run_file, integrity: dict | None = None) -> str:
     drift = run_file.invariant_drift()
     initial = run_file.initial_invariants()
     scales = run_file.invariant_scales()
-    rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples, and relative to |I(t0)|")
+    if not any(math.isfinite(value) for value in drift.values()):
+        # integrate.invariant_drift: no step done, no figure (0 would read as a perfect result)
+        why = "the run failed at its first step" if str(run_file.status).startswith("failed") else "no step done yet"
+        drift = {}
+        rows.append(f"invariants   no figures: {why}, so no state after t0 to compare with I(t0)")
+    else:
+        span = " before the failure" if str(run_file.status).startswith("failed") else ""
+        rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples{span}, and relative to "
+                    "|I(t0)|")
     width = max(len(n) for n in drift) if drift else 0
     for name, value in drift.items():
         tag = "  (imposed)" if name in conserve else ("  (H: kept by every HBVM/ELIM/LIM)" if name == "H" else "")

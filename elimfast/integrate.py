@@ -231,8 +231,10 @@ class Result:
     events: dict = field(default_factory=dict)
 
     def invariant_errors(self) -> dict[str, float]:
-        """max over samples of |I(t) - I(t0)| for H and every invariant."""
-        return {name: float(np.max(np.abs(v - v[0]))) if v.size else 0.0 for name, v in self.invariants.items()}
+        """max over samples of |I(t) - I(t0)| for H and every invariant; NaN when no step was
+        done (``invariant_drift``)."""
+        return {name: invariant_drift([v], float(v[0]) if v.size else math.nan, self.steps_done)
+                for name, v in self.invariants.items()}
 
     def invariant_scales(self) -> dict[str, float]:
         """The size of the terms of H and of every invariant at the first sample
@@ -276,6 +278,24 @@ class Result:
             steps = f"h = {self.h:g}, {self.steps_done}/{self.n_steps} steps"
         return (f"<Result {self.method.name} on {self.problem.name}, {steps}, {self.status}; "
                 f"max |I - I0|: {errors}>")
+
+
+def invariant_drift(blocks: Iterable[np.ndarray], reference: float, steps_done: int) -> float:
+    """max |I(t) - I(t0)| over the samples of a run, ``blocks`` its values of I (one array, or
+    the blocks RunFile reads them in) and ``reference`` I(t0): the invariant errors of
+    Result, of run files (inspect, the energy note) and of the sweep tables.
+
+    NaN, no figure, when no step was done: the samples then hold only the initial state (a
+    run that failed at its first step keeps a sample of its last good state, t0 again), and
+    an error of 0 would read as a perfect result. Also NaN without samples."""
+    if steps_done <= 0:
+        return math.nan
+    largest = math.nan
+    for block in blocks:
+        if block.size:
+            block_largest = float(np.max(np.abs(np.asarray(block, dtype=np.float64) - reference)))
+            largest = block_largest if math.isnan(largest) else max(largest, block_largest)
+    return largest
 
 
 # I(t0) counts as zero when it is below this fraction of the size of its terms

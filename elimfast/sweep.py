@@ -820,22 +820,43 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
                 row += [label] if axis in labelled else []
             else:
                 row.append(label)
+        figure = _figure_cell(outcome, csv)
         if spec.error_mode:
-            row.append(_number(errors[outcome.label], csv))
+            row.append(figure(errors[outcome.label]))
         if spec.order_axis:
             order = orders[outcome.label]
-            row.append("" if math.isnan(order) else repr(order) if csv else f"{order:.2f}")
+            row.append(figure(math.nan) if not outcome.ok else "" if math.isnan(order)
+                       else repr(order) if csv else f"{order:.2f}")
         row.append(str(outcome.steps_done) if outcome.steps_done else "")
         row.append(str(outcome.iterations_total) if outcome.steps_done else "")
         row.append(str(outcome.grad_H_evaluations) if outcome.steps_done else "")
-        row.append(_number(outcome.max_multiplier, csv))
+        row.append(figure(outcome.max_multiplier))
         relative = outcome.relative_invariant_errors
         for name in invariant_names:
-            row += [_number(outcome.invariant_errors.get(name, math.nan), csv),
-                    _number(relative.get(name, math.nan), csv)]
+            row += [figure(outcome.invariant_errors.get(name, math.nan)), figure(relative.get(name, math.nan))]
         row.append(outcome.status)
         rows.append(row)
     return header, rows
+
+
+FAILED_CELL = "failed"   # a failed run's figures in a markdown table (CSV: empty, its status column says why)
+NO_FIGURE_CELL = "-"     # a figure that does not exist (no step done), in a markdown table (CSV: empty)
+
+
+def _figure_cell(outcome: RunOutcome, csv: bool) -> Callable[[float], str]:
+    """How a run's figures (error, max |alpha|, invariant errors) are written in the table.
+
+    A failed run shows none: its figures cover only the steps before the failure (none at
+    all when it failed at its first step, where they were 0.000e+00), so beside complete
+    runs they read as a result, often a better one. NaN, a figure that does not exist, is
+    written as such, never as a number."""
+    def cell(value) -> str:
+        if not outcome.ok:
+            return "" if csv else FAILED_CELL
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return "" if csv else NO_FIGURE_CELL
+        return _number(value, csv)
+    return cell
 
 
 def _number(value, full: bool = False) -> str:

@@ -145,6 +145,11 @@ def test_a_failed_run_exits_1_and_keeps_its_data(tmp_path):
         assert f.attrs["status"].startswith("failed: EHBVM(6,3)")
     inspect = CliRunner().invoke(cli, ["inspect", str(out)])
     assert inspect.exit_code == 0 and "status       failed: " in inspect.stdout
+    # no step done: no invariant figures (they were 0.000e+00, a perfect result)
+    assert "invariants   no figures: the run failed at its first step" in inspect.stdout
+    assert "0.000e+00" not in inspect.stdout
+    plotted = CliRunner().invoke(cli, ["plot", str(out), "-o", str(tmp_path / "i.png")])
+    assert plotted.exit_code == 2 and "no step done" in plotted.stderr
 
 
 def test_an_internal_error_is_one_line_with_a_hint(tmp_path, monkeypatch):

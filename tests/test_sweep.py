@@ -93,6 +93,40 @@ def test_a_failing_run_does_not_stop_the_others(tmp_path):
     assert 0 < errors[outcomes[0].label] < 1e-3 and math.isnan(errors[outcomes[1].label])
 
 
+def test_a_run_that_failed_at_its_first_step_shows_no_figures_never_zero_errors(tmp_path):
+    """A run failing at step 1 kept only samples of its initial state, and the table showed
+    0.000e+00 for every invariant error: a failed run read as a perfect one."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    path = write_sweep(tmp_path, {
+        "base": {**BASE, "solver": {"max_iter": 30, "method": "fixed_point", "max_halvings": 0}},
+        "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/4"]}],
+        "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}, "order_axis": "h"})
+    spec = load_sweep(path)
+    outcomes, reference = run_sweep(spec, workers=1)
+    complete, failed = outcomes
+    assert complete.ok and failed.status.startswith("failed: ") and "at step 1 " in failed.status
+    assert all(math.isnan(value) for value in failed.invariant_errors.values())   # no step: no figure
+    header, rows = table_rows(spec, outcomes, reference)
+    figures = [i for i, name in enumerate(header) if name.startswith("max ") or name in ("error", "order")]
+    assert len(figures) == 3 + 2 * 4   # error, order, max |alpha|, then 2 per invariant (H, L, A_x, A_y)
+    assert [rows[1][i] for i in figures] == ["failed"] * len(figures)
+    assert "0.000e+00" not in " ".join(rows[1])
+    assert all(float(rows[0][i]) > 0 for i in figures if header[i] not in ("order",))
+    csv_header, csv_rows = table_rows(spec, outcomes, reference, "csv")
+    assert [csv_rows[1][csv_header.index(header[i])] for i in figures] == [""] * len(figures)
+    # one run of the sweep file, inspected
+    out = tmp_path / "sweep.h5"
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--workers", "1", "-q"])
+    assert result.exit_code == 1, result.output
+    inspected = CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi|4"])
+    assert inspected.exit_code == 0, inspected.output
+    assert ("invariants   no figures: the run failed at its first step, so no state after t0 to compare with I(t0)"
+            in inspected.stdout)
+    assert "0.000e+00" not in inspected.stdout
+
+
 @pytest.fixture(scope="module")
 def reproduction(tmp_path_factory):
     return paper.reproduce(ROOT / "configs" / "paper", tmp_path_factory.mktemp("paper-out"), workers=2)

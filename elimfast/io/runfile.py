@@ -1018,20 +1018,14 @@ class RunFile:
             yield self._read_rows(name, start, min(stop, start + block))
 
     def invariant_drift(self) -> dict[str, float]:
-        """max over the stored samples of |I(t) - I(t0)| for H and every invariant."""
-        drift = {}
-        for name in self.invariant_names:
-            if self.n_samples == 0:
-                drift[name] = math.nan
-                continue
-            first = None
-            largest = 0.0
-            for block in self._blocks(f"invariants/{name}", self.n_samples):
-                if first is None:
-                    first = float(block[0])
-                largest = max(largest, float(np.max(np.abs(block - first))))
-            drift[name] = largest
-        return drift
+        """max over the stored samples of |I(t) - I(t0)| for H and every invariant; NaN (no
+        figure) before the first step is done (the rule: integrate.invariant_drift)."""
+        from ..integrate import invariant_drift
+
+        initial = self.initial_invariants()
+        return {name: invariant_drift(self._blocks(f"invariants/{name}", self.n_samples), initial[name],
+                                      self.steps_done)
+                for name in self.invariant_names}
 
     def iteration_stats(self) -> dict:
         count, total, low, high = 0, 0, None, None
