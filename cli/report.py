@@ -18,20 +18,31 @@ def _fmt_time(seconds: float) -> str:
     return f"{seconds:.0f} s ({hours}:{minutes:02d}:{secs:02d})"
 
 
+PROBLEM_TEXT_CHARS = 80   # the listed parameters, and the listed initial state, each cut to about this
+
+
+def _listed(values: dict) -> str:
+    listed = ", ".join(f"{k} = {v}" for k, v in values.items())
+    return listed if len(listed) <= PROBLEM_TEXT_CHARS else listed[:PROBLEM_TEXT_CHARS - 3] + "..."
+
+
 def _problem_text(run_file) -> str:
+    """The problem row: its name and parameters; when the state was given in place of the
+    problem's default (attribute initial_state, runfile.run_attributes), that it comes from
+    problem.initial and what it is, so that parameters which only chose the default state
+    (kepler's eccentricity) are not read as describing the orbit."""
+    from elimfast.io.runfile import INITIAL_GIVEN
+
     attrs = run_file.attrs
-    try:
-        config = yaml.safe_load(attrs.get("config", "")) or {}
-    except yaml.YAMLError:
-        config = {}
-    problem = config.get("problem") if isinstance(config, dict) else None
+    problem = config_of(run_file).get("problem")
     parameters = problem.get("parameters") if isinstance(problem, dict) else None
-    if parameters:
-        listed = ", ".join(f"{k} = {v}" for k, v in parameters.items())
-        if len(listed) > 80:
-            listed = listed[:77] + "..."
-        return f"{attrs.get('problem')} ({listed})"
-    return str(attrs.get("problem"))
+    text = f"{attrs.get('problem')} ({_listed(parameters)})" if parameters else str(attrs.get("problem"))
+    if attrs.get("initial_state") == INITIAL_GIVEN:
+        initial = problem.get("initial") if isinstance(problem, dict) else None
+        state = f": {_listed(initial)}" if isinstance(initial, dict) and initial else ""
+        not_default = ", not the default of these parameters" if parameters else ""
+        text += f"; initial state from problem.initial{not_default}{state}"
+    return text
 
 
 def config_of(run_file) -> dict:

@@ -70,6 +70,24 @@ def test_inspect_summary(kepler_file):
     assert f"{alpha[0]:.3e} (angular_momentum), {alpha[1]:.3e} (lrl_y)" in text
 
 
+def test_inspect_says_the_initial_state_comes_from_problem_initial(kepler_file, tmp_path):
+    """problem.initial replaces the state kepler's eccentricity chooses: inspect said
+    'kepler (eccentricity = 0.6)' as if the parameter described the orbit."""
+    path = tmp_path / "given.h5"
+    done = invoke("run", KEPLER, "-o", path, *SHORT, "--set", "problem.initial={q1: 0.5, p2: 1.2}", "--quiet")
+    assert done.exit_code == 0, done.output
+    lines = invoke("inspect", path).stdout.splitlines()
+    assert lines[1] == ("problem      kepler (eccentricity = 0.6); initial state from problem.initial, not the "
+                        "default of these parameters: q1 = 0.5, q2 = 0.0, p1 = 0.0, p2 = 1.2")
+    with h5py.File(path, "r") as f:
+        assert f.attrs["initial_state"] == "problem.initial"
+    # the default state, also when problem.initial repeats it, is described by the parameters alone
+    same = tmp_path / "same.h5"
+    assert invoke("run", KEPLER, "-o", same, *SHORT, "--set", "problem.initial={q1: 0.4}", "--quiet").exit_code == 0
+    for default in (kepler_file, same):
+        assert invoke("inspect", default).stdout.splitlines()[1] == "problem      kepler (eccentricity = 0.6)"
+
+
 @pytest.mark.parametrize("kind", ["orbit", "invariants", "alpha", "iterations"])
 def test_plot_is_not_blank(kepler_file, tmp_path, kind):
     from matplotlib.image import imread

@@ -12,7 +12,8 @@ Layout (format ``elimfast-run``): the run group of ``layout.py`` at the root, pl
                             into row 0 and row 1 (see "Saved state" below)
 
 Root attributes: elimfast_version, numba_version, numpy_version, h5py_version,
-hdf5_version, created (UTC, ISO 8601), config (the resolved YAML), problem, method,
+hdf5_version, created (UTC, ISO 8601), config (the resolved YAML), problem, initial_state
+('problem.initial' when the state replaced the problem's default, else 'default'), method,
 family, r, k, s, h, t0, t_end, n_steps, output_every, conserve, steps_done, status
 (running | complete | interrupted | killed | stopped: <reason> | failed: <reason>),
 wall_time_s, kernel_time_s, format = 'elimfast-run', format_version, and
@@ -71,10 +72,19 @@ def _now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
+INITIAL_GIVEN = "problem.initial"   # attribute initial_state: the state given, not the problem's default
+INITIAL_DEFAULT = "default"
+
+
 def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end: float | None,
                    output_every: int, conserve) -> dict:
-    """The attributes that describe a run, alike in a run file and in each run of a sweep file."""
-    return {"problem": problem.name, "method": method.name, "family": method.family, "r": method.r, "k": method.k,
+    """The attributes that describe a run, alike in a run file and in each run of a sweep file.
+    ``initial_state``: where y0 came from, 'problem.initial' when it replaced the problem's
+    default state (Problem.initial_given: the parameters that chose the default then do not
+    describe the orbit), else 'default' (files written before it: absent)."""
+    return {"problem": problem.name,
+            "initial_state": INITIAL_GIVEN if getattr(problem, "initial_given", False) else INITIAL_DEFAULT,
+            "method": method.name, "family": method.family, "r": method.r, "k": method.k,
             "s": method.s, "h": float(h), "t0": float(t0),
             "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
             # 0: not known in advance (adaptive steps, docs/adaptive.md)
@@ -390,7 +400,9 @@ class RunWriter:
                                         n_multipliers=run.multipliers.size, multiplier=mult,
                                         adaptive_steps=adaptive, event_names=run.event_names if adaptive else (),
                                         scales=problem.invariant_scales(run.y), attributes={
-                "config": config_text, **run_attributes(problem, method, h=run.h, t0=run.t0, n_steps=run.n_steps,
+                # with_initial: a run started from a y0 of its own (Integration(y0=...)) says so too
+                "config": config_text, **run_attributes(problem.with_initial(run.y), method, h=run.h, t0=run.t0,
+                                                        n_steps=run.n_steps,
                                                         t_end=t_end, output_every=run.store_every,
                                                         conserve=run.conserve),
                 "steps_done": 0, "status": STATUS_RUNNING, "wall_time_s": 0.0, "kernel_time_s": 0.0,

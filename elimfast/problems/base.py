@@ -46,7 +46,10 @@ class Problem:
     rather than its copy in the cache), else None;
     time_scale: a compiled ``time_scale(y, params, out)`` writing out[0] = sigma(y), the
     local time scale of the motion, and out[1:] = grad sigma(y) (the time-reversible step
-    control of docs/adaptive.md), or None when the problem defines none.
+    control of docs/adaptive.md), or None when the problem defines none;
+    initial_given: y0 was given in place of the problem's default state (a config's
+    problem.initial, ``with_initial``) and differs from it, so the parameters that chose the
+    default (kepler's eccentricity) no longer describe the orbit (reports say so).
     """
 
     name: str
@@ -66,6 +69,7 @@ class Problem:
     units: dict = field(default_factory=dict)
     source_file: str | None = None
     time_scale: Any = field(repr=False, default=None)
+    initial_given: bool = False
 
     def __post_init__(self):
         if len(self.q_names) != len(self.p_names):
@@ -105,8 +109,10 @@ class Problem:
         return self.q_names + self.p_names
 
     def with_initial(self, y0) -> "Problem":
-        """The same problem from another initial state."""
-        return replace(self, y0=np.asarray(y0, dtype=np.float64))
+        """The same problem from another initial state (``initial_given`` when it differs from y0)."""
+        y0 = np.asarray(y0, dtype=np.float64)
+        given = self.initial_given or y0.shape != self.y0.shape or not np.array_equal(y0, self.y0)
+        return replace(self, y0=y0, initial_given=given)
 
     # Convenience evaluations from Python (the kernels call the compiled functions directly).
     def hamiltonian(self, y) -> float:
