@@ -607,7 +607,10 @@ def run_bytes(run) -> int:
     and invariants."""
     if run.n_steps is None:   # adaptive steps: their number is not known in advance
         return 0
-    samples = run.n_samples_between(0, run.n_steps) + 1
+    if run.adaptive_kernel:   # fixed steps with output times or events (adaptive.AdaptiveIntegration)
+        samples = run.t_eval.size + 1 if run.t_eval.size else run.n_steps // run.store_every + 2
+    else:
+        samples = run.n_samples_between(0, run.n_steps) + 1
     per_sample = 8 * (1 + run.y.size + 1 + len(run.problem.invariant_names))
     return run.n_steps * 8 * (1 + run.multipliers.size) + samples * per_sample
 

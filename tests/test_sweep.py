@@ -127,6 +127,16 @@ def test_a_run_that_failed_at_its_first_step_shows_no_figures_never_zero_errors(
     assert "0.000e+00" not in inspected.stdout
 
 
+def test_a_sweep_of_fixed_steps_with_output_times_runs(tmp_path):
+    """Fixed h with output.times (or events) runs through the adaptive kernel, whose run has
+    no n_samples_between: the sweep's memory estimate raised AttributeError, an internal error."""
+    path = write_sweep(tmp_path, {"base": {**BASE, "output": {"times": {"start": 1, "stop": "2*pi", "n": 4}}},
+                                  "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60"]}]})
+    outcomes, _ = run_sweep(load_sweep(path), workers=1)
+    assert [o.status for o in outcomes] == ["complete", "complete"]
+    assert [o.result.t.size for o in outcomes] == [4, 4] and outcomes[0].result.t[0] == 1.0
+
+
 @pytest.fixture(scope="module")
 def reproduction(tmp_path_factory):
     return paper.reproduce(ROOT / "configs" / "paper", tmp_path_factory.mktemp("paper-out"), workers=2)
