@@ -195,6 +195,8 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
     where I(t0) vanishes against them (integrate.relative_reference)."""
     from elimfast.integrate import relative_reference
 
+    from .report import reference_label
+
     n = run_file.n_samples
     if run_file.steps_done < 1:   # its samples are all of the initial state (integrate.invariant_drift)
         raise PlotError(f"{run_file.name}: no step done ({status_text(run_file.status)}); no invariant error to "
@@ -205,25 +207,26 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
     t = run_file.t(stride)
     conserve = set(run_file.attrs.get("conserve") or [])
     scales = run_file.invariant_scales()
+    initial = run_file.initial_invariants()   # I(t0) of the initial state (older files: the first sample)
     for name in run_file.invariant_names:
         values = run_file.invariant(name, stride)
-        error = np.abs(values - values[0])
+        error = np.abs(values - initial[name])
         error[error == 0.0] = np.nan   # exact agreement has no place on a log scale
         label = name + (" (imposed)" if name in conserve else "")
         axes.semilogy(t, error, lw=0.8, label=label)
         if relative_axes is not None:
-            reference, kind = relative_reference(float(values[0]), scales.get(name, 0.0))
+            reference, kind = relative_reference(initial[name], scales.get(name, 0.0))
             scale = 1.0 / reference
             relative_label = label + {"I(t0)": "", "terms": " (to the size of its terms: I(t0) ~ 0)",
                                       "absolute": " (absolute: I(t0) = 0)"}[kind]
             relative_axes.semilogy(t, error * scale, lw=0.8, label=relative_label)
     axes.set_xlabel("t")
-    axes.set_ylabel("|I(t) - I(t0)|")
+    axes.set_ylabel(f"|I(t) - I({reference_label(run_file)})|")
     axes.legend(fontsize="small")
     axes.grid(True, which="major", alpha=0.3)
     if relative_axes is not None:
         relative_axes.set_xlabel("t")
-        relative_axes.set_ylabel("|I(t) - I(t0)| / |I(t0)|")
+        relative_axes.set_ylabel(f"|I(t) - I({reference_label(run_file)})| / |I({reference_label(run_file)})|")
         relative_axes.set_title("relative errors")
         relative_axes.legend(fontsize="small")
         relative_axes.grid(True, which="major", alpha=0.3)

@@ -45,6 +45,23 @@ def _problem_text(run_file) -> str:
     return text
 
 
+def start_time(run_file) -> float:
+    """t0 of a run: its config's (a sweep file of earlier versions stored its first sample's
+    time as the attribute t0), else the attribute."""
+    integration = config_of(run_file).get("integration")
+    if isinstance(integration, dict) and isinstance(integration.get("t0"), (int, float)):
+        return float(integration["t0"])
+    return float(run_file.attrs.get("t0", 0.0))
+
+
+def reference_label(run_file) -> str:
+    """What the invariant errors are measured against, as the axes say it: 't0' (the initial
+    state), or for a file written before I(t0) was stored whose first sample is later, that
+    sample's time ('t = 5')."""
+    when = run_file.reference_time()
+    return "t0" if math.isnan(when) or when == start_time(run_file) else f"t = {when:.6g}"
+
+
 def config_of(run_file) -> dict:
     """The run's resolved config as stored in the file ({} when unreadable)."""
     try:
@@ -163,8 +180,14 @@ def summary(run_file, integrity: dict | None = None) -> str:
         rows.append(f"invariants   no figures: {why}, so no state after t0 to compare with I(t0)")
     else:
         span = " before the failure" if str(run_file.status).startswith("failed") else ""
-        rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples{span}, and relative to "
-                    "|I(t0)|")
+        when = reference_label(run_file)
+        if when == "t0":
+            rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples{span}, and relative to "
+                        "|I(t0)|")
+        else:   # a file written before I(t0) was stored, whose samples start after t0
+            rows.append(f"invariants   max |I(t) - I({when})| over {run_file.n_samples} samples{span}, and relative "
+                        f"to it: the first sample, not t0 = {start_time(run_file)!r} (the file predates storing "
+                        "I(t0))")
     width = max(len(n) for n in drift) if drift else 0
     for name, value in drift.items():
         tag = "  (imposed)" if name in conserve else ("  (H: kept by every HBVM/ELIM/LIM)" if name == "H" else "")

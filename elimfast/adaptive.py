@@ -298,6 +298,7 @@ class AdaptiveIntegration:
         self.store_every = store_every
         n = 2 * problem.degrees_of_freedom
         self.y = np.array(y0, dtype=np.float64)
+        self.y0 = self.y.copy()   # the state at t0, the reference of the invariant errors (Result.y0)
         self.y_comp = np.zeros(n)
         self.clock = np.array([self.t0, 0.0])
         self.coef = np.zeros((method.s, n))
@@ -399,7 +400,7 @@ class AdaptiveIntegration:
             status="complete" if self.status == codes.STATUS_OK else STATUS_NAMES[self.status],
             solver=self.solver, step_t=np.concatenate([c.step_t for c in chunks]),
             step_h=np.concatenate([c.step_h for c in chunks]), step_control=self.control, stats=self.stats(),
-            events=found)
+            events=found, y0=self.y0.copy(), t0=self.t0)
 
     def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message

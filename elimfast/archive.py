@@ -64,6 +64,7 @@ def load(path, run: str | None = None):
                       lam=multipliers if name == "lambda" else None, iterations=iterations, substeps=substeps,
                       y_final=y_final, t_final=t_final, n_steps=int(stored.attrs.get("n_steps", spec.n_steps)),
                       steps_done=stored.steps_done, status=stored.status, solver=spec.solver,
+                      y0=spec.problem.y0.copy(), t0=float(stored.attrs.get("t0", spec.t0)),
                       **_adaptive_parts(stored, spec))
 
 

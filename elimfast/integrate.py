@@ -200,7 +200,9 @@ class Result:
     lam (n_steps, nu+1) for LIM (None otherwise); iterations (n_steps,) per step, every
     try and substep counted; substeps (n_steps,): 1, or how many substeps a split step
     took (docs/solver.md#when-a-step-fails-retry-then-split); y_final, t_final: the last state; status: 'complete' or
-    the failure reason; solver: the SolverSettings used.
+    the failure reason; solver: the SolverSettings used; y0, t0: the initial state and
+    time, the reference of the invariant errors (the first sample need not be at t0: output
+    times may start later). None in Results built without them: the first sample then.
     """
 
     problem: Problem
@@ -229,24 +231,40 @@ class Result:
     step_control: object = None
     stats: dict = field(default_factory=dict)
     events: dict = field(default_factory=dict)
+    y0: np.ndarray | None = None
+    t0: float | None = None
+
+    def _initial_state(self) -> np.ndarray | None:
+        """y0, else the first sample (a Result built without y0), else None."""
+        if self.y0 is not None:
+            return self.y0
+        return self.y[0] if self.y.shape[0] else None
+
+    def initial_invariants(self) -> dict[str, float]:
+        """H and every invariant at t0, of the initial state y0: the reference I(t0) of the
+        invariant errors (a Result without y0: the first sample's; NaN without samples)."""
+        state = self._initial_state()
+        if state is None:
+            return {name: math.nan for name in self.invariants}
+        return self.problem.invariant_values(state)
 
     def invariant_errors(self) -> dict[str, float]:
-        """max over samples of |I(t) - I(t0)| for H and every invariant; NaN when no step was
-        done (``invariant_drift``)."""
-        return {name: invariant_drift([v], float(v[0]) if v.size else math.nan, self.steps_done)
-                for name, v in self.invariants.items()}
+        """max over samples of |I(t) - I(t0)| for H and every invariant, I(t0) of the initial
+        state; NaN when no step was done (``invariant_drift``)."""
+        initial = self.initial_invariants()
+        return {name: invariant_drift([v], initial[name], self.steps_done) for name, v in self.invariants.items()}
 
     def invariant_scales(self) -> dict[str, float]:
-        """The size of the terms of H and of every invariant at the first sample
-        (Problem.invariant_scales; empty without samples)."""
-        return self.problem.invariant_scales(self.y[0]) if self.y.shape[0] else {}
+        """The size of the terms of H and of every invariant at t0 (Problem.invariant_scales
+        of y0, or of the first sample for a Result without y0; empty without either)."""
+        state = self._initial_state()
+        return self.problem.invariant_scales(state) if state is not None else {}
 
     def relative_invariant_errors(self) -> dict[str, float]:
         """max over samples of |I(t) - I(t0)| / |I(t0)|, relative to the size of I's terms where
         I(t0) vanishes against them, see ``relative_error``."""
-        scales = self.invariant_scales()
-        return {name: relative_error(error, float(self.invariants[name][0]) if self.invariants[name].size else 0.0,
-                                     scales.get(name, 0.0))
+        scales, initial = self.invariant_scales(), self.initial_invariants()
+        return {name: relative_error(error, initial[name], scales.get(name, 0.0))
                 for name, error in self.invariant_errors().items()}
 
     def to_xarray(self):
@@ -263,7 +281,7 @@ class Result:
     def energy_warning(self) -> str | None:
         """A note when H or an imposed invariant drifts above round-off (k or r too small for
         the steps, energy_note), else None."""
-        if self.invariants["H"].size < 2:
+        if self.steps_done < 1:
             return None
         errors = self.relative_invariant_errors()
         return energy_note(self.method.name, self.method.k, self.method.r, self.h,
@@ -507,6 +525,7 @@ class Integration:
 
         n = 2 * problem.degrees_of_freedom
         self.y = resolve_initial_state(problem, y0)
+        self.y0 = self.y.copy()   # the state at t0, the reference of the invariant errors (Result.y0)
         self.y_comp = np.zeros(n)
         self.clock = np.array([float(t0), 0.0])
         self.t0 = float(t0)
@@ -770,7 +789,7 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
         substeps=np.concatenate([c.substeps for c in chunks]),
         y_final=run.y.copy(), t_final=run.t, n_steps=run.n_steps, steps_done=run.steps_done,
         status="complete" if run.status == codes.STATUS_OK else STATUS_NAMES[run.status],
-        solver=run.solver,
+        solver=run.solver, y0=run.y0.copy(), t0=run.t0,
     )
 
 

@@ -139,7 +139,7 @@ def _figures(table_outcomes: list[RunOutcome], long_outcomes: list[RunOutcome], 
 
     def invariant_error(o, name):
         values = o.result.invariants[name]
-        return o.result.t, np.abs(values - values[0])
+        return o.result.t, np.abs(values - o.result.initial_invariants()[name])   # against I(t0)
 
     for number, label, name, title in ((2, "GAUSS3", "H", "Hamiltonian error, GAUSS3"),
                                        (3, "HBVM(12,3)", "angular_momentum", "angular momentum error, HBVM(12,3)")):

@@ -566,7 +566,7 @@ def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
     if multipliers is not None and multipliers.size:
         outcome.max_multiplier = float(np.max(np.abs(multipliers)))
     outcome.invariant_errors = result.invariant_errors()
-    outcome.initial_invariants = {name: float(values[0]) for name, values in result.invariants.items()}
+    outcome.initial_invariants = result.initial_invariants()
     outcome.invariant_scales = result.invariant_scales()
 
 

@@ -17,6 +17,7 @@ from click.testing import CliRunner
 import elimfast
 from elimfast.config import load_run, load_run_from_dict, ConfigError
 from elimfast.integrate import Integration
+from elimfast.io.hdf5 import RunFile
 from elimfast_cli.main import cli
 from runfiles import steps_on_disk
 
@@ -293,3 +294,81 @@ def test_a_run_ended_by_a_terminal_event_is_not_continued_past_it(tmp_path):
                                       "integration.t_end=20*pi"])
     assert result.exit_code == 2
     assert "was ended by a terminal event at t = 3.14159" in result.stderr
+
+
+# Output times that start after t0: GAUSS(2) at h = 0.3 loses H, A_x, A_y at the 1e-2 level, so a
+# reference taken at the first sample (t = 5) instead of t0 is off by far more than round-off.
+LATE_TIMES = {"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}},
+              "method": {"name": "gauss", "s": 2}, "integration": {"h": 0.3, "t_end": 30},
+              "output": {"times": {"start": 5, "stop": 30, "step": 5}}}
+
+
+def errors_against(values: dict, reference: dict) -> dict:
+    return {name: float(np.max(np.abs(column - reference[name]))) for name, column in values.items()}
+
+
+def test_invariant_errors_are_measured_against_the_initial_state_when_output_times_start_later(tmp_path):
+    """With output times later than t0 the first sample was taken as I(t0): the errors (and
+    lrl_y's relative error, 5.6 against the first sample's A_y instead of A_y(t0) = 0) were
+    measured against the state at t = 5. They are measured against y0 at t0: in Result, in
+    the run file (value_at_t0), in inspect, in the sweep table and in a Result loaded back."""
+    from elimfast import sweep
+    from elimfast.integrate import relative_error
+
+    path = write_config(tmp_path, LATE_TIMES)
+    spec = load_run(path)
+    at_t0 = spec.problem.invariant_values(spec.problem.y0)
+    result = elimfast.integrate(
+        spec.problem, spec.method, h=0.3, t_end=30.0, t_eval=np.arange(5.0, 30.1, 5.0))
+    assert result.t[0] == 5.0 and result.t0 == 0.0
+    expected = errors_against(result.invariants, at_t0)
+    against_first = errors_against(result.invariants, {n: v[0] for n, v in result.invariants.items()})
+    assert all(abs(expected[n] - against_first[n]) > 1e-4 for n in ("H", "lrl_x", "lrl_y"))   # the test can fail
+    assert result.invariant_errors() == expected
+    assert result.initial_invariants() == at_t0
+    # the run file: I(t0) stored, and what inspect prints
+    out = tmp_path / "late.h5"
+    ran = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--quiet"])
+    assert ran.exit_code == 0, ran.output
+    with h5py.File(out, "r") as f:
+        assert {name: f["invariants"][name].attrs["value_at_t0"] for name in at_t0} == at_t0
+    with RunFile(out) as stored:
+        assert stored.invariant_drift() == expected and stored.reference_time() == 0.0
+    text = CliRunner().invoke(cli, ["inspect", str(out)]).stdout
+    assert "max |I(t) - I(t0)| over 6 samples, and relative to |I(t0)|" in text
+    scales = spec.problem.invariant_scales(spec.problem.y0)
+    for name in ("H", "lrl_x"):
+        line = next(line for line in text.splitlines() if line.startswith(f"  {name} "))
+        assert f"{expected[name]:.3e}  relative {relative_error(expected[name], at_t0[name], scales[name]):.3e}" \
+            in line, line
+    assert elimfast.load(out).invariant_errors() == expected
+    # a sweep's table and its stored run
+    sweep_file = tmp_path / "sweep.yaml"
+    sweep_file.write_text(yaml.safe_dump({"base": LATE_TIMES, "grid": [{"name": "h", "key": "integration.h",
+                                                                        "values": [0.3]}]}))
+    outcome = sweep.run_to_file(sweep.load_sweep(sweep_file), tmp_path / "sweep.h5", workers=1)
+    assert outcome.outcomes[0].invariant_errors == expected
+    with h5py.File(tmp_path / "sweep.h5", "r") as f:
+        run = f["runs/0.3"]
+        assert run.attrs["t0"] == 0.0 and run["invariants/H"].attrs["value_at_t0"] == at_t0["H"]
+
+
+def test_a_file_written_before_the_values_at_t0_were_stored_says_which_reference_it_uses(tmp_path):
+    """Older files keep reading: without value_at_t0 the first sample is the reference, and
+    inspect says so when that sample is later than t0."""
+    out = tmp_path / "old.h5"
+    ran = CliRunner().invoke(cli, ["run", str(write_config(tmp_path, LATE_TIMES)), "-o", str(out), "--quiet"])
+    assert ran.exit_code == 0, ran.output
+    with h5py.File(out, "r+") as f:
+        for name in f["invariants"]:
+            del f["invariants"][name].attrs["value_at_t0"]
+        first = {name: f["invariants"][name][0] for name in f["invariants"]}
+        expected = errors_against({name: f["invariants"][name][:] for name in f["invariants"]}, first)
+    with RunFile(out) as stored:
+        assert stored.invariant_drift() == expected and stored.reference_time() == 5.0
+    inspected = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert inspected.exit_code == 0, inspected.output
+    assert ("invariants   max |I(t) - I(t = 5)| over 6 samples, and relative to it: the first sample, not t0 = 0.0 "
+            "(the file predates storing I(t0))") in inspected.stdout
+    plotted = CliRunner().invoke(cli, ["plot", str(out), "-o", str(tmp_path / "i.png")])
+    assert plotted.exit_code == 0, plotted.output

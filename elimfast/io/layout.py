@@ -8,8 +8,11 @@ fletcher32 filter, and extended as the run goes:
     component              (2m,) strings        the state's component names, q then p; a dimension scale
     y                      (samples, 2m)        the state, on dimensions (t, component)
     invariants/H           (samples,)           the Hamiltonian at each sample, on dimension t
-    invariants/<name>      (samples,)           every invariant of the problem; attributes ``imposed`` and
+    invariants/<name>      (samples,)           every invariant of the problem; attributes ``imposed``,
                                                 ``scale`` (the size of its terms at t0, Problem.invariant_scales)
+                                                and ``value_at_t0`` (I of the initial state: the reference of
+                                                the invariant errors, also when the first sample is later;
+                                                H has both too; absent in files written before it)
     steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
     steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split
     steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
@@ -136,6 +139,8 @@ class _Growing:
 
 
 
+
+VALUE_AT_T0 = "value_at_t0"   # attribute of /invariants/<name>: I(t0), the reference of the invariant errors
 
 # The per-step datasets of /steps that are not multipliers (adaptive runs add h and t).
 PER_STEP_RECORDS = ("iterations", "substeps", "h", "t")
@@ -273,13 +278,16 @@ def unit_attributes(problem) -> dict:
 
 # --- the run group ------------------------------------------------------------------------------
 def create_run_group(group, *, problem, method, conserve, n_multipliers: int, multiplier: str | None,
-                     attributes: dict, adaptive_steps: bool = False, event_names=(), scales=None) -> dict:
+                     attributes: dict, adaptive_steps: bool = False, event_names=(), scales=None,
+                     values_at_t0=None) -> dict:
     """Create the layout of a run in ``group`` (the module doc) with its attributes; return
     the growing datasets {"t", "y", "invariants": [H, ...], "iterations", "substeps",
     "multipliers"} (empty, to be extended by ``append_rows``). The one writer of a run
     group: the run file (``runfile.RunWriter``) and each run of a sweep file use it. scales:
     {name: the size of the invariant's terms at t0} (Problem.invariant_scales), stored as each
-    invariant's attribute ``scale``, the reference of its relative error where I(t0) ~ 0."""
+    invariant's attribute ``scale``, the reference of its relative error where I(t0) ~ 0.
+    values_at_t0: {name: I(t0) of the initial state} (Problem.invariant_values), stored as
+    ``value_at_t0``, the reference of the invariant errors (output times may start after t0)."""
     units = dict(getattr(problem, "units", {}) or {})
     _set_attributes(group, {**attributes, **unit_attributes(problem)})
     names = list(problem.coordinate_names)
@@ -304,7 +312,9 @@ def create_run_group(group, *, problem, method, conserve, n_multipliers: int, mu
                                                    "long_name": LONG_NAMES["H"] if name == "H" else
                                                    f"invariant {name}",
                                                    **({"scale": float(scales[name])}
-                                                      if scales and name in scales else {})})
+                                                      if scales and name in scales else {}),
+                                                   **({VALUE_AT_T0: float(values_at_t0[name])}
+                                                      if values_at_t0 and name in values_at_t0 else {})})
         invariants.append(dataset)
     steps = group.create_group("steps")
     step = dimension(steps, "step")

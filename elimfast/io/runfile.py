@@ -55,9 +55,9 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATUS_KILLED,
-                     STATUS_RUNNING, VERIFY_BLOCK_BYTES, _Growing, _plain, _replace_attributes, _set_attributes,
-                     _small_dataset, append_rows, attach, component_names, create_run_group, dimension,
-                     multiplier_datasets, multiplier_name, PER_STEP_RECORDS, version_attributes)
+                     STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain, _replace_attributes,
+                     _set_attributes, _small_dataset, append_rows, attach, component_names, create_run_group,
+                     dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS, version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
@@ -399,7 +399,8 @@ class RunWriter:
             datasets = create_run_group(f, problem=problem, method=method, conserve=run.conserve,
                                         n_multipliers=run.multipliers.size, multiplier=mult,
                                         adaptive_steps=adaptive, event_names=run.event_names if adaptive else (),
-                                        scales=problem.invariant_scales(run.y), attributes={
+                                        scales=problem.invariant_scales(run.y),
+                                        values_at_t0=problem.invariant_values(run.y), attributes={
                 # with_initial: a run started from a y0 of its own (Integration(y0=...)) says so too
                 "config": config_text, **run_attributes(problem.with_initial(run.y), method, h=run.h, t0=run.t0,
                                                         n_steps=run.n_steps,
@@ -1063,8 +1064,23 @@ class RunFile:
         return {"count": count, "total": total, "mean": total / count, "min": low, "median": median,
                 "p99": p99, "max": high}
 
+    @property
+    def stores_values_at_t0(self) -> bool:
+        """Whether every invariant has its value at t0 stored (attribute value_at_t0); files
+        written before it was stored have not."""
+        with self._reading("/invariants"):
+            group = self._root["invariants"]
+            return all(VALUE_AT_T0 in group[name].attrs for name in self.invariant_names)
+
     def initial_invariants(self) -> dict[str, float]:
-        """H and every invariant at the first sample (t0), NaN when there is none."""
+        """H and every invariant at t0, of the initial state (attribute value_at_t0): the
+        reference I(t0) of the invariant errors. A file written before it was stored gives
+        its first sample's values (at t0 unless output times start later: ``reference_time``
+        says when), NaN without samples."""
+        if self.stores_values_at_t0:
+            with self._reading("/invariants"):
+                group = self._root["invariants"]
+                return {name: float(group[name].attrs[VALUE_AT_T0]) for name in self.invariant_names}
         values = {}
         for name in self.invariant_names:
             first = math.nan
@@ -1072,6 +1088,13 @@ class RunFile:
                 first = float(block[0])
             values[name] = first
         return values
+
+    def reference_time(self) -> float:
+        """The time of the state the invariant errors are measured against: t0, or for a file
+        written before the values at t0 were stored, its first sample's time (NaN without one)."""
+        if self.stores_values_at_t0:
+            return float(self.attrs.get("t0", 0.0))
+        return float(self._read_rows("t", 0, 1)[0]) if self.n_samples else math.nan
 
     def invariant_scales(self) -> dict[str, float]:
         """The size of the terms of H and of every invariant at t0 (attribute ``scale``,

@@ -266,7 +266,8 @@ class SweepWriter:
             resolved = {}
         integration = resolved.get("integration") or {}
         output = resolved.get("output") or {}
-        t0 = float(result.t[0]) if result.t.size else float(integration.get("t0", 0.0))
+        t0 = (float(result.t0) if getattr(result, "t0", None) is not None   # the first sample may be later
+              else float(integration.get("t0", result.t[0] if result.t.size else 0.0)))
         multipliers = result.alpha if result.alpha is not None else result.lam
         name = "lambda" if result.lam is not None else "alpha" if result.alpha is not None and \
             result.alpha.shape[1] else None
@@ -274,7 +275,7 @@ class SweepWriter:
                                     n_multipliers=0 if multipliers is None else multipliers.shape[1],
                                     multiplier=name, adaptive_steps=result.step_h is not None,
                                     event_names=tuple(result.events), scales=result.invariant_scales(),
-                                    attributes={
+                                    values_at_t0=result.initial_invariants(), attributes={
             **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=result.n_steps,
                                            t_end=None, output_every=int(output.get("every", 1)),
                                            conserve=result.conserve),

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import LONG_NAMES, unit_attributes
+from .layout import LONG_NAMES, VALUE_AT_T0, unit_attributes
 
 
 def result_dataset(result):
@@ -11,7 +11,8 @@ def result_dataset(result):
     lambda on step (alpha/lambda also on ``invariant``, the invariant of each column).
     Adaptive runs add step_t and step_h on step (a run file's /steps/t and /steps/h), and
     every event its times ``<name>_t`` on ``<name>_occurrence`` and states ``<name>_y`` on
-    (``<name>_occurrence``, component) (a run file's /events/<name>).
+    (``<name>_occurrence``, component) (a run file's /events/<name>). H and each invariant
+    carry ``value_at_t0``, I of the initial state (as in a run file).
     Attributes: problem, method, h (adaptive: the first step, also as h_first), conserve,
     n_steps, steps_done, status and the units; adaptive runs add the step control's
     settings (step_control, rtol, atol or epsilon, verify) and the counts of Result.stats."""
@@ -25,9 +26,11 @@ def result_dataset(result):
               "component": ("component", np.array(result.problem.coordinate_names, dtype=object),
                             {"long_name": LONG_NAMES["component"]})}
     data = {"y": (("t", "component"), np.asarray(result.y), {"long_name": LONG_NAMES["y"]})}
+    at_t0 = result.initial_invariants()
     for name, values in result.invariants.items():
         data[name] = ("t", np.asarray(values), {"long_name": LONG_NAMES["H"] if name == "H" else f"invariant {name}",
-                                                "imposed": int(name in result.conserve)})
+                                                "imposed": int(name in result.conserve),
+                                                VALUE_AT_T0: at_t0.get(name, float("nan"))})
     done = result.steps_done
     data["iterations"] = ("step", np.asarray(result.iterations[:done]), {"long_name": LONG_NAMES["iterations"]})
     data["substeps"] = ("step", np.asarray(result.substeps[:done]), {"long_name": LONG_NAMES["substeps"]})
