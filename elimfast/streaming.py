@@ -570,9 +570,12 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration) 
     old_end = float(attrs.get("t_end", math.nan))
     new_end = float(getattr(integration, "t_end", None) or integration.t0 + integration.n_steps * integration.h)
     new_times = integration_t_eval(integration)
+    if (stored_t is None) != (new_times.size == 0):
+        raise OutputError(f"{path}: output.times cannot be {'removed' if new_times.size == 0 else 'added'} on "
+                          "--resume (the samples written follow the stored run's); start a new run (-o NEW.h5)")
     if new_end == old_end:
-        times_changed = stored_t is not None and int(attrs.get("output_times", new_times.size)) != new_times.size
-        if times_changed:
+        if stored_t is not None and (new_times.size != int(attrs.get("output_times", 0))
+                                     or not np.array_equal(new_times[:stored_t.size], stored_t)):
             raise OutputError(f"{path}: output.times may change on --resume only to add times after a later "
                               "integration.t_end (the run's samples are written); start a new run (-o NEW.h5) for "
                               "other times")
@@ -641,7 +644,7 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             with hdf5.RunFile(path) as existing:
                 status, attrs = existing.status, existing.attrs
                 steps_done = existing.steps_done
-                stored_t = existing.t() if integration_t_eval(integration).size else None
+                stored_t = existing.t() if attrs.get("output_times") else None
                 clock = existing.saved_state().get("clock")
             stored = str(attrs.get("config", ""))
             difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS, ignore_keys=EXTENSION_KEYS)

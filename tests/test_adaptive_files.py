@@ -282,6 +282,9 @@ def test_an_adaptive_run_continued_to_a_later_end_with_more_output_times(tmp_pat
                                           "integration.t_end=60*pi", "--set", "output.times.step=0.5"])
     assert other_step.exit_code == 2
     assert "output.times must keep the 503 times already written" in other_step.stderr
+    removed = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set",
+                                       "integration.t_end=60*pi", "--set", "output.times=null"])
+    assert removed.exit_code == 2 and "output.times cannot be removed on --resume" in removed.stderr
 
 
 def test_a_run_ended_by_a_terminal_event_is_not_continued_past_it(tmp_path):
