@@ -509,7 +509,7 @@ def _problem_raised(integration, before: int, err: BaseException, writer, resume
 # Config sections that only decide how a step is solved, not which steps are taken: a
 # run may be resumed with other values there (a failed run with more halvings, say).
 SOLVER_SECTIONS = ("solver",)
-# Keys that may grow on --resume: a run continued to a later end (docs/files.md#continuing-a-run).
+# Keys that may grow on --resume: a run continued to a later end (run_extension; README, "Ctrl-C").
 EXTENSION_KEYS = ("integration.t_end", "integration.n_steps", "output.times")
 
 
@@ -557,7 +557,7 @@ def integration_t_eval(integration) -> np.ndarray:
     return np.asarray(getattr(integration, "t_eval", np.zeros(0)))
 
 
-def run_extension(path, attrs: dict, status: str, clock, stored_t, integration) -> dict | None:
+def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, t_end=None) -> dict | None:
     """A --resume that continues the run stored in ``path`` to a later end: None when the end
     is the stored one, else the root attributes the continued run has (RunWriter.resume's
     ``extension``). Raises OutputError for an end that is earlier, a run that a terminal event
@@ -566,26 +566,38 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration) 
     A fixed-step run continued so is the uninterrupted run to the new end, bit for bit; an
     adaptive one is the run that stopped at the old end and went on (its last step was cut
     to land there; the controller's next step is the one it had proposed before that).
+    ``t_end``: the config's end (else the integration's); with fixed steps the number of
+    steps decides, so that t0 + n h rounding off the config's t_end is no change.
     """
     old_end = float(attrs.get("t_end", math.nan))
-    new_end = float(getattr(integration, "t_end", None) or integration.t0 + integration.n_steps * integration.h)
+    new_end = t_end if t_end is not None else getattr(integration, "t_end", None)
+    if new_end is None:
+        new_end = integration.t0 + integration.n_steps * integration.h
+    new_end = float(new_end)
+    new_steps, old_steps = getattr(integration, "n_steps", None), int(attrs.get("n_steps", 0))
+    if new_steps is not None and old_steps > 0:   # fixed steps
+        change = (new_steps > old_steps) - (new_steps < old_steps)
+    else:
+        change = (new_end > old_end) - (new_end < old_end)
     new_times = integration_t_eval(integration)
     if (stored_t is None) != (new_times.size == 0):
         raise OutputError(f"{path}: output.times cannot be {'removed' if new_times.size == 0 else 'added'} on "
                           "--resume (the samples written follow the stored run's); start a new run (-o NEW.h5)")
-    if new_end == old_end:
+    if change == 0:
         if stored_t is not None and (new_times.size != int(attrs.get("output_times", 0))
                                      or not np.array_equal(new_times[:stored_t.size], stored_t)):
             raise OutputError(f"{path}: output.times may change on --resume only to add times after a later "
                               "integration.t_end (the run's samples are written); start a new run (-o NEW.h5) for "
                               "other times")
         return None
-    if not new_end > old_end:
+    if change < 0:
         raise OutputError(f"{path}: integration.t_end = {new_end:.10g} is before the end of the stored run, "
                           f"{old_end:.10g}: --resume continues a run to a later t_end, never an earlier one; start "
                           "a new run (-o NEW.h5) for a shorter one")
     t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else old_end
-    if status == STATUS_COMPLETE and t_final < old_end:
+    terminal = np.any(np.asarray(getattr(getattr(integration, "events", None), "terminal", ()), dtype=bool))
+    # (a fixed-step clock may end an ulp short of t_end: only a terminal event ends a run early)
+    if status == STATUS_COMPLETE and terminal and t_final < old_end - 1e-12 * abs(old_end):
         raise OutputError(f"{path}: the run was ended by a terminal event at t = {t_final:.10g}; a later t_end "
                           "does not continue it past the event: start a new run from there, without terminal")
     if stored_t is not None:
@@ -650,7 +662,7 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS, ignore_keys=EXTENSION_KEYS)
             if difference is not None:
                 raise resume_refusal(path, difference, prefix="was written from a different config; ")
-            extension = run_extension(path, attrs, status, clock, stored_t, integration)
+            extension = run_extension(path, attrs, status, clock, stored_t, integration, t_end)
             solver_changed = config_difference(stored, config_text, ignore_keys=EXTENSION_KEYS) is not None
             if status == STATUS_COMPLETE and extension is None:
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,
