@@ -608,13 +608,14 @@ class _Builder:
             config = _read_validated(key)
             if config is not None:
                 return config
-        from .config_schema import RunConfig, ValidationError, sections
+        from .config_schema import RunConfig, ValidationError, config_location, sections
         try:
             config = sections(RunConfig.model_validate(data))
         except ValidationError as err:
             # An unknown key first: a misspelt section (methd:) also makes its section missing,
             # and the misspelling is the thing to fix.
-            errors = sorted(err.errors(), key=lambda e: e["type"] != "extra_forbidden")
+            errors = sorted(({**e, "loc": config_location(e["loc"])} for e in err.errors()),
+                            key=lambda e: e["type"] != "extra_forbidden")
             messages = tuple(self.message(e["loc"], self.describe(e)) for e in errors)
             raise ConfigError(messages[0], messages=messages, key=_join(errors[0]["loc"]),
                               line=self.line_of(errors[0]["loc"])) from None
