@@ -276,6 +276,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         if "key" in axis:
             if not isinstance(axis["key"], str) or not all(axis["key"].split(".")):
                 _fail(source, f"{key}.key", "must be a dotted key such as integration.h")
+            _check_axis_key(source, f"{key}.key", base, axis["key"], values[0])
             labels = axis.get("labels") or [str(v) for v in values]
             if not isinstance(labels, list) or len(labels) != len(values):
                 _fail(source, f"{key}.labels", f"has {len(labels) if isinstance(labels, list) else 'no list of'} "
@@ -343,6 +344,23 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
+    """A plain axis sets ``dotted`` in every run: a key that no config has (integration.hh)
+    would fail every run alike, one line each and exit code 1, so it is refused here as a
+    fault of the sweep file. Only that: the values themselves are the runs' to judge."""
+    from .config import unknown_key_text
+    from .config_schema import RunConfig, ValidationError, config_location
+    config = copy.deepcopy(base)
+    _set_path(config, dotted, value, source)
+    try:
+        RunConfig.model_validate(config)
+    except ValidationError as err:
+        for error in err.errors():
+            location = config_location(error["loc"])
+            if error["type"] == "extra_forbidden" and dotted.split(".")[:len(location)] == list(map(str, location)):
+                _fail(source, key, f"{dotted}: {unknown_key_text(location)}")
 
 
 def _whole_number(value) -> int | None:

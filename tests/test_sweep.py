@@ -51,6 +51,11 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
      "same label"),
     ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
     ({"base": BASE, "error": {"exact": "period"}}, "error.exact"),
+    # a misspelt axis key failed every run alike (one line each, exit 1), as if the integrations had failed
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.hh", "values": ["pi/30"]}]},
+     r"grid\[0\]\.key: integration\.hh: unknown key; did you mean 'h'\?"),
+    ({"base": BASE, "grid": [{"name": "s", "key": "methd.s", "values": [3]}]},
+     r"grid\[0\]\.key: methd\.s: unknown key; did you mean 'method'\?"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)
