@@ -97,6 +97,11 @@ class RunOutcome:
     initial_invariants: dict[str, float] = field(default_factory=dict)   # I(t0), for the relative errors
     invariant_scales: dict[str, float] = field(default_factory=dict)     # the size of each I's terms at t0
     result: Any = None                  # the Result integrate would return (kept when the runs are stored)
+    # What a run file of this run records beside its Result, for the sweep file's run group:
+    # the config's end (an adaptive run's n_steps * h is no end) and, for runs of the adaptive
+    # kernel, how the steps were chosen (AdaptiveIntegration.file_attributes).
+    t_end: float | None = None
+    file_attributes: dict = field(default_factory=dict)
 
     @property
     def relative_invariant_errors(self) -> dict[str, float]:
@@ -534,6 +539,8 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.h = spec.h
     outcome.n_steps = spec.n_steps
     run = Integration.from_spec(spec)
+    outcome.t_end = spec.t_end
+    outcome.file_attributes = run.file_attributes() if run.adaptive_kernel else {}
     needed = 2 * run_bytes(run)    # the chunks, then their concatenation
     available = memory_available()
     if available is not None and needed > MEMORY_FRACTION * available:
@@ -1044,7 +1051,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                 if writer is not None and outcome.label != REFERENCE_LABEL:
                     writer.add_run(outcome.label, outcome.result, status=outcome.status,
                                    config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
-                                   wall_time_s=outcome.wall_time)
+                                   wall_time_s=outcome.wall_time, t_end=outcome.t_end,
+                                   file_attributes=outcome.file_attributes)
                 if not keep_results:
                     outcome.result = None   # stored: the parent keeps only the summary of each run
                 if on_done is not None:
