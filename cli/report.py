@@ -114,7 +114,8 @@ def _swmr_note(path, status: str) -> str:
     (repair refuses such a file), or stopped without closing it (kill -9: repair it)."""
     if status == "running":
         return "  (opened in SWMR mode: its writer is still running)"
-    return f"  (opened in SWMR mode: its writer did not close it; other HDF5 programs open it after 'elimfast repair {path}')"
+    return (f"  (opened in SWMR mode: its writer did not close it; other HDF5 programs open it after "
+            f"'elimfast repair {path}')")
 
 
 def summary(run_file, integrity: dict | None = None) -> str:
