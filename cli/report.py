@@ -109,6 +109,15 @@ def adaptive_text(settings) -> str:
     return f"adaptive ({control}: {how}; docs/adaptive.md)"
 
 
+def _swmr_note(path, status: str) -> str:
+    """The file row's note on a file HDF5 sees open for writing: its writer is still at work
+    (repair refuses such a file), or stopped without closing it (kill -9: repair it)."""
+    if status == "running":
+        return "  (opened in SWMR mode: its writer is still running)"
+    return (f"  (opened in SWMR mode: its writer did not close it; other HDF5 programs open it after "
+            f"'elimfast repair {path}')")
+
+
 def summary(run_file, integrity: dict | None = None) -> str:
     """The inspect summary of an open RunFile (``integrity``: what RunFile.verify returned)."""
     a = run_file.attrs
@@ -118,8 +127,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
         rows.append(f"{key:<13}{value}")
 
     conserve = list(a.get("conserve") or [])
-    row("file", f"{run_file.name}" + ("  (opened in SWMR mode: its writer did not close it; other HDF5 programs "
-                                       f"open it after 'elimfast repair {run_file.path}')" if run_file.swmr else ""))
+    row("file", f"{run_file.name}" + (_swmr_note(run_file.path, run_file.status) if run_file.swmr else ""))
     row("problem", _problem_text(run_file))
     method = f"{a.get('method')}, order {2 * int(a.get('s', 0))}"
     row("method", method + (f", imposing {', '.join(conserve)}" if conserve else ""))
@@ -250,8 +258,7 @@ def ensemble_summary(ensemble_file) -> str:
     def row(key, value):
         rows.append(f"{key:<13}{value}")
 
-    row("file", f"{path}" + ("  (opened in SWMR mode: its writer did not close it; other HDF5 programs open it "
-                             f"after 'elimfast repair {path}')" if ensemble_file.swmr else ""))
+    row("file", f"{path}" + (_swmr_note(path, ensemble_file.status) if ensemble_file.swmr else ""))
     row("sweep", f"{root.get('source', '?')} (an ensemble)")
     row("problem", _problem_text(ensemble_file))
     conserve = [name for name in (a.get("conserve") or []) if name]

@@ -82,6 +82,8 @@ def _adaptive_parts(stored, spec) -> dict:
         run = AdaptiveIntegration.from_spec(spec)
         run.counters[...] = np.asarray(counters, dtype=np.int64)[:kernel.N_COUNTERS]
         parts["stats"] = run.stats()
+    elif stored.stored_stats():   # a sweep run (no /state; files written before they were stored: none)
+        parts["stats"] = stored.stored_stats()
     return parts
 
 

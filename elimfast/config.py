@@ -466,6 +466,16 @@ def _join(path) -> str:
 _suggest = suggest
 
 
+def unknown_key_text(location: tuple) -> str:
+    """What to say of a key no config section has, at ``location`` (a config key path): the
+    keys allowed there, and the nearest of them."""
+    from .config_schema import SECTIONS
+    parent = tuple(p for p in location[:-1] if isinstance(p, str))
+    model = SECTIONS.get(parent) or SECTIONS.get(parent[:-1] + ("*",))   # events.<name>: ("events", "*")
+    allowed = list(model.model_fields) if model else []
+    return f"unknown key; {_suggest(location[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"
+
+
 def _clip(text: str, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
@@ -608,13 +618,14 @@ class _Builder:
             config = _read_validated(key)
             if config is not None:
                 return config
-        from .config_schema import RunConfig, ValidationError, sections
+        from .config_schema import RunConfig, ValidationError, config_location, sections
         try:
             config = sections(RunConfig.model_validate(data))
         except ValidationError as err:
             # An unknown key first: a misspelt section (methd:) also makes its section missing,
             # and the misspelling is the thing to fix.
-            errors = sorted(err.errors(), key=lambda e: e["type"] != "extra_forbidden")
+            errors = sorted(({**e, "loc": config_location(e["loc"])} for e in err.errors()),
+                            key=lambda e: e["type"] != "extra_forbidden")
             messages = tuple(self.message(e["loc"], self.describe(e)) for e in errors)
             raise ConfigError(messages[0], messages=messages, key=_join(errors[0]["loc"]),
                               line=self.line_of(errors[0]["loc"])) from None
@@ -715,11 +726,7 @@ class _Builder:
     def describe(self, error) -> str:
         kind, value, loc = error["type"], error.get("input"), error["loc"]
         if kind == "extra_forbidden":
-            from .config_schema import SECTIONS
-            parent = tuple(p for p in loc[:-1] if isinstance(p, str))
-            model = SECTIONS.get(parent) or SECTIONS.get(parent[:-1] + ("*",))   # events.<name>: ("events", "*")
-            allowed = list(model.model_fields) if model else []
-            return f"unknown key; {_suggest(loc[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"
+            return unknown_key_text(loc)
         if kind == "missing":
             return f"missing; {_EXAMPLES.get(_join(loc), 'add it')}"
         if kind in ("model_type", "model_attributes_type", "dict_type"):

@@ -144,6 +144,14 @@ SECTIONS = {(): RunConfig, ("problem",): ProblemSection, ("problem", "coordinate
             ("output",): OutputSection, ("output", "times"): TimesSection, ("events", "*"): EventSection}
 
 
+def config_location(location: tuple) -> tuple:
+    """A pydantic error's location as a config key path: without the parts by which pydantic
+    names the member of a union an error is about (output.times.TimesSection.start,
+    output.times.list[function-before[_to_number(), float]][1]), which no config key is."""
+    members = {model.__name__ for model in SECTIONS.values()}
+    return tuple(part for part in location if not (isinstance(part, str) and (part in members or "[" in part)))
+
+
 def sections(value):
     """A validated model as config.Section objects (plain data, no pydantic): each model a
     Section of its fields in declaration order, dicts and lists copied, scalars as they are."""

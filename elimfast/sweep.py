@@ -97,6 +97,11 @@ class RunOutcome:
     initial_invariants: dict[str, float] = field(default_factory=dict)   # I(t0), for the relative errors
     invariant_scales: dict[str, float] = field(default_factory=dict)     # the size of each I's terms at t0
     result: Any = None                  # the Result integrate would return (kept when the runs are stored)
+    # What a run file of this run records beside its Result, for the sweep file's run group:
+    # the config's end (an adaptive run's n_steps * h is no end) and, for runs of the adaptive
+    # kernel, how the steps were chosen (AdaptiveIntegration.file_attributes).
+    t_end: float | None = None
+    file_attributes: dict = field(default_factory=dict)
 
     @property
     def relative_invariant_errors(self) -> dict[str, float]:
@@ -276,6 +281,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         if "key" in axis:
             if not isinstance(axis["key"], str) or not all(axis["key"].split(".")):
                 _fail(source, f"{key}.key", "must be a dotted key such as integration.h")
+            _check_axis_key(source, f"{key}.key", base, axis["key"], values[0])
             labels = axis.get("labels") or [str(v) for v in values]
             if not isinstance(labels, list) or len(labels) != len(values):
                 _fail(source, f"{key}.labels", f"has {len(labels) if isinstance(labels, list) else 'no list of'} "
@@ -343,6 +349,23 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
+    """A plain axis sets ``dotted`` in every run: a key that no config has (integration.hh)
+    would fail every run alike, one line each and exit code 1, so it is refused here as a
+    fault of the sweep file. Only that: the values themselves are the runs' to judge."""
+    from .config import unknown_key_text
+    from .config_schema import RunConfig, ValidationError, config_location
+    config = copy.deepcopy(base)
+    _set_path(config, dotted, value, source)
+    try:
+        RunConfig.model_validate(config)
+    except ValidationError as err:
+        for error in err.errors():
+            location = config_location(error["loc"])
+            if error["type"] == "extra_forbidden" and dotted.split(".")[:len(location)] == list(map(str, location)):
+                _fail(source, key, f"{dotted}: {unknown_key_text(location)}")
 
 
 def _whole_number(value) -> int | None:
@@ -516,6 +539,8 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.h = spec.h
     outcome.n_steps = spec.n_steps
     run = Integration.from_spec(spec)
+    outcome.t_end = spec.t_end
+    outcome.file_attributes = run.file_attributes() if run.adaptive_kernel else {}
     needed = 2 * run_bytes(run)    # the chunks, then their concatenation
     available = memory_available()
     if available is not None and needed > MEMORY_FRACTION * available:
@@ -1026,7 +1051,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                 if writer is not None and outcome.label != REFERENCE_LABEL:
                     writer.add_run(outcome.label, outcome.result, status=outcome.status,
                                    config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
-                                   wall_time_s=outcome.wall_time)
+                                   wall_time_s=outcome.wall_time, t_end=outcome.t_end,
+                                   file_attributes=outcome.file_attributes)
                 if not keep_results:
                     outcome.result = None   # stored: the parent keeps only the summary of each run
                 if on_done is not None:

@@ -395,3 +395,24 @@ def test_a_stop_right_after_the_probe_still_saves_the_state(tmp_path, kepler):
     assert outcome.status == "interrupted" and outcome.steps_done == 10 and outcome.chunks == 1
     with hdf5.RunFile(path) as f:
         assert f.steps_done == 10 and f.attrs["steps_done"] == 10 and f.n_samples == 2
+
+
+def test_inspect_of_a_file_being_written_does_not_advise_repair(tmp_path, kepler):
+    """inspect said of a running run's file 'its writer did not close it; other HDF5 programs
+    open it after elimfast repair', which refuses a file being written; its status said running."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    path = tmp_path / "live.h5"
+    run = kepler_run(kepler, n_steps=100, every=1)
+    writer = hdf5.RunWriter.create(path, run, config_text="a: 1\n")
+    writer.append(run.advance(30))
+    writer.save_state(run.state(), wall_time_s=1.0, kernel_time_s=0.5)
+    try:
+        with hdf5.RunFile(path) as f:
+            assert f.swmr and f.status == "running"
+        result = CliRunner().invoke(cli, ["inspect", str(path)])
+        assert "repair" not in result.stdout and "its writer is still running" in result.stdout, result.output
+        assert CliRunner().invoke(cli, ["repair", str(path)]).exit_code == 2   # what the note no longer advises
+    finally:
+        writer.close()

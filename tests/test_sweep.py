@@ -51,6 +51,11 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
      "same label"),
     ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
     ({"base": BASE, "error": {"exact": "period"}}, "error.exact"),
+    # a misspelt axis key failed every run alike (one line each, exit 1), as if the integrations had failed
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.hh", "values": ["pi/30"]}]},
+     r"grid\[0\]\.key: integration\.hh: unknown key; did you mean 'h'\?"),
+    ({"base": BASE, "grid": [{"name": "s", "key": "methd.s", "values": [3]}]},
+     r"grid\[0\]\.key: methd\.s: unknown key; did you mean 'method'\?"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)
@@ -389,3 +394,61 @@ def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
     assert result.exit_code == 130
     assert result.stderr == (f"error: interrupted; the finished runs (of an ensemble: its stored blocks) are in {out}; "
                              f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
+
+
+def adaptive_sweep(tmp_path):
+    """A sweep of one fixed-step and two adaptive runs (one with output times and an event)."""
+    times = {"start": 0, "stop": "2*pi", "step": "pi/4"}
+    event = {"expression": "q2", "direction": 1}
+    return write_sweep(tmp_path, {
+        "base": {**BASE, "integration": {"rtol": 1e-8, "t_end": "2*pi"}},
+        "grid": [{"name": "steps", "values": [
+            {"label": "fixed", "set": {"integration": {"h": "pi/30", "t_end": "2*pi"}}},
+            {"label": "rtol", "set": {"integration": {"rtol": 1e-8, "t_end": "2*pi"}}},
+            {"label": "rtol_times", "set": {"integration": {"rtol": 1e-8, "t_end": "2*pi"},
+                                            "output": {"times": times}, "events": {"up": event}}}]}]})
+
+
+def test_a_sweep_run_has_the_attributes_of_the_same_run_in_a_run_file(tmp_path):
+    """An adaptive run of a sweep file was stored with t_end = t0 + steps x first step (7.7
+    for a run to 20 pi) and without its step control: inspect showed it as a fixed-step run
+    of h = its first step. Each run group must say what the run file of the same config says."""
+    import h5py
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(adaptive_sweep(tmp_path), out, workers=1)
+    keys = ("t0", "t_end", "n_steps", "steps_done", "h", "step_control", "rtol", "atol", "verify", "h_first",
+            "output_times", "output_every")
+    for label in ("fixed", "rtol", "rtol_times"):
+        with h5py.File(out) as f:
+            group = f["runs"][label]
+            config, stored = str(group.attrs["config"]), {key: group.attrs.get(key) for key in keys}
+        (tmp_path / f"{label}.yaml").write_text(config)
+        single = tmp_path / f"{label}.h5"
+        result = CliRunner().invoke(cli, ["run", str(tmp_path / f"{label}.yaml"), "-o", str(single), "-q"])
+        assert result.exit_code == 0, result.output
+        with h5py.File(single) as f:
+            expected = {key: f.attrs.get(key) for key in keys}
+        assert stored == expected, label
+    inspected = CliRunner().invoke(cli, ["inspect", f"{out}:/runs/rtol"])
+    assert "steps        adaptive (error: rtol 1e-08" in inspected.stdout
+    assert f"t_end = {2 * math.pi!r}" in inspected.stdout
+
+
+def test_a_resumed_sweep_prints_the_table_of_the_uninterrupted_one(tmp_path):
+    """The runs a resumed sweep reads back from its file must give the numbers they gave
+    when they ran: an adaptive run's stats (grad H evaluations count side steps and rejected
+    steps) were not stored, and its row read 27496 evaluations instead of 32560."""
+    import elimfast
+    from elimfast.sweep import run_to_file
+
+    path, out = adaptive_sweep(tmp_path), tmp_path / "sw.h5"
+    fresh = run_to_file(path, out, workers=1, keep_results=True)
+    resumed = run_to_file(path, out, workers=1, resume=True)   # every run read back
+    assert resumed.table() == fresh.table()
+    for outcome in fresh.outcomes:
+        assert elimfast.load(out, run=outcome.label).stats == outcome.result.stats, outcome.label

@@ -141,6 +141,9 @@ class _Growing:
 
 
 VALUE_AT_T0 = "value_at_t0"   # attribute of /invariants/<name>: I(t0), the reference of the invariant errors
+# Attributes stats_<name> of a sweep run: Result.stats of a run through the adaptive kernel
+# (steps, rejections, evaluations; a run file keeps /state/counters instead, from which they follow).
+STATS_PREFIX = "stats_"
 
 # The per-step datasets of /steps that are not multipliers (adaptive runs add h and t).
 PER_STEP_RECORDS = ("iterations", "substeps", "h", "t")

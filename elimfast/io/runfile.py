@@ -54,10 +54,11 @@ import h5py
 import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
-from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATUS_KILLED,
-                     STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain, _replace_attributes,
-                     _set_attributes, _small_dataset, append_rows, attach, component_names, create_run_group,
-                     dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS, version_attributes)
+from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATS_PREFIX,
+                     STATUS_KILLED, STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
+                     _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
+                     create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
+                     version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
@@ -1001,6 +1002,12 @@ class RunFile:
         names = {value: name[4:].lower() for name, value in vars(kernel).items()
                  if name.startswith("CNT_") and isinstance(value, int)}
         return {names[i]: int(v) for i, v in enumerate(counters) if i in names}
+
+    def stored_stats(self) -> dict:
+        """Result.stats of an adaptive run of a sweep file, stored as its attributes (a run
+        file has none: its stats follow from adaptive_counters)."""
+        return {key[len(STATS_PREFIX):]: int(value) for key, value in self.attrs.items()
+                if key.startswith(STATS_PREFIX)}
 
     def multipliers(self, stride: int = 1) -> np.ndarray | None:
         if self.multiplier_name is None:

@@ -22,8 +22,8 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
-from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _set_attributes, append_rows, create_run_group,
-                     version_attributes)
+from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _set_attributes, append_rows,
+                     create_run_group, version_attributes)
 from .runfile import SWEEP_FORMAT, _now, run_attributes
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
@@ -241,16 +241,22 @@ class SweepWriter:
                                 "file") from None
 
     def add_run(self, label: str, result=None, *, status: str, config_text: str, coordinates: dict,
-                wall_time_s: float = 0.0, group_name: str | None = None) -> None:
+                wall_time_s: float = 0.0, group_name: str | None = None, t_end: float | None = None,
+                file_attributes: dict | None = None) -> None:
         """Store one finished (or failed) sweep run: ``result`` is the Result of the run (the one
         ``integrate`` returns; its arrays go into the group through ``layout.create_run_group``,
-        as a run file's do), or None for a run that never started (a bad config)."""
+        as a run file's do), or None for a run that never started (a bad config). ``t_end``: the
+        config's end, and ``file_attributes``: an adaptive-kernel run's step control settings
+        (AdaptiveIntegration.file_attributes), as a run file stores them; without ``t_end``, a
+        fixed-step run's t0 + n_steps h."""
         arrays = () if result is None else (result.t, result.y, result.iterations, *result.invariants.values())
         self._reserve(arrays)
         with self._writing():
-            self._add_run(label, result, status, config_text, coordinates, wall_time_s, group_name)
+            self._add_run(label, result, status, config_text, coordinates, wall_time_s, group_name, t_end,
+                          file_attributes or {})
 
-    def _add_run(self, label, result, status, config_text, coordinates, wall_time_s, group_name) -> None:
+    def _add_run(self, label, result, status, config_text, coordinates, wall_time_s, group_name, t_end,
+                 file_attributes) -> None:
         import yaml
 
         group = self._runs.create_group(group_name or sweep_group_name(label))
@@ -268,6 +274,8 @@ class SweepWriter:
         output = resolved.get("output") or {}
         t0 = (float(result.t0) if getattr(result, "t0", None) is not None   # the first sample may be later
               else float(integration.get("t0", result.t[0] if result.t.size else 0.0)))
+        # as a run file: an adaptive run's n_steps is 0, not known in advance (its steps_done says how many)
+        n_steps = 0 if file_attributes.get("step_control", "fixed") != "fixed" else result.n_steps
         multipliers = result.alpha if result.alpha is not None else result.lam
         name = "lambda" if result.lam is not None else "alpha" if result.alpha is not None and \
             result.alpha.shape[1] else None
@@ -276,9 +284,10 @@ class SweepWriter:
                                     multiplier=name, adaptive_steps=result.step_h is not None,
                                     event_names=tuple(result.events), scales=result.invariant_scales(),
                                     values_at_t0=result.initial_invariants(), attributes={
-            **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=result.n_steps,
-                                           t_end=None, output_every=int(output.get("every", 1)),
+            **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=n_steps,
+                                           t_end=t_end, output_every=int(output.get("every", 1)),
                                            conserve=result.conserve),
+            **file_attributes, **{STATS_PREFIX + key: int(value) for key, value in result.stats.items()},
             "steps_done": result.steps_done})
         names = ("H",) + tuple(result.problem.invariant_names)
         done = result.steps_done
