@@ -274,6 +274,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
 
         if resume and output is not None and Path(output).is_file():
             spec = _stored_spec(output, overrides)   # the run continues from the config it was started with
+            _note_other_config(config, output, quiet)
         else:
             spec = _load(config, overrides)
         path = output if output is not None else spec.output_path
@@ -283,6 +284,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
             spec = _stored_spec(path, overrides)
+            _note_other_config(config, path, quiet)
         integration = Integration.from_spec(spec)
         from elimfast import streaming
     label = f"{spec.method.name} {spec.problem.name}"
@@ -330,6 +332,38 @@ def _stored_spec(path, overrides):
             except ConfigError:
                 raise resume_refusal(path, _set_key(item)) from None
         raise resume_refusal(path, _set_key(others[0])) from None
+
+
+def _note_other_config(config, path, quiet) -> None:
+    """--resume continues the run stored in ``path`` from its own config: say so when CONFIG
+    describes another problem or method (a user trial resumed a Kepler file with
+    configs/pendulum.yaml, and got the Kepler run without a word). Compared by the problem's
+    kind and name and the method's name only: CONFIG is the user's text, the stored config
+    the resolved one, and values set by --set on the first run need not be repeated."""
+    if quiet:
+        return
+    from elimfast.config import ConfigError, parse_yaml
+    from elimfast.io.hdf5 import RunFile
+
+    def identity(data, directory: Path) -> tuple:
+        problem = data.get("problem") if isinstance(data, dict) else None
+        method = data.get("method") if isinstance(data, dict) else None
+        problem = problem if isinstance(problem, dict) else {}
+        kind = next((key for key in ("builtin", "python", "hamiltonian") if key in problem), None)
+        name = str(problem.get(kind)) if kind in ("builtin", "python") else None
+        if kind == "python":   # relative to its config's directory (stored resolved)
+            name = str((directory / name).resolve())
+        return kind, name, str(method.get("name", "")).lower() if isinstance(method, dict) else None
+    try:
+        given = identity(parse_yaml(Path(config).read_text(), str(config)), Path(config).parent)
+        with RunFile(path) as run_file:
+            stored = identity(parse_yaml(str(run_file.attrs.get("config", "")), str(path)), Path("/"))
+    except (ConfigError, OSError, ValueError):
+        return
+    if given != stored and None not in given[::2]:
+        click.echo(f"note: {config} describes another run than the one stored in {path} "
+                   f"({stored[1] or stored[0]}, {stored[2]}); --resume continues the stored run, from its own "
+                   "config", err=True)
 
 
 def _set_key(item: str) -> str:

@@ -173,3 +173,18 @@ def test_resume_without_a_file_starts_a_new_run(tmp_path):
     path = tmp_path / "new.h5"
     result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])
     assert result.exit_code == 0 and "no file to resume: started a new run" in result.stderr
+
+
+def test_resume_with_another_config_says_that_the_stored_run_goes_on(tmp_path):
+    """--resume continues the run stored in the file from its own config; a CONFIG describing
+    another problem used to be ignored without a word (a user trial's finding)."""
+    path = tmp_path / "kepler.h5"
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5",
+                                    "--quiet"]).exit_code == 0
+    pendulum = str(ROOT / "configs" / "pendulum.yaml")
+    other = CliRunner().invoke(cli, ["run", pendulum, "-o", str(path), "--resume"])
+    assert other.exit_code == 0
+    assert f"note: {pendulum} describes another run than the one stored in {path} (kepler, ehbvm); --resume " \
+           "continues the stored run, from its own config" in other.stderr
+    same = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume"])
+    assert same.exit_code == 0 and "describes another run" not in same.stderr

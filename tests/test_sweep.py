@@ -334,7 +334,12 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
         assert str(caught.value) == expected
     result = CliRunner().invoke(cli, ["inspect", str(out)])
     assert result.exit_code == 2 and result.stderr == f"error: {expected}\n"
-    assert CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/40"]).exit_code == 0
+    inspected = CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/40"])
+    assert inspected.exit_code == 0
+    # the run is named by its label, as the user writes it (its group name is 2*pi|40)
+    assert inspected.stdout.startswith(f"file         {out}:/runs/2*pi/40\n")
+    # and found without the leading slash, as h5py writes group paths
+    assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
 
 
 def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_completes_it(tmp_path):
@@ -437,6 +442,10 @@ def test_a_sweep_run_has_the_attributes_of_the_same_run_in_a_run_file(tmp_path):
     inspected = CliRunner().invoke(cli, ["inspect", f"{out}:/runs/rtol"])
     assert "steps        adaptive (error: rtol 1e-08" in inspected.stdout
     assert f"t_end = {2 * math.pi!r}" in inspected.stdout
+    # and its stats, stored as attributes (a run file has them as counters)
+    with h5py.File(out) as f:
+        rejected = int(f["runs"]["rtol"].attrs["stats_rejected_steps"])
+    assert f"stats        {rejected:,} rejected, " in inspected.stdout
 
 
 def test_a_resumed_sweep_prints_the_table_of_the_uninterrupted_one(tmp_path):

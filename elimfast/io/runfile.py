@@ -119,15 +119,16 @@ def _state_dimensions(f, state, record) -> None:
 
 
 def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
-    """(file, run label) of ``file.h5`` or ``file.h5:/runs/<label>`` (a run of a sweep file)."""
+    """(file, run label) of ``file.h5`` or ``file.h5:/runs/<label>`` (a run of a sweep file;
+    ``file.h5:runs/<label>``, as h5py writes group paths relative to the root, too)."""
     text = os.fspath(path)
     if run is None and not os.path.exists(text):
-        marker = f":/{RUNS_GROUP}/"
-        at = text.find(marker)
-        while at > 0:
-            if os.path.isfile(text[:at]):
-                return Path(text[:at]), text[at + len(marker):]
-            at = text.find(marker, at + 1)
+        for marker in (f":/{RUNS_GROUP}/", f":{RUNS_GROUP}/"):
+            at = text.find(marker)
+            while at > 0:
+                if os.path.isfile(text[:at]):
+                    return Path(text[:at]), text[at + len(marker):]
+                at = text.find(marker, at + 1)
     return Path(text), run
 
 
@@ -776,8 +777,12 @@ class RunFile:
 
     @property
     def name(self) -> str:
-        """The file, or file:/runs/<label> for a run of a sweep file."""
-        return f"{self.path}:{self._root.name}" if self.run is not None else str(self.path)
+        """The file, or file:/runs/<label> for a run of a sweep file (its label, as the user
+        writes it, not its group name, where '/' is '|': sweepfile.sweep_group_name)."""
+        if self.run is None:
+            return str(self.path)
+        label = _plain(self._root.attrs.get("label", "")) or self._root.name.rsplit("/", 1)[-1].replace("|", "/")
+        return f"{self.path}:/{RUNS_GROUP}/{label}"
 
     def _load(self) -> None:
         f = self._root
