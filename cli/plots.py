@@ -189,6 +189,10 @@ def _orbit(run_file, axes) -> None:
         axes.legend(fontsize="small", ncol=2)
 
 
+# Fewer finite points than this are drawn with markers (_invariants).
+FEW_POINTS = 20
+
+
 def _invariants(run_file, axes, relative_axes=None) -> None:
     """|I(t) - I(t0)| on ``axes``; on ``relative_axes`` |I(t) - I(t0)| / |I(t0)| (say for the solar
     system's H0 = -3.2e-8 an absolute 1e-20 means little), relative to the size of I's terms
@@ -213,13 +217,18 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
         error = np.abs(values - initial[name])
         error[error == 0.0] = np.nan   # exact agreement has no place on a log scale
         label = name + (" (imposed)" if name in conserve else "")
-        axes.semilogy(t, error, lw=0.8, label=label)
+        finite = int(np.count_nonzero(np.isfinite(error)))
+        if finite == 0:
+            label += " (= I(t0) at every sample)"
+        # a line needs two points: with few samples (a sweep run keeps t0 and t_end) mark each one
+        style = {"marker": "o", "ms": 3} if finite < FEW_POINTS else {}
+        axes.semilogy(t, error, lw=0.8, label=label, **style)
         if relative_axes is not None:
             reference, kind = relative_reference(initial[name], scales.get(name, 0.0))
             scale = 1.0 / reference
             relative_label = label + {"I(t0)": "", "terms": " (to the size of its terms: I(t0) ~ 0)",
                                       "absolute": " (absolute: I(t0) = 0)"}[kind]
-            relative_axes.semilogy(t, error * scale, lw=0.8, label=relative_label)
+            relative_axes.semilogy(t, error * scale, lw=0.8, label=relative_label, **style)
     axes.set_xlabel("t")
     axes.set_ylabel(f"|I(t) - I({reference_label(run_file)})|")
     axes.legend(fontsize="small")

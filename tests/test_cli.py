@@ -103,6 +103,33 @@ def test_plot_is_not_blank(kepler_file, tmp_path, kind):
     assert again.exit_code == 2 and "--overwrite" in again.stderr
 
 
+def test_invariant_plot_of_a_run_with_two_samples_shows_its_points(tmp_path):
+    """A run that kept only t0 and t_end has one finite error per invariant (t0's is 0, not
+    on a log scale): drawn as a line, nothing appeared (a user trial's finding)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from elimfast.io.hdf5 import RunFile
+    from elimfast_cli.plots import _invariants
+
+    path = tmp_path / "two.h5"
+    assert invoke("run", KEPLER, "-o", path, "--set", "integration.t_end=5", "--set", "output.every=50",
+                  "--quiet").exit_code == 0
+    figure, axes = plt.subplots()
+    with RunFile(path) as run_file:
+        assert run_file.n_samples == 2
+        _invariants(run_file, axes)
+    for line in axes.get_lines():
+        shown = np.isfinite(line.get_ydata()).sum()
+        label = line.get_label()
+        if shown == 0:   # exactly kept at both samples: said in the legend
+            assert label.endswith("(= I(t0) at every sample)"), label
+        else:
+            assert shown >= 2 or line.get_marker() not in (None, "None", ""), label
+    plt.close(figure)
+
+
 def test_plot_default_name(kepler_file):
     result = invoke("plot", kepler_file)
     expected = kepler_file.with_name("kepler_invariants.png")
