@@ -103,6 +103,8 @@ def test_adaptive_run_file_layout_and_inspect(tmp_path, reference):
     np.testing.assert_array_equal(events["t"].values, reference["events"])
     alone = xr.open_dataset(out, engine="h5netcdf", group="events/pericentre")
     np.testing.assert_array_equal(alone["t"].values, reference["events"])
+    # the group alone labels y's components too (the names were only in the root group)
+    assert list(alone["y"].coords["component"].values) == ["q1", "q2", "p1", "p2"]
     assert tree["steps"].to_dataset(inherit=False)["h"].dims == ("step",)
 
 

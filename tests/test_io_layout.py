@@ -247,7 +247,7 @@ def test_inspect_and_plot_open_a_run_of_a_sweep_file(h_sweep, tmp_path):
     path, _ = h_sweep
     result = invoke("inspect", f"{path}:/runs/pi/30")
     assert result.exit_code == 0, result.output
-    assert f"{path}:/runs/pi|30" in result.output and "complete" in result.output
+    assert f"{path}:/runs/pi/30" in result.output and "complete" in result.output
     assert "max |alpha|" in result.output and "relative" in result.output
     figure = tmp_path / "sweep_run.png"
     result = invoke("plot", f"{path}:/runs/pi|30", "--kind", "orbit", "-o", figure)

@@ -353,8 +353,13 @@ def create_run_group(group, *, problem, method, conserve, n_multipliers: int, mu
             occurrence = dimension(event, "occurrence")
             event_t = _growing(event, "t", None, "f8")
             event_y = _growing(event, "y", len(names), "f8")
+            # its own copy of the component names: xarray.open_dataset(group="events/<name>") reads
+            # one group's coordinates only, and without it y's columns were unlabelled
+            event_component = _string_dataset(event, "component", names)
+            event_component.make_scale("component")
+            label(event_component, LONG_NAMES["component"])
             attach(event_t, occurrence)
-            attach(event_y, occurrence, component)
+            attach(event_y, occurrence, event_component)
             label(event_t, f"time of event {name}", units.get("time"))
             label(event_y, f"state at event {name}")
             datasets["events"].append((event_t, event_y))

@@ -454,11 +454,10 @@ class RunWriter:
         state (it raises ValueError or KeyError if the state does not fit the run). A file
         left by a killed writer (SWMR flags still set) is then repaired; if reopening it
         still fails, the flags are put back as they were. ``config_text``: the resolved
-        config the run continues with, when its solver settings or its end differ from the
-        stored one's; it replaces the stored config, and ``solver_history`` records a change of
-        the solver. ``extension``: a run continued to a later t_end, {"t_end", "n_steps",
-        "output_times" (None: unchanged)}: the root attributes take the new values, and
-        ``extension_history`` records the change.
+        config the run continues with (other solver settings or a later end): it replaces the
+        stored config; ``solver_history`` records a change of solver. ``extension``: the new
+        {"t_end", "n_steps", "output_times"} of a run continued to a later end
+        (streaming.run_extension), recorded in ``extension_history``.
         """
         path = Path(path)
         if not path.exists():
@@ -470,11 +469,9 @@ class RunWriter:
         with RunFile(path) as existing:
             saved = existing.saved_state()
             existing.verify(stop=stop)
-            # A failed fixed-step run ends with a sample of its last good state, off the output
-            # grid (integrate.Integration.advance): the continuation samples the grid again, as an
-            # uninterrupted run does. Runs of the adaptive kernel (a step_control attribute, also
-            # "fixed") add no such sample, and with output times they may hold more samples
-            # than steps: cutting them to the step grid lost samples.
+            # A failed fixed-step run ends with a sample of its last good state, off the grid
+            # (Integration.advance): the continuation samples the grid again. Adaptive-kernel runs
+            # (step_control attribute) add none, and may hold more samples than steps.
             if "step_control" not in existing.attrs:
                 saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
                     saved["steps_done"], int(existing.attrs.get("output_every", 1))))
