@@ -514,7 +514,8 @@ class _Builder:
         where = f"{self.source}:{line}" if line is not None else self.source
         keys = tuple(p for p in path if isinstance(p, str))
         below = [item for o, item in self.overridden.items() if keys and o[:len(keys)] == keys]
-        suffix = f" (with --set {_clip(below[0])})" if below else ""
+        # every --set below the key: the error may be any of them (output.times.stop, not .start)
+        suffix = f" (with --set {', --set '.join(_clip(item) for item in below)})" if below else ""
         return f"{where}: {_join(path)}: {text}{suffix}"
 
     def error(self, path, text: str):

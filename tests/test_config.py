@@ -411,6 +411,12 @@ def test_an_override_error_names_the_set_option_not_a_line(tmp_path):
         load_run(path, overrides=["problem.parameters.eccentricity=1.5"])
     assert str(info.value).startswith(f"{path}:3: problem.parameters: kepler: ")
     assert str(info.value).endswith("(with --set problem.parameters.eccentricity=1.5)")
+    # several below it: each is named (the error may come from any: here stop; a user trial saw only start)
+    adaptive = CONFIGS / "kepler_adaptive.yaml"
+    with pytest.raises(ConfigError) as info:
+        load_run(adaptive, overrides=["output.times.start=0", "output.times.stop=2000", "output.times.step=1"])
+    assert str(info.value).endswith("(with --set output.times.start=0, --set output.times.stop=2000, "
+                                    "--set output.times.step=1)")
     # An override elsewhere leaves the file's lines in place
     with pytest.raises(ConfigError) as info:
         load_run(write(tmp_path, LINED.replace("  h: 0.1", "  h: [0.1]")), overrides=["method.k=8"])
