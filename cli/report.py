@@ -109,6 +109,22 @@ def adaptive_text(settings) -> str:
     return f"adaptive ({control}: {how}; docs/adaptive.md)"
 
 
+def _changed_settings(entry: str) -> str:
+    """A solver_history entry, 'from step N: key value, ... (before: key value, ...)', cut to the
+    settings that changed ('from step N: max_iter 30 (before: 3)'); other entries as they are."""
+    import re
+    match = re.fullmatch(r"(from step \d+: )(.*) \(before: (.*)\)", entry)
+    if not match:
+        return entry
+    head, after, before = match.groups()
+    pairs = [item.partition(" ") for item in after.split(", ")]
+    old = dict((key, value) for key, _, value in (item.partition(" ") for item in before.split(", ")))
+    changed = [(key, value) for key, _, value in pairs if old.get(key) != value]
+    if not changed or any(key not in old for key, _ in changed):
+        return entry
+    return head + ", ".join(f"{key} {value} (before: {old[key]})" for key, value in changed)
+
+
 def _swmr_note(path, status: str) -> str:
     """The file row's note on a file HDF5 sees open for writing: its writer is still at work
     (repair refuses such a file), or stopped without closing it (kill -9: repair it)."""
@@ -175,6 +191,10 @@ def summary(run_file, integrity: dict | None = None) -> str:
         if t_final is not None and t_end is not None and t_final < float(t_end):
             status += f" (ended by a terminal event at t = {t_final:.10g})"
     row("status", status)
+    # how the run was continued (--resume with other solver settings, or to a later end)
+    for key, what in (("solver_history", "solver"), ("extension_history", "continued")):
+        for entry in np.atleast_1d(a.get(key) if a.get(key) is not None else []):
+            row("resumed", f"{what} {_changed_settings(str(entry))}")
     wall, kernel = run_file.wall_time_s, run_file.kernel_time_s
     rate = f", {done / wall:,.0f} steps/s" if wall > 0 and done else ""
     kernel_text = f"; kernel {_fmt_time(kernel)}, {done / kernel:,.0f} steps/s" if kernel > 0 and done else ""

@@ -139,6 +139,9 @@ def test_a_run_continued_to_a_later_end_is_the_run_to_that_end(tmp_path):
         for name in ("t", "y", "invariants/H", "invariants/angular_momentum", "steps/alpha", "steps/iterations",
                      "state/y", "state/y_comp", "state/clock", "state/coef"):
             np.testing.assert_array_equal(a[name][:], b[name][:], err_msg=name)
+    # inspect says how the run was continued
+    report = CliRunner().invoke(cli, ["inspect", str(extended)])
+    assert "resumed      continued from step 50: t_end 12.0 (before: 5.0)\n" in report.stdout
 
 
 def test_a_run_is_never_continued_to_an_earlier_end(tmp_path):
@@ -188,3 +191,14 @@ def test_resume_with_another_config_says_that_the_stored_run_goes_on(tmp_path):
            "continues the stored run, from its own config" in other.stderr
     same = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume"])
     assert same.exit_code == 0 and "describes another run" not in same.stderr
+
+
+def test_inspect_names_the_solver_settings_a_run_was_resumed_with(tmp_path):
+    path = tmp_path / "failed.h5"
+    first = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--set",
+                                     "solver.max_iter=3", "--quiet"])
+    assert first.exit_code == 1   # 3 iterations are too few, even after 4 halvings
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "solver.max_iter=30",
+                                    "--quiet"]).exit_code == 0
+    report = CliRunner().invoke(cli, ["inspect", str(path)])
+    assert "resumed      solver from step 0: max_iter 30 (before: 3)\n" in report.stdout
