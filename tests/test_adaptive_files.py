@@ -39,6 +39,19 @@ def write_config(tmp_path, config=CONFIG) -> Path:
     return path
 
 
+def kill_after(config: Path, out: Path, steps: int) -> None:
+    """Start `elimfast run config -o out` and kill -9 it once ``steps`` steps are on disk."""
+    process = subprocess.Popen([ELIMFAST, "run", str(config), "-o", str(out), "--quiet"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 600   # a cold Numba cache compiles the kernels first
+    while steps_on_disk(out) < steps:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+
+
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """The uninterrupted run, in this process, through the same driver as the CLI."""
@@ -112,15 +125,7 @@ def test_adaptive_run_file_layout_and_inspect(tmp_path, reference):
 def test_kill_9_and_resume_equal_the_uninterrupted_run(tmp_path, reference):
     config = write_config(tmp_path)
     out = tmp_path / "run.h5"
-    process = subprocess.Popen([ELIMFAST, "run", str(config), "-o", str(out), "--quiet"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 600   # a cold Numba cache compiles the kernels first
-    while steps_on_disk(out) < 3000:
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
-    process.send_signal(signal.SIGKILL)
-    process.communicate(timeout=60)
+    kill_after(config, out, 3000)
     done = steps_on_disk(out)
     assert 3000 <= done < reference["steps"]
     resumed = subprocess.run([ELIMFAST, "run", str(config), "-o", str(out), "--resume", "--quiet"],
@@ -242,15 +247,7 @@ def test_kill_9_and_resume_keep_every_sample_of_a_dense_output_grid(tmp_path):
     done = subprocess.run([ELIMFAST, "run", str(path), "-o", str(whole), "--quiet"], capture_output=True, text=True,
                           timeout=600)
     assert done.returncode == 0, done.stderr
-    process = subprocess.Popen([ELIMFAST, "run", str(path), "-o", str(out), "--quiet"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 600
-    while steps_on_disk(out) < 2000:
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
-    process.send_signal(signal.SIGKILL)
-    process.communicate(timeout=60)
+    kill_after(path, out, 2000)
     resumed = subprocess.run([ELIMFAST, "run", str(path), "-o", str(out), "--resume", "--quiet"],
                              capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
