@@ -273,8 +273,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         from elimfast.integrate import Integration
 
         if resume and output is not None and Path(output).is_file():
-            spec = _stored_spec(output, overrides)   # the run continues from the config it was started with
-            _note_other_config(config, output, quiet)
+            spec = _stored_spec(output, overrides, config, quiet)   # the run continues from its stored config
         else:
             spec = _load(config, overrides)
         path = output if output is not None else spec.output_path
@@ -283,8 +282,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         path = Path(path).expanduser()
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
-            spec = _stored_spec(path, overrides)
-            _note_other_config(config, path, quiet)
+            spec = _stored_spec(path, overrides, config, quiet)
         integration = Integration.from_spec(spec)
         from elimfast import streaming
     label = f"{spec.method.name} {spec.problem.name}"
@@ -295,7 +293,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
     return _report_run(outcome, config, path, overrides, quiet)
 
 
-def _stored_spec(path, overrides):
+def _stored_spec(path, overrides, config, quiet):
     """The run spec of the config stored in a run file, with --set overrides on top (--resume
     continues the run it holds: the CONFIG argument and its earlier --set values are not
     needed again; changes other than solver.* are refused by the resume itself)."""
@@ -307,6 +305,8 @@ def _stored_spec(path, overrides):
         text = str(run_file.attrs.get("config", ""))
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
+    if not quiet:
+        _note_other_config(config, path, data)
     # The stored config resolves both t_end and n_steps: a run continued to a later end
     # (--set integration.t_end=LATER, or n_steps) gets the other from the one given.
     keys = {_set_key(item) for item in overrides}
@@ -334,16 +334,14 @@ def _stored_spec(path, overrides):
         raise resume_refusal(path, _set_key(others[0])) from None
 
 
-def _note_other_config(config, path, quiet) -> None:
+def _note_other_config(config, path, stored_config: dict) -> None:
     """--resume continues the run stored in ``path`` from its own config: say so when CONFIG
     describes another problem or method (a user trial resumed a Kepler file with
     configs/pendulum.yaml, and got the Kepler run without a word). Compared by the problem's
     kind and name and the method's name only: CONFIG is the user's text, the stored config
-    the resolved one, and values set by --set on the first run need not be repeated."""
-    if quiet:
-        return
+    the resolved one (``stored_config``, parsed), and values set by --set on the first run
+    need not be repeated."""
     from elimfast.config import ConfigError, parse_yaml
-    from elimfast.io.hdf5 import RunFile
 
     def identity(data, directory: Path) -> tuple:
         problem = data.get("problem") if isinstance(data, dict) else None
@@ -356,10 +354,9 @@ def _note_other_config(config, path, quiet) -> None:
         return kind, name, str(method.get("name", "")).lower() if isinstance(method, dict) else None
     try:
         given = identity(parse_yaml(Path(config).read_text(), str(config)), Path(config).parent)
-        with RunFile(path) as run_file:
-            stored = identity(parse_yaml(str(run_file.attrs.get("config", "")), str(path)), Path("/"))
     except (ConfigError, OSError, ValueError):
         return
+    stored = identity(stored_config, Path("/"))
     if given != stored and None not in given[::2]:
         click.echo(f"note: {config} describes another run than the one stored in {path} "
                    f"({stored[1] or stored[0]}, {stored[2]}); --resume continues the stored run, from its own "

@@ -156,17 +156,15 @@ def summary(run_file, integrity: dict | None = None) -> str:
         if sizes is not None and sizes.size:
             row("h", f"min {sizes.min():.3e}, median {np.median(sizes):.3e}, max {sizes.max():.3e}")
         row("steps done", f"{done:,}")
-        counters, stored = run_file.adaptive_counters(), run_file.stored_stats()
-        if counters:   # a run file: its saved counters
-            rejected, failed, side_steps = counters.get("rejected", 0), counters.get("failed", 0), \
-                counters.get("side_steps", 0)
-            hessians = counters.get("factorisations", 0) + counters.get("estimate_hessians", 0)
-        else:          # a run of a sweep file: its stored Result.stats
-            rejected, failed, side_steps, hessians = (stored.get("rejected_steps"), stored.get("failed_solves"),
-                                                      stored.get("side_steps"), stored.get("hessian_evaluations"))
-        if counters or stored:
-            row("stats", f"{rejected or 0:,} rejected, {failed or 0:,} halved after a failed solve, "
-                         f"{side_steps or 0:,} side steps, {hessians or 0:,} Hessians")
+        from elimfast.adaptive import counted_stats
+
+        # a run file's saved counters, or the Result.stats stored with a run of a sweep file
+        counters = run_file.saved_state().get("counters")
+        stats = counted_stats(counters) if counters is not None else run_file.stored_stats()
+        if stats:
+            row("stats", f"{stats.get('rejected_steps', 0):,} rejected, {stats.get('failed_solves', 0):,} halved "
+                         f"after a failed solve, {stats.get('side_steps', 0):,} side steps, "
+                         f"{stats.get('hessian_evaluations', 0):,} Hessians")
     else:
         row("h", f"{a.get('h')!r}  (t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, {samples})")
         n_steps = int(a.get("n_steps", 0))

@@ -995,19 +995,9 @@ class RunFile:
             return (np.array(self._root["events"][name]["t"][:count]),
                     np.array(self._root["events"][name]["y"][:count]))
 
-    def adaptive_counters(self) -> dict:
-        """The counters of an adaptive run's saved state (kernels/adaptive.py CNT_*), by name."""
-        counters = self._saved.get("counters")
-        if counters is None:
-            return {}
-        from ..kernels import adaptive as kernel
-        names = {value: name[4:].lower() for name, value in vars(kernel).items()
-                 if name.startswith("CNT_") and isinstance(value, int)}
-        return {names[i]: int(v) for i, v in enumerate(counters) if i in names}
-
     def stored_stats(self) -> dict:
         """Result.stats of an adaptive run of a sweep file, stored as its attributes (a run
-        file has none: its stats follow from adaptive_counters)."""
+        file has none: its stats follow from its saved counters, adaptive.counted_stats)."""
         return {key[len(STATS_PREFIX):]: int(value) for key, value in self.attrs.items()
                 if key.startswith(STATS_PREFIX)}
 
