@@ -41,6 +41,7 @@ bench: $(VENV)/.installed-test
 	$(BIN)/python bench/sweep_dask.py --dask
 	$(BIN)/python bench/user_problem.py
 	$(BIN)/python bench/ensemble.py
+	$(BIN)/python bench/adaptive_vs_fixed.py --markdown bench/results/adaptive_vs_fixed.md
 
 # Comparison with scipy, REBOUND and heyoka (the optional bench extra).
 peers: $(BIN)/python
