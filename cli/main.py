@@ -748,7 +748,12 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
 
     def on_start(n_trajectories):
         if not quiet:
-            where = f"the Dask cluster ({scheduler})" if scheduler else f"{workers or 'all'} thread(s)"
+            if scheduler:
+                where = f"the Dask cluster ({scheduler})"
+            else:
+                import numba   # loaded by now: the ensemble's kernel runs next
+                threads = workers or numba.config.NUMBA_NUM_THREADS
+                where = f"{threads} thread{'s' if threads != 1 else ''}"
             click.echo(f"ensemble: running {n_trajectories:,} trajectories on {where}", err=True)
 
     def on_done(outcome, done, total):

@@ -95,6 +95,18 @@ def test_a_streamed_ensemble_file_opens_in_xarray_on_named_dimensions(tmp_path):
         assert ensemble["y_final"].dims == ("trajectory", "component")
         assert int(ensemble["stored"].sum()) == N_TRAJECTORIES and ensemble.attrs["status"] == "complete"
         assert list(ensemble["component"].values) == ["q1", "q2", "p1", "p2"]
+        # the diagnostics are labelled, in the kernel's order (it was a bare dimension)
+        assert list(ensemble["diagnostic"].values) == ["t", "h", "increment", "condition", "depth", "iterations"]
+        assert ensemble["diagnostics"].dims == ("trajectory", "diagnostic")
+
+
+def test_the_diagnostic_labels_follow_the_kernel_indices():
+    from elimfast.io.ensemblefile import DIAGNOSTIC_NAMES
+    from elimfast.kernels import stepper
+    indices = [stepper.DIAG_TIME, stepper.DIAG_STEP, stepper.DIAG_INCREMENT, stepper.DIAG_CONDITION,
+               stepper.DIAG_DEPTH, stepper.DIAG_ITERATIONS]
+    assert len(DIAGNOSTIC_NAMES) == stepper.N_DIAGNOSTICS
+    assert [DIAGNOSTIC_NAMES[i] for i in indices] == ["t", "h", "increment", "condition", "depth", "iterations"]
 
 
 def test_a_local_ensemble_holds_one_block_at_a_time(tmp_path, small_blocks, monkeypatch):
@@ -180,6 +192,7 @@ def test_a_killed_ensemble_sweep_leaves_a_readable_file_that_resume_completes(tm
     resumed = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--resume", "--workers", "2"])
     assert resumed.exit_code == 0, resumed.output
     assert f"resume: {first} of {N_TRAJECTORIES} trajectories are stored in {out}" in resumed.stderr
+    assert "trajectories on 2 threads" in resumed.stderr   # the count, not 'all thread(s)'
     assert_same_files(full, out)
     assert "status       complete" in CliRunner().invoke(cli, ["inspect", str(out)]).output
 

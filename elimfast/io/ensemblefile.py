@@ -4,7 +4,9 @@ An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
 ``elimfast-sweep``, the sweep's text, an empty /runs) and the group /ensemble:
 
     component                 (2m,) strings  the state's component names; a dimension scale
-    trajectory, diagnostic    netCDF dimensions that are no variables (n, and N_DIAGNOSTICS)
+    diagnostic                (6,) strings   the diagnostics' names (t, h, increment, condition, depth,
+                                             iterations: kernels/stepper.py); a dimension scale
+    trajectory                a netCDF dimension that is no variable (n)
     y0                        (n, 2m)        the initial states
     y_final                   (n, 2m)        the state after the last completed step
     t_final, max_multiplier   (n,)           end time; max |alpha| (ELIM) or |lambda| (LIM)
@@ -42,6 +44,9 @@ GROUP = "ensemble"
 STORED = "stored"
 STATUS_RUNNING, STATUS_COMPLETE = "running", "complete"
 READ_BLOCK_ROWS = 1 << 16     # rows per read where a reader scans a whole column (bounded memory)
+# The labels of the diagnostic dimension, in the order of kernels/stepper.py's DIAG_* indices
+# (not imported: the file layer loads no kernels; tests/test_ensemble_stream.py checks the order).
+DIAGNOSTIC_NAMES = ("t", "h", "increment", "condition", "depth", "iterations")
 
 
 def _allocated(group, name: str, shape: tuple, dtype) -> h5py.Dataset:
@@ -84,7 +89,11 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
             attach(dataset, trajectory)
         elif name == "y_final":
             attach(dataset, trajectory, component)
-        else:   # a row of its own kind of entries (diagnostics: one per diagnostic)
+        elif name == "diagnostics":   # one per diagnostic, labelled as the component dimension is
+            diagnostic = _string_dataset(group, "diagnostic", DIAGNOSTIC_NAMES[:shape[0]])
+            diagnostic.make_scale("diagnostic")
+            attach(dataset, trajectory, diagnostic)
+        else:   # a row of its own kind of entries
             attach(dataset, trajectory, dimension(group, name.removesuffix("s"), shape[0]))
     errors = group.create_group("invariant_errors")
     _set_attributes(errors, {"order": list(run.invariant_names)})   # HDF5 lists members by name
