@@ -27,7 +27,8 @@ from elimfast import problems
 from elimfast.config import ConfigError, load_run
 from elimfast.kernels.signatures import jit_gradient, jit_hessian, jit_invariant_gradients
 from elimfast.problems.check import (EPS, INVARIANT_TOLERANCE, DerivativeCheckError, InvariantCheckError,
-                                     check_derivatives, check_invariants, require_derivatives, require_invariants)
+                                     check_derivatives, check_invariants, check_points, require_derivatives,
+                                     require_invariants)
 from elimfast.problems.expressions import ExpressionError, ProblemDefinitionError
 from elimfast.problems.symbolic import problem_from_expressions
 from elimfast.problems.user_file import UserProblemError, problem_from_file
@@ -208,6 +209,36 @@ def test_wrong_sign_grad_h_in_a_python_file_is_refused_naming_the_users_file(cac
         assert result.exit_code == 2, result.output
         assert "grad_H of problem 'kepler_python' does not match" in result.output
         assert "Traceback" not in result.output and not (tmp_path / "o.h5").exists()
+
+
+def test_a_function_that_raises_outside_its_domain_near_the_initial_state_is_no_internal_error(cache_root, tmp_path):
+    """A user trial's finding: a python file whose grad_H raises (its own domain check) at one of the
+    check's seeded points near y0 stopped `run` and `check` with 'internal error ... please report it',
+    naming the cached copy u_<hash>.py. Such points are skipped, as singular ones are; at y0 itself
+    the raise is a config error naming the user's file."""
+    guard = "    if y[0] > 0.45:\n        raise ValueError('outside the domain')\n"
+    text = (KEPLER_FILE.replace("def grad_H(y, params, out):\n", "def grad_H(y, params, out):\n" + guard)
+            .replace("def grad_invariants(y, params, out):\n", "def grad_invariants(y, params, out):\n" + guard))
+    path = write_problem(tmp_path, text)
+    problem = problem_from_file(path)
+    assert any(point[0] > 0.45 for point in check_points(problem))   # the seeded points do reach it
+    assert all(report.ok for report in require_derivatives(problem))
+    assert max(require_invariants(problem).values()) < INVARIANT_TOLERANCE
+    with pytest.raises(ProblemDefinitionError) as info:
+        check_derivatives(problem, y0=[0.5, 0.0, 0.0, 2.0])
+    message = str(info.value)
+    assert message.startswith(f"{path.resolve()}: grad_H or H raised ValueError: outside the domain at the initial "
+                              "state [0.5, 0.0, 0.0, 2.0]; fix the function") and "u_" not in message
+    with pytest.raises(ProblemDefinitionError, match="grad_H or grad_invariants raised ValueError"):
+        check_invariants(problem, y0=[0.5, 0.0, 0.0, 2.0])
+
+    config = tmp_path / "run.yaml"
+    config.write_text(KEPLER_RUN)
+    for command in ("check", "run"):
+        result = CliRunner().invoke(cli, [command, str(config)] + (["-o", str(tmp_path / "o.h5")] if command == "run"
+                                                                  else []))
+        assert result.exit_code == 0, result.output
+        assert "internal error" not in result.output and "Traceback" not in result.output
 
 
 def test_check_false_skips_the_derivative_check_but_elimfast_check_still_reports_it(cache_root, tmp_path):
