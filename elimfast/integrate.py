@@ -824,12 +824,13 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     store_every = resolve_store_every(store_every)
     if control is not None:
         control = control.for_method(method, len(names))
-        control.check_problem(problem)
         t_end = resolve_span(float(t0), t_end, n_steps)
     else:
         h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
         t_end = t0 + n_steps * h
     y_start = resolve_initial_state(problem, y0)
+    if control is not None:
+        control.check_problem(problem, y_start)
     if t_eval is not None:
         t_eval = resolve_t_eval(t_eval, float(t0), t_end)
     event_spec = EventSpec.build(problem, events) if events else None
