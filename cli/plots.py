@@ -285,6 +285,17 @@ def _multipliers(run_file, axes) -> None:
     axes.legend(fontsize="small")
 
 
+def _solver_name(run_file) -> str:
+    """What iterated: the stored config's solver, or 'solver' when a resume changed it (the
+    label said 'fixed-point' of Newton's iterations too)."""
+    from .report import config_of
+
+    method = (config_of(run_file).get("solver") or {}).get("method", "fixed_point")
+    if any("method" in str(entry) for entry in run_file.attrs.get("solver_history", [])):
+        return "solver"
+    return {"newton": "simplified Newton", "fixed_point": "fixed-point"}.get(method, "solver")
+
+
 def _iterations(run_file, axes) -> None:
     n = run_file.steps_done
     if n < 1:
@@ -294,5 +305,5 @@ def _iterations(run_file, axes) -> None:
     t = _step_times(run_file, n, stride)
     axes.plot(t, iterations, ".", ms=1.5)
     axes.set_xlabel("t")
-    axes.set_ylabel("fixed-point iterations per step")
+    axes.set_ylabel(f"{_solver_name(run_file)} iterations per step")
     axes.set_ylim(bottom=0)
