@@ -85,13 +85,17 @@ def _stride(n: int) -> int:
 
 
 def _bodies(names):
-    """(x, y) coordinate index pairs when the q names look like per-body x, y[, z] triples/pairs."""
+    """(x, y) coordinate index pairs when the q names look like per-body x, y[, z] triples/pairs:
+    x1, y1, z1, ... or, as the built-in nbody names them, sun_x, sun_y, sun_z, ..."""
     for width in (3, 2):
         if len(names) % width or len(names) < width:
             continue
-        groups = [names[i:i + width] for i in range(0, len(names), width)]
-        if all(g[0].lower().startswith("x") and g[1].lower().startswith("y") for g in groups):
+        groups = [[name.lower() for name in names[i:i + width]] for i in range(0, len(names), width)]
+        if all(g[0].startswith("x") and g[1].startswith("y") for g in groups):
             return [(i, i + 1) for i in range(0, len(names), width)], [g[0][1:] or str(j) for j, g in enumerate(groups)]
+        if all(g[0].endswith("_x") and g[1] == g[0][:-1] + "y" for g in groups):
+            return [(i, i + 1) for i in range(0, len(names), width)], [names[i][:-2] for i in range(0, len(names),
+                                                                                                   width)]
     return None, None
 
 
@@ -155,6 +159,9 @@ def sparse(points: np.ndarray) -> bool:
     return float(np.median(steps)) > SPARSE_STEP_FRACTION * extent
 
 
+CHAIN_CURVES = 12   # coordinates drawn against t when the q are not per-body x, y pairs
+
+
 def _orbit(run_file, axes) -> None:
     n = run_file.n_samples
     if n < 2:
@@ -183,10 +190,13 @@ def _orbit(run_file, axes) -> None:
                           xycoords="axes fraction", fontsize="small", color="0.4")
     else:   # a chain: each q against t
         t = run_file.t(_stride(n))
-        for i in range(min(m, 12)):
+        for i in range(min(m, CHAIN_CURVES)):
             axes.plot(t, y[:, i], lw=0.6, label=names[i])
         axes.set_xlabel("t")
         axes.legend(fontsize="small", ncol=2)
+        if m > CHAIN_CURVES:
+            axes.annotate(f"the first {CHAIN_CURVES} of {m} coordinates q", (0.01, 0.01), xycoords="axes fraction",
+                          fontsize="small", color="0.4")
 
 
 # Fewer finite points than this are drawn with markers (_invariants).
