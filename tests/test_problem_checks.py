@@ -254,6 +254,29 @@ def test_check_false_skips_the_derivative_check_but_elimfast_check_still_reports
     assert "dH/dp1 = " in result.stderr and "relative error 1.0e+00" in result.stderr
 
 
+def test_elimfast_check_with_check_false_names_the_config_and_gives_no_advice_it_already_follows(cache_root,
+                                                                                                tmp_path):
+    """A user trial's finding: with problem.check: false, 'elimfast check' reported a wrong gradient
+    or a singular initial state without the config and key, and advised 'set problem.check: false'."""
+    write_problem(tmp_path, KEPLER_FILE.replace("out[2] = y[2]", "out[2] = 2.0 * y[2]"))
+    config = tmp_path / "run.yaml"
+    config.write_text(KEPLER_RUN.replace("python: problem.py", "python: problem.py, check: false"))
+    result = CliRunner().invoke(cli, ["check", str(config)])
+    assert result.exit_code == 2
+    assert result.stderr.startswith(f"error: {config}: problem.python: grad_H of problem 'kepler_python' does not "
+                                    "match"), result.stderr
+    assert "set problem.check: false" not in result.stderr
+    assert result.stderr.rstrip().endswith("(problem.check: false skips this check in run, not in check)")
+
+    singular = tmp_path / "singular.yaml"
+    singular.write_text((CONFIGS / "kepler_expressions.yaml").read_text().replace(
+        "initial: {q1: 1 - ecc,", "check: false\n  initial: {q1: 0,"))
+    result = CliRunner().invoke(cli, ["check", str(singular)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert result.stderr.startswith(f"error: {singular}: problem.initial: problem 'kepler_expressions': grad_H is not "
+                                    "finite at the initial state"), result.stderr
+
+
 def test_elimfast_check_prints_the_derivative_check_and_the_hessians_source(cache_root):
     for config, source in (("kepler.yaml", "analytic"), ("kepler_expressions.yaml", "symbolic"),
                            ("kepler_python.yaml", "finite differences")):
