@@ -421,6 +421,7 @@ def check(config, overrides):
     """
     from elimfast.problems.check import (DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_derivatives,
                                          require_invariants)
+    from elimfast.problems.expressions import ProblemDefinitionError
 
     from .report import adaptive_text
 
@@ -435,13 +436,16 @@ def check(config, overrides):
     lines = [f"# {config}: valid",
              f"# problem {problem.name}, {method.name}"
              + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "") + f", {steps}"]
-    reports = check_derivatives(problem)
+    try:
+        reports = check_derivatives(problem)
+        residuals = check_invariants(problem)
+    except ProblemDefinitionError as err:   # at y0 (problem.check: false let the config load)
+        raise _check_error(config, spec, err) from None
     lines.append("# derivative check (error / what central differences allow; fails above 1):")
     width = max(len(report.name) for report in reports)
     lines += [f"#   {report.name:<{width}}  {report.ratio:.1e}  {'ok' if report.ok else 'DOES NOT MATCH'}"
               for report in reports]
     lines.append(f"# hess_H: {problem.hessian_description}")
-    residuals = check_invariants(problem)
     if residuals:
         lines.append(f"# invariant check (relative residual, tolerance {DEFAULT_TOLERANCE:.0e}):")
         width = max(len(name) for name in residuals)
@@ -459,9 +463,29 @@ def check(config, overrides):
             lines.append(f"# output: {one_line(err)}")
     click.echo("\n".join(lines))
     click.echo(_resolved_yaml(spec), nl=False)
-    require_derivatives(problem)  # exit 2 with the mismatch when a derivative is wrong
-    require_invariants(problem)   # exit 2 with the residual when one is not conserved
+    try:
+        require_derivatives(problem)  # exit 2 with the mismatch when a derivative is wrong
+        require_invariants(problem)   # exit 2 with the residual when one is not conserved
+    except ProblemDefinitionError as err:
+        raise _check_error(config, spec, err) from None
     return EXIT_OK
+
+
+def _check_error(config, spec, err):
+    """A check's failure as the config error a run reports (FILE: problem.KEY: ...), also when the
+    config says problem.check: false, which only 'run' obeys: its advice to set it is then left out."""
+    from elimfast.config import ConfigError
+
+    problem = spec.resolved.get("problem", {})
+    mode = "python" if "python" in problem else "builtin" if "builtin" in problem else "expressions"
+    key = err.key or ""
+    if not ((mode == "expressions" and key) or key.split(".")[0] in ("parameters", "initial")):
+        key = {"python": "python", "builtin": "builtin"}.get(mode, "hamiltonian")
+    text = str(err)
+    if problem.get("check") is False:
+        text = text.replace(", or set problem.check: false to skip this check",
+                            " (problem.check: false skips this check in run, not in check)")
+    return ConfigError(f"{config}: problem.{key}: {text}", key=f"problem.{key}")
 
 
 # --- inspect, plot ------------------------------------------------------------------------

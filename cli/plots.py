@@ -85,13 +85,17 @@ def _stride(n: int) -> int:
 
 
 def _bodies(names):
-    """(x, y) coordinate index pairs when the q names look like per-body x, y[, z] triples/pairs."""
+    """(x, y) coordinate index pairs when the q names look like per-body x, y[, z] triples/pairs:
+    x1, y1, z1, ... or, as the built-in nbody names them, sun_x, sun_y, sun_z, ..."""
     for width in (3, 2):
         if len(names) % width or len(names) < width:
             continue
-        groups = [names[i:i + width] for i in range(0, len(names), width)]
-        if all(g[0].lower().startswith("x") and g[1].lower().startswith("y") for g in groups):
+        groups = [[name.lower() for name in names[i:i + width]] for i in range(0, len(names), width)]
+        if all(g[0].startswith("x") and g[1].startswith("y") for g in groups):
             return [(i, i + 1) for i in range(0, len(names), width)], [g[0][1:] or str(j) for j, g in enumerate(groups)]
+        if all(g[0].endswith("_x") and g[1] == g[0][:-1] + "y" for g in groups):
+            return [(i, i + 1) for i in range(0, len(names), width)], [names[i][:-2] for i in range(0, len(names),
+                                                                                                   width)]
     return None, None
 
 
@@ -155,6 +159,9 @@ def sparse(points: np.ndarray) -> bool:
     return float(np.median(steps)) > SPARSE_STEP_FRACTION * extent
 
 
+CHAIN_CURVES = 12   # coordinates drawn against t when the q are not per-body x, y pairs
+
+
 def _orbit(run_file, axes) -> None:
     n = run_file.n_samples
     if n < 2:
@@ -183,10 +190,13 @@ def _orbit(run_file, axes) -> None:
                           xycoords="axes fraction", fontsize="small", color="0.4")
     else:   # a chain: each q against t
         t = run_file.t(_stride(n))
-        for i in range(min(m, 12)):
+        for i in range(min(m, CHAIN_CURVES)):
             axes.plot(t, y[:, i], lw=0.6, label=names[i])
         axes.set_xlabel("t")
         axes.legend(fontsize="small", ncol=2)
+        if m > CHAIN_CURVES:
+            axes.annotate(f"the first {CHAIN_CURVES} of {m} coordinates q", (0.01, 0.01), xycoords="axes fraction",
+                          fontsize="small", color="0.4")
 
 
 # Fewer finite points than this are drawn with markers (_invariants).
@@ -285,6 +295,17 @@ def _multipliers(run_file, axes) -> None:
     axes.legend(fontsize="small")
 
 
+def _solver_name(run_file) -> str:
+    """What iterated: the stored config's solver, or 'solver' when a resume changed it (the
+    label said 'fixed-point' of Newton's iterations too)."""
+    from .report import config_of
+
+    method = (config_of(run_file).get("solver") or {}).get("method", "fixed_point")
+    if any("method" in str(entry) for entry in run_file.attrs.get("solver_history", [])):
+        return "solver"
+    return {"newton": "simplified Newton", "fixed_point": "fixed-point"}.get(method, "solver")
+
+
 def _iterations(run_file, axes) -> None:
     n = run_file.steps_done
     if n < 1:
@@ -294,5 +315,5 @@ def _iterations(run_file, axes) -> None:
     t = _step_times(run_file, n, stride)
     axes.plot(t, iterations, ".", ms=1.5)
     axes.set_xlabel("t")
-    axes.set_ylabel("fixed-point iterations per step")
+    axes.set_ylabel(f"{_solver_name(run_file)} iterations per step")
     axes.set_ylim(bottom=0)

@@ -189,8 +189,10 @@ def summary(run_file, integrity: dict | None = None) -> str:
         if t_final is not None and t_end is not None and t_final < float(t_end):
             status += f" (ended by a terminal event at t = {t_final:.10g})"
     row("status", status)
-    # how the run was continued (--resume with other solver settings, or to a later end)
-    for key, what in (("solver_history", "solver"), ("extension_history", "continued")):
+    # how the run was continued (--resume with other solver settings, to a later end, or an edited
+    # python: problem file)
+    for key, what in (("solver_history", "solver"), ("extension_history", "continued"),
+                      ("problem_file_history", "problem file changed")):
         for entry in np.atleast_1d(a.get(key) if a.get(key) is not None else []):
             row("resumed", f"{what} {_changed_settings(str(entry))}")
     wall, kernel = run_file.wall_time_s, run_file.kernel_time_s

@@ -123,7 +123,23 @@ class StepControl:
                                            f"(k={2 * method.s}, s={method.s})), or verify = true (step doubling)")
         return replace(self, verify=verify)
 
-    def check_problem(self, problem: Problem) -> None:
+    def check_problem(self, problem: Problem, y0=None) -> None:
+        """Refuse a problem this control cannot step: no time scale, or one that is not positive
+        and finite at the initial state y0 (problem.y0 by default). The kernel steps by epsilon
+        sigma(y): a negative sigma ran backwards from t0 forever, a zero one failed at the
+        first step with a message about Gamma."""
+        if self.controller == "time_scale" and problem.time_scale is not None:
+            y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)   # writable, C-contiguous
+            out = np.full(y.size + 1, np.nan)   # sigma, then its gradient
+            with np.errstate(all="ignore"):
+                try:
+                    problem.time_scale(y, problem.params, out)
+                except ArithmeticError:
+                    pass
+            if not (math.isfinite(out[0]) and out[0] > 0.0):
+                raise ParameterError("time_scale", f"is {float(out[0])!r} at the initial state {y.tolist()}; it must be "
+                                                   "positive and finite along the orbit (the steps are epsilon times "
+                                                   "it), e.g. a positive power of a distance")
         if self.controller == "time_scale" and problem.time_scale is None:
             from .problems import PROBLEMS
             if problem.name in PROBLEMS and problem.hessian_source == "analytic":

@@ -206,6 +206,7 @@ PARAMETER_KEYS = {
     "rtol": ("integration", "rtol"), "atol": ("integration", "atol"), "step_control": ("integration", "step_control"),
     "epsilon": ("integration", "epsilon"), "verify": ("integration", "verify"), "h_max": ("integration", "h_max"),
     "method": ("method",), "t_eval": ("output", "times"), "events": ("events",),
+    "time_scale": ("problem", "time_scale"),
 }
 
 

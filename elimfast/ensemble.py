@@ -83,6 +83,14 @@ class EnsembleResult:
     def n_trajectories(self) -> int:
         return self.y0.shape[0]
 
+    def __repr__(self) -> str:
+        # One line, as Result's: the dataclass's repr printed every array (25 kB for 100 LJ
+        # trimers) and made a LazyEnsembleResult read all of its file's columns.
+        imposing = f" imposing {', '.join(self.conserve)}" if self.conserve else ""
+        return (f"<{type(self).__name__} {self.method.name} on {self.problem.name}{imposing}, "
+                f"{self.n_trajectories} trajectories of {self.n_steps} steps, h = {self.h:g}, "
+                f"{self.n_failed} failed>")
+
     @property
     def ok(self) -> np.ndarray:
         """(n_traj,) bool: the trajectory ran all n_steps."""

@@ -517,9 +517,7 @@ class Integration:
         self.conserve, self.conserve_idx = resolve_conserve(problem, method, conserve)
         self.h, self.n_steps = resolve_steps(h, n_steps=n_steps)
         self.backward = bool(backward)
-        if not isinstance(solver, SolverSettings):
-            solver = SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
-                                    max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)
+        solver = _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs)
         self.solver = solver.resolved_for(method, len(self.conserve))
         self.store_every = resolve_store_every(store_every)
 
@@ -796,8 +794,14 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
 def _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs) -> SolverSettings:
     if isinstance(solver, SolverSettings):
         return solver
-    return SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
-                          max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)
+    try:
+        return SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
+                              max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)
+    except ParameterError as err:
+        if err.parameter != "method":
+            raise
+        # integrate's keyword is solver=; its 'method' is the integrator (ehbvm(12, 3), ...)
+        raise ParameterError("solver", err.detail) from None
 
 
 def _step_control(step_control, rtol, atol, epsilon, verify, h, h_max):
@@ -824,12 +828,13 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     store_every = resolve_store_every(store_every)
     if control is not None:
         control = control.for_method(method, len(names))
-        control.check_problem(problem)
         t_end = resolve_span(float(t0), t_end, n_steps)
     else:
         h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
         t_end = t0 + n_steps * h
     y_start = resolve_initial_state(problem, y0)
+    if control is not None:
+        control.check_problem(problem, y_start)
     if t_eval is not None:
         t_eval = resolve_t_eval(t_eval, float(t0), t_end)
     event_spec = EventSpec.build(problem, events) if events else None

@@ -38,6 +38,7 @@ import numpy as np
 from .errors import DiskFullError
 from .io import hdf5
 from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
+from .io.layout import PROBLEM_FILE_DIGEST, problem_file_attributes
 
 # Tunables of the driver (all in one place).
 TARGET_CHUNK_SECONDS = 0.5     # kernel time per chunk: progress and Ctrl-C latency vs flush overhead
@@ -679,8 +680,13 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             if extension is not None:
                 def restore(saved):   # the stored run reached its end; this one goes on
                     integration.restore({**saved, "finished": 0})
+            # The config names a python: problem's file by its path only: an edit since the run began
+            # (fixing a function that raised, as the failure message asks) is recorded and said.
+            source_file = problem_file_attributes(integration.problem)
+            if attrs.get(PROBLEM_FILE_DIGEST) in (None, source_file.get(PROBLEM_FILE_DIGEST)):
+                source_file = None
             writer, saved = hdf5.RunWriter.resume(
-                path, restore=restore, stop=stop, extension=extension,
+                path, restore=restore, stop=stop, extension=extension, problem_file=source_file,
                 config_text=config_text if (solver_changed or extension is not None) else None)
             wall_offset, kernel_offset = float(saved["wall_time_s"]), float(saved["kernel_time_s"])
             note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
@@ -690,6 +696,9 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 if times.size and times[-1] <= float(attrs["t_end"]):
                     note += (f"; output.times stops at {times[-1]:.10g}: no samples were added (--set "
                              "output.times.stop=LATER, with the same start and step, adds them)")
+            if source_file is not None:
+                note += (f"; the problem file {integration.problem.source_file} has changed since the run began: "
+                         f"the {saved['steps_done']} steps before used the old one (problem_file_history)")
             started_with = saved["attrs"].get("elimfast_version")
             if started_with != hdf5.version_attributes()["elimfast_version"]:
                 note += (f"; the run was started by elimfast {started_with}: a continuation by another version "

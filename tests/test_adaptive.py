@@ -5,6 +5,7 @@ pericentre times 2 pi n, conservation of H and the imposed invariants at every s
 sample, time reversibility of the time-scale controller, and bit-exact continuation.
 """
 import math
+import re
 
 import numpy as np
 import pytest
@@ -411,6 +412,28 @@ def test_expression_time_scale_matches_the_builtin():
     b = elimfast.integrate(kepler(e), hbvm(8, 4), t_end=4 * PERIOD, step_control="time_scale", epsilon=0.03)
     assert a.steps_done == b.steps_done
     assert np.max(np.abs(a.y_final - b.y_final)) <= 1e-9
+
+
+@pytest.mark.parametrize("time_scale, value", [("-(q1**2 + q2**2)**0.75", "-0.0316"), ("0*q1", "0.0"),
+                                               ("log(q1)", "-2.30"), ("sqrt(q1 - 1)", "nan")])
+def test_a_time_scale_not_positive_at_the_initial_state_is_refused(time_scale, value):
+    """A user trial's finding: a negative time scale ran backwards from t0 without end (t = -1.2e6
+    after 19 million steps, the file growing), a zero one failed at the first step with 'the small
+    system is singular ... Assumption 1 of the paper fails for these invariants'."""
+    from elimfast.config import load_run_from_dict
+    from elimfast.config import ConfigError
+    from elimfast.problems import problem_from_expressions
+    p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
+                                 initial={"q1": 0.1, "q2": 0, "p1": 0, "p2": math.sqrt(19)}, time_scale=time_scale)
+    with pytest.raises(ParameterError, match=rf"^time_scale is {re.escape(value)}.* at the initial state \[0.1, 0.0, "
+                                             r"0.0, 4.35.*\]; it must be positive and finite along the orbit"):
+        elimfast.integrate(p, hbvm(8, 4), t_end=1.0, step_control="time_scale")
+    config = {"problem": {"coordinates": {"q": ["q1", "q2"], "p": ["p1", "p2"]},
+                          "hamiltonian": "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)", "time_scale": time_scale,
+                          "initial": {"q1": 0.1, "q2": 0, "p1": 0, "p2": "sqrt(19)"}},
+              "method": {"name": "hbvm", "s": 4}, "integration": {"step_control": "time_scale", "t_end": 1}}
+    with pytest.raises(ConfigError, match=rf"^run.yaml: problem.time_scale: is {re.escape(value)}"):
+        load_run_from_dict(config, source="run.yaml")
 
 
 def test_lim_imposing_invariants_of_very_different_sizes_starts_at_a_pericentre():

@@ -140,3 +140,17 @@ def test_linear_invariants_are_detected_and_refused_for_elim():
     # LIM can impose it (pointlessly, but correctly)
     result = elimfast.integrate(chain, ghbvm(8, 4), 0.1, n_steps=5, conserve=["momentum"])
     assert result.invariant_errors()["momentum"] < 1e-14
+
+
+def test_an_unknown_solver_is_named_by_integrates_keyword():
+    """A user trial's finding: integrate(..., solver='newtn') said 'method must be one of newton,
+    fixed_point', while integrate's method is the integrator (ehbvm(8, 4))."""
+    from elimfast.errors import ParameterError
+    problem = elimfast.problems.kepler(0.6)
+    for run in (lambda: elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=2, solver="newtn"),
+                lambda: elimfast.integrate(problem, ehbvm(8, 4), rtol=1e-10, t_end=1.0, solver="newtn"),
+                lambda: Integration(problem, ehbvm(8, 4), h=0.1, n_steps=2, solver="newtn")):
+        with pytest.raises(ParameterError) as info:
+            run()
+        assert str(info.value).startswith("solver must be one of newton, fixed_point"), str(info.value)
+        assert info.value.parameter == "solver"

@@ -130,6 +130,57 @@ def test_invariant_plot_of_a_run_with_two_samples_shows_its_points(tmp_path):
     plt.close(figure)
 
 
+def test_iterations_plot_names_the_solver_that_iterated(kepler_file, tmp_path):
+    """A user trial's finding: the axis read 'fixed-point iterations per step' for the default
+    simplified Newton solver too."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from elimfast.io.hdf5 import RunFile
+    from elimfast_cli.plots import draw
+
+    fixed = tmp_path / "fixed.h5"
+    assert invoke("run", KEPLER, "-o", fixed, "--set", "integration.t_end=5", "--set", "solver.method=fixed_point",
+                  "--quiet").exit_code == 0
+    labels = {}
+    for name, path in (("newton", kepler_file), ("fixed", fixed)):
+        with RunFile(path) as run_file:
+            figure = draw(run_file, "iterations")
+            labels[name] = figure.axes[0].get_ylabel()
+            plt.close(figure)
+    assert invoke("run", KEPLER, "-o", fixed, "--resume", "--set", "integration.t_end=10", "--set",
+                  "solver.method=newton", "--quiet").exit_code == 0
+    with RunFile(fixed) as run_file:
+        figure = draw(run_file, "iterations")
+        labels["changed"] = figure.axes[0].get_ylabel()
+        plt.close(figure)
+    assert labels == {"newton": "simplified Newton iterations per step", "fixed": "fixed-point iterations per step",
+                      "changed": "solver iterations per step"}
+
+
+def test_orbit_plot_of_the_solar_system_draws_every_body_in_the_plane(tmp_path):
+    """A user trial's finding: the built-in nbody names its coordinates sun_x, sun_y, ..., which the
+    orbit plot did not take for bodies: it drew the first 12 of 18 coordinates against t, Neptune
+    and Pluto left out without a word."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from elimfast.io.hdf5 import RunFile
+    from elimfast_cli.plots import draw
+
+    path = tmp_path / "nbody.h5"
+    assert invoke("run", ROOT / "configs" / "nbody.yaml", "-o", path, "--set", "integration.t_end=2000",
+                  "--quiet").exit_code == 0
+    with RunFile(path) as run_file:
+        figure = draw(run_file, "orbit")
+    axes = figure.axes[0]
+    assert [line.get_label() for line in axes.get_lines()] == ["sun", "jupiter", "saturn", "uranus", "neptune", "pluto"]
+    assert (axes.get_xlabel(), axes.get_ylabel()) == ("x", "y")
+    plt.close(figure)
+
+
 def test_plot_default_name(kepler_file):
     result = invoke("plot", kepler_file)
     expected = kepler_file.with_name("kepler_invariants.png")

@@ -289,6 +289,19 @@ def test_python_file_faults_are_reported_in_one_line(cache_root, tmp_path, chang
     assert "\n" not in str(info.value)
 
 
+def test_python_file_at_a_singular_initial_state_says_so(cache_root, tmp_path):
+    """A user trial's finding: an initial state on H's singularity (two bodies at one place) was
+    reported as 'grad_H left out[0] unwritten (or NaN) ...; it must fill all of out', which sends
+    the user to a grad_H that is right."""
+    path = tmp_path / "problem.py"
+    path.write_text(KEPLER_FILE)
+    with pytest.raises(UserProblemError) as info:
+        problem_from_file(path, initial={"q1": 0})
+    assert str(info.value) == (f"{path}: H = -inf at the initial state [0.0, 0.0, 0.0, 2.0]; choose an initial "
+                               "state away from the singularity")
+    assert info.value.key == "initial"
+
+
 def test_python_file_copy_carries_the_finite_difference_hessian_after_the_users_lines(cache_root):
     from elimfast.problems import user_file
     problem = problem_from_file(CONFIGS / "kepler_problem.py")

@@ -109,6 +109,21 @@ def test_the_diagnostic_labels_follow_the_kernel_indices():
     assert [DIAGNOSTIC_NAMES[i] for i in indices] == ["t", "h", "increment", "condition", "depth", "iterations"]
 
 
+def test_an_ensemble_shows_itself_in_one_line_without_reading_its_file(tmp_path):
+    """A user trial's finding: ``elimfast.load(ENSEMBLE.h5)`` in a notebook printed the dataclass's
+    repr, every array of every trajectory (25 kB for 100 trajectories), reading all of the file."""
+    out = tmp_path / "out.h5"
+    lazy = sweeps.run_to_file(ensemble_sweep(tmp_path), out, workers=1).ensemble
+    read_before = set(vars(lazy))
+    assert repr(lazy) == (f"<LazyEnsembleResult HBVM(6,3) on henon_heiles, {N_TRAJECTORIES} "
+                          "trajectories of 100 steps, h = 0.1, 0 failed>")
+    assert set(vars(lazy)) - read_before <= {"status"}   # no other column read for it
+    loaded = elimfast.load(out)
+    assert repr(loaded).startswith("<LazyEnsembleResult HBVM(6,3) on henon_heiles, ") and "\n" not in repr(loaded)
+    _, _, in_memory = sweeps.run_ensemble_sweep(sweeps.load_sweep(ensemble_sweep(tmp_path)), threads=1)
+    assert repr(in_memory) == repr(loaded).replace("LazyEnsembleResult", "EnsembleResult")
+
+
 def test_a_local_ensemble_holds_one_block_at_a_time(tmp_path, small_blocks, monkeypatch):
     """The next block is computed only once the last is stored: never two blocks' rows at once."""
     events = []

@@ -27,7 +27,8 @@ from elimfast import problems
 from elimfast.config import ConfigError, load_run
 from elimfast.kernels.signatures import jit_gradient, jit_hessian, jit_invariant_gradients
 from elimfast.problems.check import (EPS, INVARIANT_TOLERANCE, DerivativeCheckError, InvariantCheckError,
-                                     check_derivatives, check_invariants, require_derivatives, require_invariants)
+                                     check_derivatives, check_invariants, check_points, require_derivatives,
+                                     require_invariants)
 from elimfast.problems.expressions import ExpressionError, ProblemDefinitionError
 from elimfast.problems.symbolic import problem_from_expressions
 from elimfast.problems.user_file import UserProblemError, problem_from_file
@@ -210,6 +211,36 @@ def test_wrong_sign_grad_h_in_a_python_file_is_refused_naming_the_users_file(cac
         assert "Traceback" not in result.output and not (tmp_path / "o.h5").exists()
 
 
+def test_a_function_that_raises_outside_its_domain_near_the_initial_state_is_no_internal_error(cache_root, tmp_path):
+    """A user trial's finding: a python file whose grad_H raises (its own domain check) at one of the
+    check's seeded points near y0 stopped `run` and `check` with 'internal error ... please report it',
+    naming the cached copy u_<hash>.py. Such points are skipped, as singular ones are; at y0 itself
+    the raise is a config error naming the user's file."""
+    guard = "    if y[0] > 0.45:\n        raise ValueError('outside the domain')\n"
+    text = (KEPLER_FILE.replace("def grad_H(y, params, out):\n", "def grad_H(y, params, out):\n" + guard)
+            .replace("def grad_invariants(y, params, out):\n", "def grad_invariants(y, params, out):\n" + guard))
+    path = write_problem(tmp_path, text)
+    problem = problem_from_file(path)
+    assert any(point[0] > 0.45 for point in check_points(problem))   # the seeded points do reach it
+    assert all(report.ok for report in require_derivatives(problem))
+    assert max(require_invariants(problem).values()) < INVARIANT_TOLERANCE
+    with pytest.raises(ProblemDefinitionError) as info:
+        check_derivatives(problem, y0=[0.5, 0.0, 0.0, 2.0])
+    message = str(info.value)
+    assert message.startswith(f"{path.resolve()}: grad_H or H raised ValueError: outside the domain at the initial "
+                              "state [0.5, 0.0, 0.0, 2.0]; fix the function") and "u_" not in message
+    with pytest.raises(ProblemDefinitionError, match="grad_H or grad_invariants raised ValueError"):
+        check_invariants(problem, y0=[0.5, 0.0, 0.0, 2.0])
+
+    config = tmp_path / "run.yaml"
+    config.write_text(KEPLER_RUN)
+    for command in ("check", "run"):
+        result = CliRunner().invoke(cli, [command, str(config)] + (["-o", str(tmp_path / "o.h5")] if command == "run"
+                                                                  else []))
+        assert result.exit_code == 0, result.output
+        assert "internal error" not in result.output and "Traceback" not in result.output
+
+
 def test_check_false_skips_the_derivative_check_but_elimfast_check_still_reports_it(cache_root, tmp_path):
     write_problem(tmp_path, KEPLER_FILE.replace("out[2] = y[2]", "out[2] = 2.0 * y[2]"))
     config = tmp_path / "run.yaml"
@@ -221,6 +252,29 @@ def test_check_false_skips_the_derivative_check_but_elimfast_check_still_reports
     assert any(line.startswith("#   grad_H ") and line.endswith("DOES NOT MATCH") for line in lines)
     assert "# hess_H: finite differences of grad_H (the python file defines no hess_H)" in lines
     assert "dH/dp1 = " in result.stderr and "relative error 1.0e+00" in result.stderr
+
+
+def test_elimfast_check_with_check_false_names_the_config_and_gives_no_advice_it_already_follows(cache_root,
+                                                                                                tmp_path):
+    """A user trial's finding: with problem.check: false, 'elimfast check' reported a wrong gradient
+    or a singular initial state without the config and key, and advised 'set problem.check: false'."""
+    write_problem(tmp_path, KEPLER_FILE.replace("out[2] = y[2]", "out[2] = 2.0 * y[2]"))
+    config = tmp_path / "run.yaml"
+    config.write_text(KEPLER_RUN.replace("python: problem.py", "python: problem.py, check: false"))
+    result = CliRunner().invoke(cli, ["check", str(config)])
+    assert result.exit_code == 2
+    assert result.stderr.startswith(f"error: {config}: problem.python: grad_H of problem 'kepler_python' does not "
+                                    "match"), result.stderr
+    assert "set problem.check: false" not in result.stderr
+    assert result.stderr.rstrip().endswith("(problem.check: false skips this check in run, not in check)")
+
+    singular = tmp_path / "singular.yaml"
+    singular.write_text((CONFIGS / "kepler_expressions.yaml").read_text().replace(
+        "initial: {q1: 1 - ecc,", "check: false\n  initial: {q1: 0,"))
+    result = CliRunner().invoke(cli, ["check", str(singular)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert result.stderr.startswith(f"error: {singular}: problem.initial: problem 'kepler_expressions': grad_H is not "
+                                    "finite at the initial state"), result.stderr
 
 
 def test_elimfast_check_prints_the_derivative_check_and_the_hessians_source(cache_root):

@@ -172,6 +172,42 @@ def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
     assert repeated.exit_code == 0, repeated.stderr
 
 
+def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_path):
+    """A user trial's finding: the config names a python: problem by its path only, so a file
+    edited between a kill and --resume (H scaled by 1.01 in H, grad_H and hess_H) was continued
+    silently with the new H, and the run file mixed two problems (H 'kept' to 1e-2, status
+    complete, nothing said). Editing the file is also the documented way on after a function
+    raised, so the resume goes on, says so, and records it (problem_file_sha256, _history)."""
+    import hashlib
+    source = (ROOT / "configs" / "kepler_problem.py").read_text()
+    problem = tmp_path / "problem.py"
+    problem.write_text(source)
+    config = tmp_path / "run.yaml"
+    config.write_text("problem: {python: problem.py}\nconserve: [angular_momentum]\n"
+                      "method: {name: ehbvm, k: 12, s: 3}\nintegration: {h: 0.1, t_end: 5}\n")
+    path = tmp_path / "run.h5"
+    assert CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--quiet"]).exit_code == 0
+    digest = hashlib.sha256(source.encode()).hexdigest()
+    with h5py.File(path, "r") as f:
+        assert f.attrs["problem_file_sha256"] == digest and "problem_file_history" not in f.attrs
+    later = ["run", str(config), "-o", str(path), "--resume", "--set"]
+    same = CliRunner().invoke(cli, [*later, "integration.t_end=7"])
+    assert same.exit_code == 0 and "problem file" not in same.stderr, same.stderr
+    edited = source.replace("import math", "import math  # edited")
+    problem.write_text(edited)
+    result = CliRunner().invoke(cli, [*later, "integration.t_end=10"])
+    assert result.exit_code == 0, result.stderr
+    assert (f"; the problem file {problem.resolve()} has changed since the run began: the 70 steps before used the "
+            "old one (problem_file_history)") in result.stderr
+    new = hashlib.sha256(edited.encode()).hexdigest()
+    with h5py.File(path, "r") as f:
+        assert f.attrs["problem_file_sha256"] == new
+        assert list(f.attrs["problem_file_history"]) == [f"from step 70: sha256 {new[:16]} (before: {digest[:16]})"]
+    report = CliRunner().invoke(cli, ["inspect", str(path)])
+    assert f"resumed      problem file changed from step 70: sha256 {new[:16]} (before: {digest[:16]})\n" \
+        in report.stdout
+
+
 def test_resume_without_a_file_starts_a_new_run(tmp_path):
     path = tmp_path / "new.h5"
     result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])

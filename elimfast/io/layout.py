@@ -161,6 +161,21 @@ def multiplier_datasets(steps) -> list[str]:
     return [name for name in steps if name not in PER_STEP_RECORDS + STEP_SCALES]
 
 
+PROBLEM_FILE_DIGEST = "problem_file_sha256"   # root attribute: the python: problem file the steps used
+
+
+def problem_file_attributes(problem) -> dict:
+    """{PROBLEM_FILE_DIGEST: the sha256 of a python: problem's file} ({} for other problems, or an
+    unreadable file): the config names only the file's path, and --resume compares the two."""
+    import hashlib
+
+    source = getattr(problem, "source_file", None)
+    try:
+        return {PROBLEM_FILE_DIGEST: hashlib.sha256(open(source, "rb").read()).hexdigest()} if source else {}
+    except OSError:
+        return {}
+
+
 def version_attributes() -> dict:
     import numba
 

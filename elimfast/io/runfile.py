@@ -58,7 +58,7 @@ from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, S
                      STATUS_KILLED, STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
-                     version_attributes)
+                     PROBLEM_FILE_DIGEST, problem_file_attributes, version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
@@ -409,7 +409,8 @@ class RunWriter:
                                                         t_end=t_end, output_every=run.store_every,
                                                         conserve=run.conserve),
                 "steps_done": 0, "status": STATUS_RUNNING, "wall_time_s": 0.0, "kernel_time_s": 0.0,
-                **(run.file_attributes() if adaptive else {}), **(attributes or {})})
+                **problem_file_attributes(problem), **(run.file_attributes() if adaptive else {}),
+                **(attributes or {})})
             state = f.create_group("state")
             initial = dict(run.state(), n_samples=np.int64(1), wall_time_s=0.0, kernel_time_s=0.0)
             datasets["state"] = {key: _small_dataset(state, key, value) for key, value in initial.items()}
@@ -445,7 +446,7 @@ class RunWriter:
 
     @classmethod
     def resume(cls, path, *, restore=None, stop=None, config_text: str | None = None,
-               extension: dict | None = None) -> tuple["RunWriter", dict]:
+               extension: dict | None = None, problem_file: dict | None = None) -> tuple["RunWriter", dict]:
         """Reopen a run for writing; return (writer, saved) with saved = the state and the root attributes.
 
         Nothing is changed until everything the run will build on has been read back and
@@ -457,7 +458,8 @@ class RunWriter:
         config the run continues with (other solver settings or a later end): it replaces the
         stored config; ``solver_history`` records a change of solver. ``extension``: the new
         {"t_end", "n_steps", "output_times"} of a run continued to a later end
-        (streaming.run_extension), recorded in ``extension_history``.
+        (streaming.run_extension), recorded in ``extension_history``. ``problem_file``: an
+        edited python: file's {problem_file_sha256}, recorded in ``problem_file_history``.
         """
         path = Path(path)
         if not path.exists():
@@ -527,6 +529,12 @@ class RunWriter:
                     if extension.get("output_times") is not None:
                         replaced["output_times"] = int(extension["output_times"])
                 _replace_attributes(f, replaced)
+            if problem_file:
+                digest = problem_file[PROBLEM_FILE_DIGEST]
+                history = list(_plain(f.attrs.get("problem_file_history", [])) or [])
+                history.append(f"from step {saved['steps_done']}: sha256 {digest[:16]} (before: "
+                               f"{str(attrs.get(PROBLEM_FILE_DIGEST))[:16]})")
+                _replace_attributes(f, {PROBLEM_FILE_DIGEST: digest, "problem_file_history": history})
             for key in ("failed_step_iterations",):
                 if key in f.attrs:
                     del f.attrs[key]

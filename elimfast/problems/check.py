@@ -3,7 +3,8 @@
 Both checks look at y0 and at seeded random points near it (``check_points``):
 y0 + radius * max(|y0|_inf, 1) * N(0, 1) per component, with
 ``numpy.random.default_rng(seed)``; points where a function is not finite (a
-singularity) are skipped, y0 never is.
+singularity) or raises (a ``python:`` file's own ``raise`` outside its domain) are
+skipped, y0 never is.
 
 **Derivatives** (``check_derivatives``, ``require_derivatives``). grad_H is compared with
 central differences of H, each invariant's gradient with central differences of
@@ -106,6 +107,14 @@ def _singular_initial_state(problem: Problem, centre: np.ndarray, what: str) -> 
         "initial state away from the singularity", key="initial")
 
 
+def _raised_at_initial_state(problem: Problem, centre: np.ndarray, what: str, err: Exception) -> ProblemDefinitionError:
+    text = " ".join(str(err).split()) or "(no message)"
+    where = problem.source_file or f"problem {problem.name!r}"
+    return ProblemDefinitionError(
+        f"{where}: {what} raised {type(err).__name__}: {text[:200]} at the initial state {centre.tolist()}; fix "
+        "the function, or choose an initial state where it is defined", key="initial")
+
+
 # --- invariants ---------------------------------------------------------------------------
 
 def _poisson_bracket(grad_L: np.ndarray, grad_H: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -135,7 +144,9 @@ def check_invariants(problem: Problem, n_points: int = DEFAULT_POINTS, seed: int
                 problem.grad_H(y, problem.params, grad_H)
                 problem.grad_invariants(y, problem.params, grad_L)
                 bracket, norms = _poisson_bracket(grad_L, grad_H, m)
-        except ArithmeticError:  # functions compiled with Numba's default error model raise on 1/0
+        except Exception as err:   # noqa: BLE001 -- 1/0 under Numba's default error model, or the user's raise
+            if index == 0 and not isinstance(err, ArithmeticError):
+                raise _raised_at_initial_state(problem, points[0], "grad_H or grad_invariants", err) from None
             grad_H[:] = np.nan
         if not (np.all(np.isfinite(grad_H)) and np.all(np.isfinite(grad_L))):
             if index == 0:
@@ -292,8 +303,10 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
                     finite = bool(np.all(np.isfinite(exact)))
                     # None: F is not finite within 2h of y (an edge of its domain): nothing to compare
                     result = _compare(evaluate, exact, y, scales, columns[index]) if finite else None
-                except ArithmeticError:   # functions compiled with Numba's default error model raise on 1/0
-                    finite, result = False, None
+                except Exception as err:   # noqa: BLE001 -- 1/0 under Numba's default error model, or the user's raise
+                    if index == 0 and not isinstance(err, ArithmeticError):
+                        raise _raised_at_initial_state(problem, points[0], f"{function} or {of}", err) from None
+                    finite, result = False, None   # a point outside the functions' domain: skipped
             if not finite and index == 0:
                 raise _singular_initial_state(problem, points[0], function)
             if result is None:

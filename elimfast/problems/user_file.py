@@ -329,9 +329,12 @@ def _dry_run(label, functions, y0, params, n, n_inv) -> None:
                                    + ")", key="python") from None
         if fname == "H":
             try:
-                float(value)
+                value = float(value)
             except (TypeError, ValueError):
                 raise UserProblemError(f"{label}: H must return a number, got {value!r}", key="python") from None
+            if not np.isfinite(value):   # a singularity: grad_H's NaN would read as an unwritten output
+                raise UserProblemError(f"{label}: H = {value} at the initial state {y0.tolist()}; choose an initial "
+                                       "state away from the singularity", key="initial")
         elif np.isnan(outputs[fname]).any():
             index = tuple(int(i) for i in np.argwhere(np.isnan(outputs[fname]))[0])
             raise UserProblemError(f"{label}: {fname} left out{list(index)} unwritten (or NaN) at the initial "
