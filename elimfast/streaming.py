@@ -387,12 +387,19 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
                 stopped = _disk_full(writer, resume_command)
                 break
             before = integration.steps_done
+            before_state = integration.state()   # copies: the steps before a raise are taken again from it
             tick = time.perf_counter()
             try:
                 with kernel_call(stop):
                     chunk = integration.advance(fitting)
             except Exception as err:   # noqa: BLE001 -- a problem function raised inside the kernel
-                stopped = _problem_raised(integration, before, err, writer, resume_command, problem_source)
+                raised_at, t_raised = _steps_before_raise(integration), integration.t
+                kernel_s += time.perf_counter() - tick
+                if raised_at > 0:
+                    _save_steps_before_raise(integration, before_state, raised_at, writer, stop,
+                                             wall_offset + time.perf_counter() - started, kernel_offset + kernel_s)
+                stopped = _problem_raised(integration, before + raised_at + 1, t_raised, err, writer,
+                                          resume_command, problem_source)
                 break
             tock = time.perf_counter()
             kernel_s += tock - tick
@@ -484,18 +491,42 @@ def _write_failed(writer, err, resume_command) -> tuple[str, str]:
             f"before it are in the file; check the disk, then continue with: {_continue_with(resume_command)}")
 
 
-def _problem_raised(integration, before: int, err: BaseException, writer, resume_command,
+def _steps_before_raise(integration) -> int:
+    """How many steps the kernel call that raised had completed (its progress counter)."""
+    progress = getattr(integration, "_progress", None)
+    try:
+        return int(progress[0]) if progress is not None else 0
+    except (TypeError, ValueError, IndexError):
+        return 0
+
+
+def _save_steps_before_raise(integration, before_state: dict, n: int, writer, stop, wall_s: float,
+                             kernel_s: float) -> None:
+    """Keep the n steps a raising kernel call completed: its output buffers died with the
+    exception, and the state arrays hold the raising step's iterate, so the call is taken
+    again from the state before it, for those n steps only (the same steps, bit for bit:
+    a kernel call is deterministic, as resume relies on), then written and saved as a
+    chunk is. Where that raises too (an invariant raising on the last sample), or the
+    writing fails, the file keeps what it had and the state is put back."""
+    integration.restore(before_state)
+    try:
+        with kernel_call(stop):
+            chunk = integration.advance(n)
+        if integration.steps_done != before_state["steps_done"] + n or integration.status != 0:
+            raise RuntimeError("the steps before the raise came out otherwise")
+        writer.append(chunk)
+        writer.save_state(integration.state(), wall_time_s=wall_s, kernel_time_s=kernel_s)
+    except Exception:   # noqa: BLE001 -- best effort: the run stops with the problem's own error either way
+        integration.restore(before_state)
+
+
+def _problem_raised(integration, step: int, t: float, err: BaseException, writer, resume_command,
                     problem_source=None) -> tuple[str, str]:
-    """A problem function raised inside the kernel: name the user's file, the step and the time."""
+    """A problem function raised inside the kernel, in step ``step`` from time t: name the
+    user's file, the step and the time."""
     problem = integration.problem
     source = getattr(problem, "source_file", None) or problem_source
     where = f"{source}" if source else f"problem {problem.name!r}"
-    progress = getattr(integration, "_progress", None)
-    try:
-        step = before + int(progress[0]) + 1 if progress is not None else before + 1
-    except (TypeError, ValueError, IndexError):
-        step = before + 1
-    t = integration.t
     text = " ".join(str(err).split()) or "(no message)"
     if len(text) > 200:
         text = text[:197] + "..."

@@ -599,7 +599,9 @@ def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_pa
     with h5py.File(path, "r") as f:          # closed cleanly at the last saved chunk
         assert f.attrs["status"] == "stopped: the problem raised ValueError: q is beyond the wall at step 50001 (t = 50)"
         saved = int(f["state/steps_done"][()])
-        assert 0 < saved < 50_000 and f["steps/iterations"].shape[0] == saved
+        # every step before the one that raised is kept (the kernel call that raised had done them:
+        # they are taken again and saved), not only those of the chunks written before it
+        assert saved == 50_000 and f["steps/iterations"].shape[0] == saved and f["y"].shape[0] == 51
     # the user's new file is compiled: the one line announcing it comes first, once per process
     errors = "".join(line for line in result.stderr.splitlines(keepends=True)
                      if not line.startswith("compiling Numba kernels"))
@@ -610,6 +612,11 @@ def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_pa
     drift_problem(tmp_path, FIXED)
     resumed = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
     assert resumed.exit_code == 0 and f"resumed at step {saved}" in resumed.stderr, resumed.output
+    fresh = CliRunner().invoke(cli, ["run", str(config), "-o", str(tmp_path / "fresh.h5"), "--quiet"])
+    assert fresh.exit_code == 0, fresh.output
+    with h5py.File(path, "r") as a, h5py.File(tmp_path / "fresh.h5", "r") as b:   # the steps kept are exact
+        np.testing.assert_array_equal(a["y"][:], b["y"][:])
+        np.testing.assert_array_equal(a["steps/iterations"][:], b["steps/iterations"][:])
 
 
 def test_a_sweep_run_whose_problem_raises_fails_alone(tmp_path):
