@@ -59,10 +59,15 @@ def load(path, run: str | None = None):
             alpha = multipliers
         else:   # as integrate: ELIM imposing nothing has alpha with no columns
             alpha = np.zeros((stored.steps_done, 0)) if elim_family else None
+        n_steps = int(stored.attrs.get("n_steps", spec.n_steps))
+        if n_steps == 0 and "step_control" in stored.attrs:
+            # an adaptive run's file has no step count set in advance (0); its Result, as integrate's,
+            # counts the steps taken
+            n_steps = stored.steps_done
         return Result(problem=spec.problem, method=spec.method, h=float(stored.attrs.get("h", spec.h)),
                       conserve=tuple(spec.conserve), t=t, y=y, invariants=invariants, alpha=alpha,
                       lam=multipliers if name == "lambda" else None, iterations=iterations, substeps=substeps,
-                      y_final=y_final, t_final=t_final, n_steps=int(stored.attrs.get("n_steps", spec.n_steps)),
+                      y_final=y_final, t_final=t_final, n_steps=n_steps,
                       steps_done=stored.steps_done, status=stored.status, solver=spec.solver,
                       y0=spec.problem.y0.copy(), t0=float(stored.attrs.get("t0", spec.t0)),
                       **_adaptive_parts(stored, spec))

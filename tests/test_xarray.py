@@ -192,3 +192,18 @@ def test_an_adaptive_result_in_xarray_has_its_steps_events_and_step_control():
     # a fixed-step result has none of these
     fixed = elimfast.integrate(p, methods.ehbvm(8, 4), 0.01, n_steps=10, conserve=CONSERVE).to_xarray()
     assert "step_h" not in fixed and "step_control" not in fixed.attrs
+
+
+def test_an_adaptive_run_file_loads_with_the_attributes_of_the_result_it_stores(tmp_path):
+    """elimfast.load(FILE).to_xarray() of an adaptive run has the attributes integrate's Result
+    gives: n_steps is the steps taken (the file's root says 0: no count was set in advance)."""
+    path = tmp_path / "adaptive.h5"
+    spec, outcome = run_file(path, ROOT / "configs" / "kepler_adaptive.yaml", ["integration.t_end=4*pi"])
+    assert outcome.status == "complete"
+    stored = elimfast.load(path)
+    direct = elimfast.integrate(spec.problem, spec.method, t_end=spec.t_end, rtol=spec.step_control.rtol,
+                                atol=spec.step_control.atol, conserve=spec.conserve, store_every=spec.output_every,
+                                events={"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1}})
+    assert stored.n_steps == stored.steps_done == direct.n_steps == direct.steps_done
+    mine, theirs = stored.to_xarray().attrs, direct.to_xarray().attrs
+    assert {key: str(mine[key]) for key in theirs} == {key: str(value) for key, value in theirs.items()}
