@@ -162,20 +162,30 @@ _ANNOUNCED = []   # the listener, once registered
 
 def announce_compilation():
     """Print one line on stderr when Numba starts compiling (a cache miss), at most once per
-    process: after an install, a change of elimfast or Numba, `elimfast cache clear --kernels`,
-    or a new problem from expressions or a Python file. Warm runs print nothing. Imports Numba."""
+    process and kind: elimfast's kernels (after an install, a change of elimfast or Numba,
+    `elimfast cache clear --kernels`), or the functions of a problem, an event or a time scale
+    from expressions or a Python file, which `elimfast cache warm` cannot compile ahead.
+    Warm runs print nothing. Imports Numba."""
     if _ANNOUNCED:
         return
     from numba.core import event
 
     class Announce(event.Listener):
-        said = False
+        said = set()
 
         def on_start(self, ev):
-            if not self.said:
-                self.said = True
+            dispatcher = (ev.data or {}).get("dispatcher") if isinstance(ev.data, dict) else None
+            module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
+            kind = "kernels" if module == "elimfast" or module.startswith("elimfast.") else "user"
+            if kind in self.said:
+                return
+            self.said.add(kind)
+            if kind == "kernels":
                 click.echo("compiling Numba kernels (once: later runs load them from the cache; "
                            "`elimfast cache warm` does it ahead) ...", err=True)
+            else:
+                click.echo("compiling the problem's own functions (once: later runs load them from the cache) ...",
+                           err=True)
 
         def on_end(self, ev):
             pass
