@@ -8,6 +8,22 @@ import numpy as np
 import yaml
 
 
+def _samples_end(run_file) -> str:
+    """' (t <= 3; the run ended at t = 30.14)' when the samples stop before the run's last
+    state (output times before a terminal event or before t_end): the figures do not cover
+    the end. Empty otherwise."""
+    if not run_file.n_samples:
+        return ""
+    clock = run_file.saved_state().get("clock")   # a run of a sweep file keeps no state
+    if clock is None:
+        return ""
+    times = run_file.t()
+    first, last, end = float(times[0]), float(times[-1]), float(clock[0])
+    if not abs(end - first) > abs(last - first) + 1e-12 * max(abs(end), 1.0):   # also backward in time
+        return ""
+    return f" (t <= {last:.10g}; the run ended at t = {end:.10g}, after the last sample)"
+
+
 def _fmt_time(seconds: float) -> str:
     if not math.isfinite(seconds):
         return "?"
@@ -214,6 +230,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
         rows.append(f"invariants   no figures: {why}, so no state after t0 to compare with I(t0)")
     else:
         span = " before the failure" if str(run_file.status).startswith("failed") else ""
+        span += _samples_end(run_file)
         when = reference_label(run_file)
         if when == "t0":
             rows.append(f"invariants   max |I(t) - I(t0)| over {run_file.n_samples} samples{span}, and relative to "

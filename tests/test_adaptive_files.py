@@ -167,6 +167,16 @@ def test_inspect_says_a_terminal_event_ended_the_run(tmp_path):
     status = next(line for line in report.output.splitlines() if line.startswith("status"))
     assert status.split(None, 1)[1] == f"complete (ended by a terminal event at t = {loaded.t_final:.10g})"
     assert abs(loaded.t_final - math.pi) < 1e-10
+    assert "after the last sample" not in report.output   # the event's state is the last sample
+    # output times that stop before the event: the invariant figures say that they do not reach the end
+    config["output"] = {"times": [1.0, 2.0, 50.0]}
+    result = CliRunner().invoke(cli, ["run", str(write_config(tmp_path, config)), "-o", str(out), "--quiet",
+                                      "--overwrite"])
+    assert result.exit_code == 0, result.output
+    report = CliRunner().invoke(cli, ["inspect", str(out)])
+    invariants = next(line for line in report.output.splitlines() if line.startswith("invariants"))
+    assert invariants.startswith(f"invariants   max |I(t) - I(t0)| over 2 samples (t <= 2; the run ended at "
+                                 f"t = {loaded.t_final:.10g}, after the last sample)"), invariants
 
 
 def test_fixed_step_run_with_events_keeps_its_steps(tmp_path):
