@@ -38,6 +38,8 @@ scales, ``component``, long_name and units).
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 
@@ -171,7 +173,7 @@ def problem_file_attributes(problem) -> dict:
 
     source = getattr(problem, "source_file", None)
     try:
-        return {PROBLEM_FILE_DIGEST: hashlib.sha256(open(source, "rb").read()).hexdigest()} if source else {}
+        return {PROBLEM_FILE_DIGEST: hashlib.sha256(Path(source).read_bytes()).hexdigest()} if source else {}
     except OSError:
         return {}
 
