@@ -393,7 +393,7 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
                 with kernel_call(stop):
                     chunk = integration.advance(fitting)
             except Exception as err:   # noqa: BLE001 -- a problem function raised inside the kernel
-                raised_at, t_raised = _steps_before_raise(integration), integration.t
+                raised_at, t_raised = steps_before_raise(integration), integration.t
                 kernel_s += time.perf_counter() - tick
                 if raised_at > 0:
                     _save_steps_before_raise(integration, before_state, raised_at, writer, stop,
@@ -491,7 +491,7 @@ def _write_failed(writer, err, resume_command) -> tuple[str, str]:
             f"before it are in the file; check the disk, then continue with: {_continue_with(resume_command)}")
 
 
-def _steps_before_raise(integration) -> int:
+def steps_before_raise(integration) -> int:
     """How many steps the kernel call that raised had completed (its progress counter)."""
     progress = getattr(integration, "_progress", None)
     try:

@@ -560,8 +560,8 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
         problem = spec.problem
         where = (getattr(problem, "source_file", None) or spec.resolved["problem"].get("python")
                  or f"problem {problem.name!r}")
-        progress = getattr(run, "_progress", None)
-        step = before + (int(progress[0]) if progress is not None else 0) + 1
+        from .streaming import steps_before_raise
+        step = before + steps_before_raise(run) + 1
         text = " ".join(str(error).split()) or "(no message)"
         outcome.wall_time = time.perf_counter() - start
         outcome.steps_done = before
