@@ -185,6 +185,33 @@ def test_event_directions_and_terminal_event():
     assert np.array_equal(stop.y_final, stop.events["apocentre"].y[0])
 
 
+@pytest.mark.parametrize("control", [{"h": 1.2, "t_end": 6.0}, {"rtol": 1e-2, "h": 1.2, "h_max": 1.2, "t_end": 6.0}])
+def test_the_earliest_terminal_event_of_a_step_ends_the_run_whatever_the_listing_order(control):
+    """q = cos t: q = 0.9 at t = acos 0.9 = 0.451 and q = 0.5 at pi/3, both inside the first
+    step of 1.2. The run ends at the earlier one, as listed first or last, and an event found
+    after it in the same step is not reported (it lies after the run's end); one before it is.
+    (The run ended at the terminal event listed first, at pi/3, and reported a non-terminal
+    one at pi/3 after a run that ended at 0.451.)"""
+    from elimfast.problems import harmonic_oscillator
+
+    p = harmonic_oscillator()
+    early = {"expression": "q - 0.9", "direction": -1}
+    late = {"expression": "q - 0.5", "direction": -1}
+    t_early = math.acos(0.9)
+    for events in ({"late": {**late, "terminal": True}, "early": {**early, "terminal": True}},
+                   {"early": {**early, "terminal": True}, "late": {**late, "terminal": True}},
+                   {"late": late, "early": {**early, "terminal": True}}):
+        r = elimfast.integrate(p, hbvm(4, 2), **control, events=events)
+        assert r.t_final == pytest.approx(t_early, abs=1e-4), list(events)
+        assert r.events["early"].t.size == 1 and r.events["late"].t.size == 0
+        assert r.stats["events"] == 1
+        assert np.array_equal(r.y_final, r.events["early"].y[0])
+    # a terminal event listed first, a non-terminal one before it in the same step: both reported
+    r = elimfast.integrate(p, hbvm(4, 2), **control, events={"late": {**late, "terminal": True}, "early": early})
+    assert r.t_final == pytest.approx(math.pi / 3, abs=1e-2)
+    assert r.events["early"].t.size == 1 and r.events["early"].t[0] == pytest.approx(t_early, abs=1e-4)
+
+
 def test_henon_heiles_section_agrees_with_an_independent_reference():
     """Crossings of q1 = 0 with p1 > 0, against a NumPy RK4 run with 1e-3 steps refined by
     bisection on its cubic Hermite interpolant (independent of every elimfast kernel)."""

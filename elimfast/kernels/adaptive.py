@@ -359,6 +359,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     scratch, hessian, integrals = np.empty((3, n)), np.empty((n, n)), np.empty((3, s + 1))
     scale_scratch = np.zeros((2, n + 1))
     g_old, g_new, g_side = np.empty(n_events), np.empty(n_events), np.empty(n_events)
+    terminal_y, terminal_comp = np.empty(n), np.empty(n)   # the earliest terminal event of a step
     poly_state = np.empty(n)
     side_diagnostics = np.empty(N_DIAGNOSTICS)
     order_exponent = 1.0 / (2.0 * s + 1.0)
@@ -520,7 +521,9 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
 
         # Events: a sign change of g over the step, located on the stage polynomial, then
         # refined by Newton steps whose values of g are taken at side steps. A terminal
-        # event ends the step, and the run, at the event.
+        # event ends the step, and the run, at the event: the earliest terminal one of the
+        # step, whatever the order the events are listed in, and the events found after it
+        # in the step are dropped (they happen after the run's end).
         h_end = h   # where this step ends for the samples below (a terminal event ends it early)
         _copy(y, y_end_state)   # the step's end, for side steps backwards from it
         _copy(y_comp, comp_end_state)
@@ -528,6 +531,8 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         if n_events > 0:
             events(y, params, g_new)
             terminal_hit = False
+            terminal_row = -1
+            first_row = n_found
             for e in range(n_events):
                 if not _crossed(event_direction[e], g_old[e], g_new[e]):
                     continue
@@ -581,16 +586,30 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                     event_y_out[n_found, p] = y_side[p]
                 n_found += 1
                 counters[CNT_EVENTS] += 1
-                if event_terminal[e] != 0:
+                if event_terminal[e] != 0 and (not terminal_hit or event_t_out[n_found - 1] < clock[0]):
                     terminal_hit = True
-                    _copy(y_side, y)
-                    _copy(side_comp, y_comp)
+                    terminal_row = n_found - 1
+                    _copy(y_side, terminal_y)
+                    _copy(side_comp, terminal_comp)
                     clock[0] = event_t_out[n_found - 1]
-                    clock[1] = 0.0
                     h_end = tau * h
-                    step_t[step - 1] = clock[0]
-                    step_h[step - 1] = h_end
-                    break
+            if terminal_hit:
+                _copy(terminal_y, y)
+                _copy(terminal_comp, y_comp)
+                clock[1] = 0.0
+                step_t[step - 1] = clock[0]
+                step_h[step - 1] = h_end
+                kept = first_row
+                for row in range(first_row, n_found):
+                    if row == terminal_row or event_t_out[row] <= clock[0]:
+                        if kept != row:
+                            event_out[kept] = event_out[row]
+                            event_t_out[kept] = event_t_out[row]
+                            for p in range(n):
+                                event_y_out[kept, p] = event_y_out[row, p]
+                        kept += 1
+                counters[CNT_EVENTS] -= n_found - kept
+                n_found = kept
             for e in range(n_events):
                 g_old[e] = g_new[e]
             if terminal_hit:
