@@ -620,14 +620,15 @@ class _Builder:
             config = _read_validated(key)
             if config is not None:
                 return config
-        from .config_schema import RunConfig, ValidationError, config_location, sections
+        from .config_schema import RunConfig, ValidationError, config_location, member_mismatch, sections
         try:
             config = sections(RunConfig.model_validate(data))
         except ValidationError as err:
             # An unknown key first: a misspelt section (methd:) also makes its section missing,
-            # and the misspelling is the thing to fix.
-            errors = sorted(({**e, "loc": config_location(e["loc"])} for e in err.errors()),
-                            key=lambda e: e["type"] != "extra_forbidden")
+            # and the misspelling is the thing to fix. A union member the value is not of last.
+            errors = sorted(({**e, "loc": config_location(e["loc"]), "mismatch": member_mismatch(e)}
+                             for e in err.errors()),
+                            key=lambda e: (e["type"] != "extra_forbidden", e["mismatch"]))
             messages = tuple(self.message(e["loc"], self.describe(e)) for e in errors)
             raise ConfigError(messages[0], messages=messages, key=_join(errors[0]["loc"]),
                               line=self.line_of(errors[0]["loc"])) from None

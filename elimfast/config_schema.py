@@ -152,6 +152,17 @@ def config_location(location: tuple) -> tuple:
     return tuple(part for part in location if not (isinstance(part, str) and (part in members or "[" in part)))
 
 
+def member_mismatch(error: dict) -> bool:
+    """A pydantic error that only says the value is not of one member's type of a union
+    (output.times given as a list: not a TimesSection). When the value fits another member,
+    that member's error (output.times[1]: 'foo' is not a number) is the one to report; it
+    was reported as 'must be a mapping'."""
+    location = error["loc"]
+    members = {model.__name__ for model in SECTIONS.values()}
+    return (error["type"] in ("model_type", "model_attributes_type", "dict_type", "list_type") and bool(location)
+            and isinstance(location[-1], str) and (location[-1] in members or "[" in location[-1]))
+
+
 def sections(value):
     """A validated model as config.Section objects (plain data, no pydantic): each model a
     Section of its fields in declaration order, dicts and lists copied, scalars as they are."""

@@ -378,11 +378,14 @@ def test_every_schema_error_of_a_file_names_a_line(tmp_path):
 @pytest.mark.parametrize("times,key,match", [
     ({"step": 0.5}, "output.times.start", "missing"),
     ({"start": 0, "stop": 10, "stepp": 1}, "output.times.stepp", r"unknown key; did you mean 'step'\?"),
-], ids=["missing start", "misspelt step"])
+    ([0.5, "x"], "output.times[1]", r"'x' is not a number"),
+    ([0.5, float("nan")], "output.times[1]", "must be finite"),
+], ids=["missing start", "misspelt step", "list item not a number", "list item nan"])
 def test_output_times_errors_name_the_key_as_written_in_the_config(tmp_path, times, key, match):
     """A mapping of output.times was reported as output.times.TimesSection.start, the name
-    of pydantic's model in the key path, and a misspelt key in it as 'unknown key; remove it'."""
-    path = write(tmp_path, LINED + "  times: " + json.dumps(times) + "\n")
+    of pydantic's model in the key path, and a misspelt key in it as 'unknown key; remove it';
+    a list with an item that is no number as 'output.times: must be a mapping (key: value)'."""
+    path = write(tmp_path, LINED + "  times: " + json.dumps(times).replace("NaN", ".nan") + "\n")
     with pytest.raises(ConfigError) as info:
         load_run(path)
     assert info.value.key == key and re.search(match, str(info.value)), str(info.value)
