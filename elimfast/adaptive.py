@@ -166,8 +166,12 @@ def resolve_span(t0: float, t_end, n_steps=None) -> float:
     return t_end
 
 
-def resolve_t_eval(times, t0: float, t_end: float) -> np.ndarray:
-    """Requested output times: 1 to MAX_OUTPUT_TIMES finite, strictly increasing times in [t0, t_end]."""
+def resolve_t_eval(times, t0: float, t_end: float, store_every: int = 1) -> np.ndarray:
+    """Requested output times: 1 to MAX_OUTPUT_TIMES finite, strictly increasing times in [t0, t_end].
+    They are the samples, so a store_every other than 1 (output.every) is refused: it was ignored."""
+    if store_every != 1:
+        raise ParameterError("store_every", f"does not apply with output times (t_eval, output.times), which "
+                                            f"are the samples; remove one of the two, or make it 1 (got {store_every})")
     values = np.asarray(times, dtype=np.float64).ravel()
     if values.size == 0 or values.size > MAX_OUTPUT_TIMES:
         raise ParameterError("t_eval", f"must list 1 to {MAX_OUTPUT_TIMES} times")

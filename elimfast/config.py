@@ -572,7 +572,7 @@ class _Builder:
                 t_end = integration.t_end if integration.t_end is not None else t0 + n_steps * h
             every = resolve_store_every(config.output.every)
             method.require_imposable(len(config.conserve))
-            t_eval = self.output_times(config.output.times, t0, t_end)
+            t_eval = self.output_times(config.output.times, t0, t_end, every)
         except ParameterError as err:
             raise self.parameter_error(err) from None
         solver = self.solver(config.solver)
@@ -643,8 +643,9 @@ class _Builder:
                            atol=integration.atol, epsilon=integration.epsilon, verify=integration.verify,
                            h=integration.h, h_max=integration.h_max)
 
-    def output_times(self, times, t0: float, t_end: float):
-        """output.times: a list, or {start, stop, step} / {start, stop, n}; None when absent."""
+    def output_times(self, times, t0: float, t_end: float, every: int = 1):
+        """output.times: a list, or {start, stop, step} / {start, stop, n}; None when absent
+        (every: output.every, which output times leave no say)."""
         import numpy as np
 
         if times is None:
@@ -668,7 +669,7 @@ class _Builder:
                 if not 1 <= count <= MAX_OUTPUT_TIMES:
                     raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")
                 values = times.start + times.step * np.arange(count)
-        return resolve_t_eval(values, t0, t_end)
+        return resolve_t_eval(values, t0, t_end, every)
 
     @staticmethod
     def times_record(times, t_eval) -> list | dict:

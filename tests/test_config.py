@@ -392,6 +392,20 @@ def test_output_times_errors_name_the_key_as_written_in_the_config(tmp_path, tim
     assert "TimesSection" not in str(info.value) and "\n" not in str(info.value)
 
 
+def test_output_every_with_output_times_is_refused_not_ignored(tmp_path):
+    """The samples are the output times; output.every was silently ignored beside them."""
+    path = write(tmp_path, LINED.replace("every: 10", "every: 5") + "  times: {start: 0, stop: 10, step: 1}\n")
+    with pytest.raises(ConfigError) as info:
+        load_run(path)
+    assert info.value.key == "output.every", str(info.value)
+    assert re.search(r":\d+: output\.every: does not apply with output times .*remove one of the two, or make "
+                     r"it 1 \(got 5\)$", str(info.value)), str(info.value)
+    load_run(write(tmp_path, LINED.replace("every: 10", "every: 1") + "  times: {start: 0, stop: 10, step: 1}\n"))
+    with pytest.raises(elimfast.errors.ParameterError, match="store_every does not apply with output times"):
+        elimfast.integrate(problems.kepler(0.6), elimfast.methods.ehbvm(8, 4), h=0.1, t_end=1.0, t_eval=[0.5],
+                           store_every=5)
+
+
 def test_an_override_error_names_the_set_option_not_a_line(tmp_path):
     path = write(tmp_path, LINED)
     cases = [
@@ -417,7 +431,8 @@ def test_an_override_error_names_the_set_option_not_a_line(tmp_path):
     # several below it: each is named (the error may come from any: here stop; a user trial saw only start)
     adaptive = CONFIGS / "kepler_adaptive.yaml"
     with pytest.raises(ConfigError) as info:
-        load_run(adaptive, overrides=["output.times.start=0", "output.times.stop=2000", "output.times.step=1"])
+        load_run(adaptive, overrides=["output.every=1", "output.times.start=0", "output.times.stop=2000",
+                                      "output.times.step=1"])
     assert str(info.value).endswith("(with --set output.times.start=0, --set output.times.stop=2000, "
                                     "--set output.times.step=1)")
     # An override elsewhere leaves the file's lines in place
