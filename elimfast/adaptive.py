@@ -238,6 +238,12 @@ class EventSpec:
         return cls(tuple(names), tuple(expressions), np.array(directions, dtype=np.int64),
                    np.array(terminal, dtype=np.int64), function)
 
+    def definitions(self) -> dict:
+        """{name: {"expression", "direction", "terminal"}}, as a config's events section."""
+        return {name: {"expression": expression, "direction": int(direction), "terminal": bool(terminal)}
+                for name, expression, direction, terminal in zip(self.names, self.expressions, self.directions,
+                                                                 self.terminal)}
+
 
 @dataclass
 class EventRecord:

@@ -207,3 +207,23 @@ def test_an_adaptive_run_file_loads_with_the_attributes_of_the_result_it_stores(
     assert stored.n_steps == stored.steps_done == direct.n_steps == direct.steps_done
     mine, theirs = stored.to_xarray().attrs, direct.to_xarray().attrs
     assert {key: str(mine[key]) for key in theirs} == {key: str(value) for key, value in theirs.items()}
+
+
+
+def test_an_event_group_says_what_it_found(tmp_path):
+    """/events/<name> carries its definition: expression, direction, terminal (before, only the
+    root's config text had it)."""
+    config = tmp_path / "solar.yaml"
+    config.write_text("problem: {builtin: nbody}\nmethod: {name: hbvm, s: 3}\n"
+                      "integration: {rtol: 1e-8, atol: 1e-12, t_end: 5000}\n"
+                      "events: {jupiter: {expression: 'jupiter_y - sun_y', direction: 0}}\n")
+    path = tmp_path / "solar.h5"
+    assert run_file(path, config=config)[1].status == "complete"
+    with h5py.File(path, "r") as f:
+        definition = dict(f["events/jupiter"].attrs)
+        assert (definition["expression"], int(definition["direction"]), bool(definition["terminal"])) == \
+            ("jupiter_y - sun_y", 0, False)
+        assert f["events/jupiter/t"].shape[0] >= 1
+    with xr.open_dataset(path, engine="h5netcdf", group="events/jupiter") as ds:
+        assert ds.attrs["expression"] == "jupiter_y - sun_y"
+

@@ -298,7 +298,7 @@ def unit_attributes(problem) -> dict:
 
 # --- the run group ------------------------------------------------------------------------------
 def create_run_group(group, *, problem, method, conserve, n_multipliers: int, multiplier: str | None,
-                     attributes: dict, adaptive_steps: bool = False, event_names=(), scales=None,
+                     attributes: dict, adaptive_steps: bool = False, events=None, scales=None,
                      values_at_t0=None) -> dict:
     """Create the layout of a run in ``group`` (the module doc) with its attributes; return
     the growing datasets {"t", "y", "invariants": [H, ...], "iterations", "substeps",
@@ -307,7 +307,9 @@ def create_run_group(group, *, problem, method, conserve, n_multipliers: int, mu
     {name: the size of the invariant's terms at t0} (Problem.invariant_scales), stored as each
     invariant's attribute ``scale``, the reference of its relative error where I(t0) ~ 0.
     values_at_t0: {name: I(t0) of the initial state} (Problem.invariant_values), stored as
-    ``value_at_t0``, the reference of the invariant errors (output times may start after t0)."""
+    ``value_at_t0``, the reference of the invariant errors (output times may start after t0).
+    events: {name: {"expression", "direction", "terminal"}}, a group /events/<name> for each,
+    with the definition as its attributes (so that the group says what it found)."""
     units = dict(getattr(problem, "units", {}) or {})
     _set_attributes(group, {**attributes, **unit_attributes(problem)})
     names = list(problem.coordinate_names)
@@ -361,12 +363,16 @@ def create_run_group(group, *, problem, method, conserve, n_multipliers: int, mu
             attach(dataset, step)
             label(dataset, LONG_NAMES[f"step_{name}"], units.get("time"))
             datasets[f"step_{name}"] = dataset
-    if event_names:
-        events = group.create_group("events")
-        _set_attributes(events, {"order": list(event_names)})
+    if events:
+        events_group = group.create_group("events")
+        _set_attributes(events_group, {"order": list(events)})
         datasets["events"] = []
-        for name in event_names:
-            event = events.create_group(name)
+        for name, definition in events.items():
+            event = events_group.create_group(name)
+            if definition:
+                _set_attributes(event, {"expression": str(definition.get("expression", "")),
+                                        "direction": int(definition.get("direction", 0)),
+                                        "terminal": bool(definition.get("terminal", False))})
             occurrence = dimension(event, "occurrence")
             event_t = _growing(event, "t", None, "f8")
             event_y = _growing(event, "y", len(names), "f8")

@@ -400,7 +400,7 @@ class RunWriter:
             adaptive = getattr(run, "adaptive_kernel", False)
             datasets = create_run_group(f, problem=problem, method=method, conserve=run.conserve,
                                         n_multipliers=run.multipliers.size, multiplier=mult,
-                                        adaptive_steps=adaptive, event_names=run.event_names if adaptive else (),
+                                        adaptive_steps=adaptive, events=run.events.definitions() if adaptive else {},
                                         scales=problem.invariant_scales(run.y),
                                         values_at_t0=problem.invariant_values(run.y), attributes={
                 # with_initial: a run started from a y0 of its own (Integration(y0=...)) says so too

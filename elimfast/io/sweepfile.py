@@ -282,7 +282,8 @@ class SweepWriter:
         datasets = create_run_group(group, problem=result.problem, method=result.method, conserve=result.conserve,
                                     n_multipliers=0 if multipliers is None else multipliers.shape[1],
                                     multiplier=name, adaptive_steps=result.step_h is not None,
-                                    event_names=tuple(result.events), scales=result.invariant_scales(),
+                                    events={event: (resolved.get("events") or {}).get(event) or {}
+                                            for event in result.events}, scales=result.invariant_scales(),
                                     values_at_t0=result.initial_invariants(), attributes={
             **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=n_steps,
                                            t_end=t_end, output_every=int(output.get("every", 1)),
