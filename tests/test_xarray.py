@@ -227,3 +227,12 @@ def test_an_event_group_says_what_it_found(tmp_path):
     with xr.open_dataset(path, engine="h5netcdf", group="events/jupiter") as ds:
         assert ds.attrs["expression"] == "jupiter_y - sun_y"
 
+
+def test_step_and_event_times_in_xarray_have_the_time_unit_of_the_run_file():
+    """Result.to_xarray gives step_t, step_h and the event times the unit a run file gives
+    /steps/t, /steps/h and /events/<name>/t (they had none; only t had 'day')."""
+    r = elimfast.integrate(problems.nbody(), methods.hbvm(6, 3), t_end=5000.0, rtol=1e-8, atol=1e-12,
+                           events={"jupiter": {"expression": "jupiter_y - sun_y"}})
+    ds = r.to_xarray()
+    assert ds["jupiter_t"].size >= 1
+    assert {ds[name].attrs.get("units") for name in ("t", "step_t", "step_h", "jupiter_t")} == {"day"}

@@ -21,7 +21,8 @@ def result_dataset(result):
     except ImportError:
         raise ImportError("Result.to_xarray needs xarray: pip install xarray") from None
     units = dict(getattr(result.problem, "units", {}) or {})
-    time_attrs = {"long_name": LONG_NAMES["t"], **({"units": units["time"]} if "time" in units else {})}
+    time_unit = {"units": units["time"]} if "time" in units else {}   # as a run file: t, step_t, step_h, events
+    time_attrs = {"long_name": LONG_NAMES["t"], **time_unit}
     coords = {"t": ("t", np.asarray(result.t), time_attrs),
               "component": ("component", np.array(result.problem.coordinate_names, dtype=object),
                             {"long_name": LONG_NAMES["component"]})}
@@ -40,11 +41,11 @@ def result_dataset(result):
             coords["invariant"] = ("invariant", np.array(columns, dtype=object), {"long_name": LONG_NAMES["invariant"]})
             data[name] = (("step", "invariant"), np.asarray(values[:done]), {"long_name": LONG_NAMES[name]})
     if result.step_t is not None:
-        data["step_t"] = ("step", np.asarray(result.step_t[:done]), {"long_name": LONG_NAMES["step_t"]})
-        data["step_h"] = ("step", np.asarray(result.step_h[:done]), {"long_name": LONG_NAMES["step_h"]})
+        data["step_t"] = ("step", np.asarray(result.step_t[:done]), {"long_name": LONG_NAMES["step_t"], **time_unit})
+        data["step_h"] = ("step", np.asarray(result.step_h[:done]), {"long_name": LONG_NAMES["step_h"], **time_unit})
     for name, record in result.events.items():
         occurrence = f"{name}_occurrence"
-        data[f"{name}_t"] = (occurrence, np.asarray(record.t), {"long_name": f"time of event {name}"})
+        data[f"{name}_t"] = (occurrence, np.asarray(record.t), {"long_name": f"time of event {name}", **time_unit})
         data[f"{name}_y"] = ((occurrence, "component"), np.asarray(record.y), {"long_name": f"state at event {name}"})
     attrs = {"problem": result.problem.name, "method": result.method.name, "h": float(result.h),
              "conserve": list(result.conserve), "n_steps": int(result.n_steps), "steps_done": int(done),
