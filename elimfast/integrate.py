@@ -60,12 +60,12 @@ _FAILURE_ADVICE = {
 }
 # Adaptive runs choose h themselves: the step control has shrunk it already.
 _ADAPTIVE_FAILURE_ADVICE = {
-    codes.STATUS_NOT_CONVERGED: ("the step control found no step that converges; raise solver.max_iter, or use "
-                                 "a lower s (docs/adaptive.md measures s <= 6)"),
+    codes.STATUS_NOT_CONVERGED: "the step control found no step that converges; raise solver.max_iter",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
-                            "impose fewer or other invariants, or use a lower s (docs/adaptive.md measures s <= 6)"),
+                            "impose fewer or other invariants"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
 }
+ADAPTIVE_MEASURED_S = 6   # docs/adaptive.md: the range of s measured for adaptive runs; above it, advise a lower s
 # A solve that stalls with cond(Gamma) above this is blamed on Gamma, not on h (failure_message).
 # Measured: well-posed steps have cond(Gamma) 8-30, up to 4e3 next to a pericentre; Kepler's L with A_x
 # (gradients dependent at the apsides) stalled at 6e8.
@@ -691,6 +691,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
+    if adaptive and status != codes.STATUS_NONFINITE and method.s > ADAPTIVE_MEASURED_S:
+        # at s <= 6 a lower s was advice that did not help (LIM(6,6,3) imposing L, A_x, A_y: singular at t0)
+        advice += f", or use a lower s (docs/adaptive.md measures s <= {ADAPTIVE_MEASURED_S})"
     if status == codes.STATUS_NOT_CONVERGED and d[stepper.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA and depth > 0:
         # Still nearly singular after halving: not a step symmetric about a pericentre (docs/solver.md),
         # whose halves are well-conditioned.

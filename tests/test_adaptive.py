@@ -534,3 +534,17 @@ def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
     with pytest.raises(ConvergenceError) as fixed:
         elimfast.integrate(kepler(0.6), ehbvm(20, 10), 0.3, n_steps=1000, conserve=(L1, AY))
     assert "change h" in str(fixed.value)
+
+
+def test_a_failed_adaptive_run_within_the_measured_s_is_not_told_to_lower_s():
+    """H, L, A_x and A_y are dependent (|A|^2 = 1 + 2 H L^2): LIM(6,6,3) imposing all three
+    fails at its first step with a singular Gamma. The advice is to impose other invariants;
+    'or use a lower s (docs/adaptive.md measures s <= 6)' was added for s = 3 as well, where
+    no lower s helps."""
+    from elimfast.errors import ConvergenceError
+    from elimfast.methods import lim
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(kepler(0.9), lim(6, 6, 3), t_end=1.0, rtol=1e-12, conserve=(L1, AX, AY))
+    message = str(failed.value)
+    assert message.endswith("impose fewer or other invariants"), message
+    assert "lower s" not in message, message
