@@ -143,3 +143,29 @@ def test_readmes_first_cli_command_works_after_make_run(tmp_path, monkeypatch):
     again = invoke(*readme_arguments, "--quiet", *quick)
     assert again.exit_code == 0, again.stderr
     assert os.path.getsize("out/kepler.h5") > 0
+
+
+def test_every_dotted_elimfast_name_in_the_docs_exists():
+    """Each `elimfast.a.b` that README.md and docs/*.md name resolves as a user's code would
+    reach it: `import elimfast.a` then attribute access. docs/solver.md said
+    `solver=elimfast.integrate.SolverSettings(...)`, but elimfast.integrate is the function."""
+    import importlib
+    import types
+    texts = [(ROOT / "README.md").read_text()] + [path.read_text() for path in sorted((ROOT / "docs").glob("*.md"))]
+    names = sorted({m.group(0) for text in texts for m in re.finditer(r"\belimfast(\.[A-Za-z_]\w*)+", text)})
+    assert "elimfast.sweep.run" in names
+    missing = []
+    for name in names:
+        parts = name.split(".")
+        value = importlib.import_module(parts[0])
+        for depth, part in enumerate(parts[1:], start=1):
+            if not hasattr(value, part) and isinstance(value, types.ModuleType):
+                try:
+                    importlib.import_module(".".join(parts[:depth + 1]))   # import elimfast.sweep
+                except ImportError:
+                    pass
+            if not hasattr(value, part):
+                missing.append(name)
+                break
+            value = getattr(value, part)
+    assert not missing, missing
