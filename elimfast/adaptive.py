@@ -213,6 +213,12 @@ class EventSpec:
         for name, entry in events.items():
             if not isinstance(name, str) or not name.isidentifier():
                 raise ParameterError("events", f"event names must be identifiers, got {name!r}")
+            # Result.to_xarray names an event's times and states <name>_t and <name>_y, beside
+            # the step times step_t, step_h and the invariants: an event 'step' replaced step_t
+            taken = {f"{name}_t", f"{name}_y"} & {"step_t", *problem.invariant_names}
+            if taken:
+                raise ParameterError(f"events.{name}", f"its times or states would be {min(taken)}, the name of "
+                                                       "other data of the run in xarray; give the event another name")
             if isinstance(entry, str):
                 entry = {"expression": entry}
             if not isinstance(entry, Mapping) or "expression" not in entry:

@@ -236,3 +236,15 @@ def test_step_and_event_times_in_xarray_have_the_time_unit_of_the_run_file():
     ds = r.to_xarray()
     assert ds["jupiter_t"].size >= 1
     assert {ds[name].attrs.get("units") for name in ("t", "step_t", "step_h", "jupiter_t")} == {"day"}
+
+
+def test_an_event_whose_xarray_names_are_taken_is_refused():
+    """Result.to_xarray names an event's times <name>_t: an event 'step' silently replaced the
+    steps' end times step_t with its own (on step_occurrence)."""
+    from elimfast.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"^events\.step .*step_t, the name of other data of the run"):
+        elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=1.0, rtol=1e-10,
+                           events={"step": {"expression": "q2"}})
+    r = elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=1.0, rtol=1e-10,
+                           events={"steps": {"expression": "q2"}})
+    assert r.to_xarray()["step_t"].dims == ("step",)
