@@ -278,6 +278,12 @@ class Result:
         """How many steps were split into substeps (docs/solver.md#when-a-step-fails-retry-then-split)."""
         return int(np.count_nonzero(self.substeps > 1))
 
+    @property
+    def unimposed_steps(self) -> int:
+        """How many steps had a substep taken without imposing the invariants, which kept them to
+        round-off (their alpha is NaN; docs/solver.md#a-substep-without-imposing)."""
+        return 0 if self.alpha is None else int(np.count_nonzero(np.isnan(self.alpha).any(axis=1)))
+
     def energy_warning(self) -> str | None:
         """A note when H or an imposed invariant drifts above round-off (k or r too small for
         the steps, energy_note), else None."""

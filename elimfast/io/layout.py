@@ -426,3 +426,23 @@ def component_names(group) -> list[str]:
     if "component" in group:
         return [str(name) for name in _plain(group["component"][()])]
     return [str(name) for name in _plain(group["y"].attrs.get("coordinates", []))]
+
+
+INITIAL_GIVEN = "problem.initial"   # attribute initial_state: the state given, not the problem's default
+INITIAL_DEFAULT = "default"
+
+
+def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end: float | None,
+                   output_every: int, conserve) -> dict:
+    """The attributes that describe a run, alike in a run file and in each run of a sweep file.
+    ``initial_state``: where y0 came from, 'problem.initial' when it replaced the problem's
+    default state (Problem.initial_given: the parameters that chose the default then do not
+    describe the orbit), else 'default' (files written before it: absent)."""
+    return {"problem": problem.name,
+            "initial_state": INITIAL_GIVEN if getattr(problem, "initial_given", False) else INITIAL_DEFAULT,
+            "method": method.name, "family": method.family, "r": method.r, "k": method.k,
+            "s": method.s, "h": float(h), "t0": float(t0),
+            "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
+            # 0: not known in advance (adaptive steps, docs/adaptive.md)
+            "n_steps": int(n_steps) if n_steps is not None else 0, "output_every": int(output_every),
+            "conserve": list(conserve)}
