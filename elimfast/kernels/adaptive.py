@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK
+from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_TIME_SCALE
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
@@ -77,6 +77,9 @@ SAFETY = 0.9
 MIN_FACTOR = 0.2
 MAX_FACTOR = 2.0
 MAX_CONSECUTIVE_FAILURES = 40      # halvings of one step before the run fails
+# A time-reversible step below this times |t| (or |t_end|) no longer advances the clock: sigma has
+# collapsed (STATUS_TIME_SCALE).
+COLLAPSED_STEP = 4.0 * 2.0 ** -52
 # The solver's convergence limits the step too (docs/adaptive.md#controller): an accepted step
 # whose solve took more than this fraction of max_iter iterations makes the next one smaller
 # (SLOW_SOLVE_FACTOR), more than NO_GROWTH_FRACTION keeps it from growing. At loose
@@ -392,6 +395,17 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         remaining = (t_end - clock[0]) - clock[1]
         if control == CONTROL_TIME_SCALE:
             h = epsilon / control_state[CS_RHO]
+            if not (h > COLLAPSED_STEP * max(abs(clock[0]), abs(t_end))):   # also NaN and h <= 0
+                # sigma reached zero (or left the positive numbers) along the orbit: the steps
+                # collapse, and the solver would fail on a step of 1e-300 blaming Gamma or NaN.
+                sigma, _ = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
+                status = STATUS_TIME_SCALE
+                diagnostics[DIAG_TIME] = clock[0]
+                diagnostics[DIAG_STEP] = h
+                diagnostics[DIAG_INCREMENT] = sigma   # for this status: sigma(y) (integrate.failure_message)
+                diagnostics[DIAG_DEPTH] = 0
+                diagnostics[DIAG_ITERATIONS] = 0
+                break
         else:
             h = control_state[CS_H_NEXT]
         h = min(h, h_max)

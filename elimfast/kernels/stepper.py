@@ -28,7 +28,7 @@ from .maps import EPS, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
-from .solver import newton_factor, solve
+from .solver import NEARLY_SINGULAR_GAMMA, newton_factor, solve
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 # First-class function types are the documented way to pass functions to cached
@@ -361,8 +361,10 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     unextrapolated guess, then split into halves, recursively to settings.max_halvings
     levels (a failed half is split again; the other half is tried whole). A substep of ELIM
     that fails at the deepest level is, when last_resort (the caller will not retry the step
-    itself) and max_halvings > 0, taken without imposing the invariants if that keeps them to
-    rounding (_attempt_unimposed); work.info[5] counts such substeps of the step. The clock
+    itself), max_halvings > 0 and cond(Gamma) <= NEARLY_SINGULAR_GAMMA (above it the imposed
+    invariants themselves are degenerate there, and the run stops with that message), taken
+    without imposing the invariants if that keeps them to rounding (_attempt_unimposed);
+    work.info[5] counts such substeps of the step. The clock
     advances by h in one compensated addition whether or not the step was split.
 
     Returns (status, iterations, substeps). On failure nothing is applied: y, y_comp,
@@ -391,7 +393,8 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                 y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
         iterations += used
-        if status != STATUS_OK and depth >= settings.max_halvings and may_leave_unimposed:
+        if (status != STATUS_OK and depth >= settings.max_halvings and may_leave_unimposed
+                and work.info[1] <= NEARLY_SINGULAR_GAMMA):
             # The failure's diagnostics stay those of the imposed solve.
             increment, condition = work.info[0], work.info[1]
             unimposed_status, unimposed_used = _attempt_unimposed(
