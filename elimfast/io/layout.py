@@ -15,7 +15,8 @@ fletcher32 filter, and extended as the run goes:
                                                 H has both too; absent in files written before it)
     steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
     steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split
-    steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
+    steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants (NaN: a substep
+                                                taken without imposing them, docs/solver.md)
     steps/lambda           (steps_done, nu+1)   LIM/GHBVM (H first, then the imposed invariants)
     steps/invariant        (nu or nu+1,)        which invariant each multiplier column belongs to
     method/A, b, c         the Runge-Kutta form (all but LIM/GHBVM; for ELIM/EHBVM the
@@ -75,7 +76,8 @@ STOPPED_PREFIX = "stopped: "
 DIMENSION_ONLY = "This is a netCDF dimension but not a netCDF variable.%10d"
 LONG_NAMES = {"t": "time", "component": "state component (positions q, then momenta p)",
               "y": "state y = (q, p)", "H": "Hamiltonian (energy)", "iterations": "solver iterations per step",
-              "substeps": "substeps per step (1: not split)", "alpha": "ELIM multiplier alpha per step",
+              "substeps": "substeps per step (1: not split)",
+              "alpha": "ELIM multiplier alpha per step (NaN: a substep not imposed)",
               "lambda": "LIM multiplier lambda per step", "invariant": "invariant of each multiplier column",
               "step_t": "time at the end of each step", "step_h": "size of each step"}
 
