@@ -44,10 +44,10 @@ def _listed(values: dict) -> str:
 
 def _problem_text(run_file) -> str:
     """The problem row: its name and parameters; when the state was given in place of the
-    problem's default (attribute initial_state, runfile.run_attributes), that it comes from
+    problem's default (attribute initial_state, layout.run_attributes), that it comes from
     problem.initial and what it is, so that parameters which only chose the default state
     (kepler's eccentricity) are not read as describing the orbit."""
-    from elimfast.io.runfile import INITIAL_GIVEN
+    from elimfast.io.layout import INITIAL_GIVEN
 
     attrs = run_file.attrs
     problem = config_of(run_file).get("problem")
@@ -109,10 +109,19 @@ def run_notes(run_file) -> list[str]:
     if substeps["split"]:
         notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
                      "solver could not converge them whole; every invariant is kept there too")
+    if substeps.get("unimposed"):
+        notes.append(unimposed_text(substeps["unimposed"]))
     warning = energy_note(run_file)
     if warning:
         notes.append(warning)
     return notes
+
+
+def unimposed_text(count: int) -> str:
+    """What a run's steps with a substep taken without imposing the invariants mean (docs/solver.md)."""
+    return (f"{count:,} step(s) had a substep the solver could not converge even after the last halving, "
+            "taken without imposing the invariants because that kept them to round-off (their alpha is NaN; "
+            "docs/solver.md#a-substep-without-imposing)")
 
 
 def adaptive_text(settings) -> str:
@@ -268,6 +277,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
+    if substeps.get("unimposed"):
+        row("", unimposed_text(substeps["unimposed"]))
     warning = energy_note(run_file)
     if warning:
         row("note", warning)

@@ -33,6 +33,18 @@ EVENT_DIRECTIONS = (-1, 0, 1)
 CHEAP_ESTIMATE_MAX_S = 5
 
 
+def time_scale_at(problem: Problem, y) -> float:
+    """sigma(y) of a problem's time scale (docs/adaptive.md); NaN where it raises an ArithmeticError."""
+    y = np.array(y, dtype=np.float64)   # writable, C-contiguous
+    out = np.full(y.size + 1, np.nan)   # sigma, then its gradient
+    with np.errstate(all="ignore"):
+        try:
+            problem.time_scale(y, problem.params, out)
+        except ArithmeticError:
+            pass
+    return float(out[0])
+
+
 @dataclass(frozen=True)
 class StepControl:
     """How the step size is chosen (docs/adaptive.md).
@@ -130,14 +142,9 @@ class StepControl:
         first step with a message about Gamma."""
         if self.controller == "time_scale" and problem.time_scale is not None:
             y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)   # writable, C-contiguous
-            out = np.full(y.size + 1, np.nan)   # sigma, then its gradient
-            with np.errstate(all="ignore"):
-                try:
-                    problem.time_scale(y, problem.params, out)
-                except ArithmeticError:
-                    pass
-            if not (math.isfinite(out[0]) and out[0] > 0.0):
-                raise ParameterError("time_scale", f"is {float(out[0])!r} at the initial state {y.tolist()}; it must be "
+            sigma = time_scale_at(problem, y)
+            if not (math.isfinite(sigma) and sigma > 0.0):
+                raise ParameterError("time_scale", f"is {sigma!r} at the initial state {y.tolist()}; it must be "
                                                    "positive and finite along the orbit (the steps are epsilon times "
                                                    "it), e.g. a positive power of a distance")
         if self.controller == "time_scale" and problem.time_scale is None:
@@ -453,9 +460,18 @@ class AdaptiveIntegration:
 
     def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message
-        return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
-                               float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics,
-                               adaptive=self.control is not None, run_file=run_file)
+        message = failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
+                                  float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics,
+                                  adaptive=self.control is not None, run_file=run_file)
+        if self.control is not None and self.control.controller == "time_scale" \
+                and self.status != codes.STATUS_TIME_SCALE:
+            # The steps are epsilon sigma(y): a sigma that nears zero along the orbit makes them collapse
+            # until some solve fails, with a message about the solver or Gamma (a time scale q1 on an orbit
+            # crossing q1 = 0 failed at h = 2.6e-10 with "Assumption 1 fails"). The figures show it.
+            message += (f" (time scale sigma(y) = {time_scale_at(self.problem, self.y):.3g} there, "
+                        f"{time_scale_at(self.problem, self.y0):.3g} at t0: steps are epsilon sigma; a sigma "
+                        "that nears zero along the orbit makes them collapse)")
+        return message
 
     @property
     def t(self) -> float:

@@ -16,6 +16,7 @@ from .cache import kernel_folder_used
 from .errors import ConvergenceError, ParameterError
 from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
+from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
 from .methods import Method
 from .problems import Problem
 
@@ -51,6 +52,7 @@ _FAILURE_TEXT = {
     codes.STATUS_NOT_CONVERGED: "the iteration did not converge",
     codes.STATUS_SINGULAR: "the small system is singular or badly conditioned",
     codes.STATUS_NONFINITE: "the solution became NaN or infinite",
+    codes.STATUS_TIME_SCALE: "the problem's time scale collapsed (time-reversible steps h = epsilon sigma(y))",
 }
 _FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "reduce h or raise solver.max_halvings",
@@ -64,12 +66,11 @@ _ADAPTIVE_FAILURE_ADVICE = {
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
                             "impose fewer or other invariants"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
+    codes.STATUS_TIME_SCALE: ("sigma must stay positive and finite along the whole orbit: take a power of a "
+                              "distance, e.g. (q1**2 + q2**2)**0.75, or use step_control: error "
+                              "(docs/adaptive.md#time-reversible-steps-step_controltime_scale)"),
 }
 ADAPTIVE_MEASURED_S = 6   # docs/adaptive.md: the range of s measured for adaptive runs; above it, advise a lower s
-# A solve that stalls with cond(Gamma) above this is blamed on Gamma, not on h (failure_message).
-# Measured: well-posed steps have cond(Gamma) 8-30, up to 4e3 next to a pericentre; Kepler's L with A_x
-# (gradients dependent at the apsides) stalled at 6e8.
-NEARLY_SINGULAR_GAMMA = 1e6
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
                            "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
                            "other invariants, whose gradients stay independent along the orbit")
@@ -78,6 +79,7 @@ STATUS_NAMES = {
     codes.STATUS_NOT_CONVERGED: "not converged",
     codes.STATUS_SINGULAR: "singular",
     codes.STATUS_NONFINITE: "non-finite",
+    codes.STATUS_TIME_SCALE: "time scale",
 }
 
 
@@ -277,6 +279,12 @@ class Result:
     def split_steps(self) -> int:
         """How many steps were split into substeps (docs/solver.md#when-a-step-fails-retry-then-split)."""
         return int(np.count_nonzero(self.substeps > 1))
+
+    @property
+    def unimposed_steps(self) -> int:
+        """How many steps had a substep taken without imposing the invariants, which kept them to
+        round-off (their alpha is NaN; docs/solver.md#a-substep-without-imposing)."""
+        return 0 if self.alpha is None else int(np.count_nonzero(np.isnan(self.alpha).any(axis=1)))
 
     def energy_warning(self) -> str | None:
         """A note when H or an imposed invariant drifts above round-off (k or r too small for
@@ -688,10 +696,13 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         where += f", in its substep from t = {d[stepper.DIAG_TIME]:.17g} of h = {d[stepper.DIAG_STEP]:.6g} " \
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
-    if d[stepper.DIAG_CONDITION] != 0.0:
+    if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot
+        seen = [f"sigma(y) = {d[stepper.DIAG_INCREMENT]:.3g} there, next step h = {d[stepper.DIAG_STEP]:.3g}"]
+    elif d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
-    if adaptive and status != codes.STATUS_NONFINITE and method.s > ADAPTIVE_MEASURED_S:
+    if (adaptive and status not in (codes.STATUS_NONFINITE, codes.STATUS_TIME_SCALE)
+            and method.s > ADAPTIVE_MEASURED_S):
         # at s <= 6 a lower s was advice that did not help (LIM(6,6,3) imposing L, A_x, A_y: singular at t0)
         advice += f", or use a lower s (docs/adaptive.md measures s <= {ADAPTIVE_MEASURED_S})"
     if status == codes.STATUS_NOT_CONVERGED and d[stepper.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA and depth > 0:

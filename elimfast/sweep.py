@@ -589,7 +589,7 @@ def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
     outcome.n_steps = result.n_steps
     multipliers = result.alpha if result.alpha is not None else result.lam
     if multipliers is not None and multipliers.size:
-        outcome.max_multiplier = float(np.max(np.abs(multipliers)))
+        outcome.max_multiplier = float(np.fmax.reduce(np.abs(multipliers), axis=None))   # NaN: a step not imposed
     outcome.invariant_errors = result.invariant_errors()
     outcome.initial_invariants = result.initial_invariants()
     outcome.invariant_scales = result.invariant_scales()

@@ -70,6 +70,28 @@ def test_inspect_summary(kepler_file):
     assert f"{alpha[0]:.3e} (angular_momentum), {alpha[1]:.3e} (lrl_y)" in text
 
 
+def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file, tmp_path):
+    """A substep that cannot be solved imposing the invariants even at the deepest halving is taken
+    without them when that keeps them to round-off; its step's alpha is NaN (docs/solver.md#a-substep-
+    without-imposing; the kernel side: tests/test_step_engine.py). inspect and the end-of-run notes say
+    how many, and max |alpha| stays that of the other steps (np.max made it nan)."""
+    import shutil
+    from elimfast.io.hdf5 import RunFile
+    from elimfast_cli.report import run_notes
+    path = tmp_path / "unimposed.h5"
+    shutil.copy(kepler_file, path)
+    with h5py.File(path, "r+") as f:
+        alpha = f["steps/alpha"][:]
+        f["steps/alpha"][5] = np.nan
+    text = invoke("inspect", path).stdout
+    assert "1 step(s) had a substep the solver could not converge even after the last halving" in text
+    largest = np.max(np.abs(np.delete(alpha, 5, axis=0)), axis=0)
+    assert f"{largest[0]:.3e} (angular_momentum), {largest[1]:.3e} (lrl_y)" in text
+    with RunFile(path) as run_file:
+        assert any("taken without imposing the invariants" in note for note in run_notes(run_file))
+    assert "without imposing" not in invoke("inspect", kepler_file).stdout
+
+
 def test_inspect_says_the_initial_state_comes_from_problem_initial(kepler_file, tmp_path):
     """problem.initial replaces the state kepler's eccentricity chooses: inspect said
     'kepler (eccentricity = 0.6)' as if the parameter described the orbit."""

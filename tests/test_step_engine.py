@@ -270,6 +270,40 @@ def test_split_steps_keep_the_output_grid_and_every_imposed_invariant():
     assert result.iterations[result.substeps > 1].min() > result.iterations[result.substeps == 1].max() / 4
 
 
+def test_a_substep_that_cannot_impose_is_taken_unimposed_when_that_keeps_the_invariants():
+    """docs/solver.md#a-substep-without-imposing. A user's Lennard-Jones trimer (tests/data/lj_trimer.py),
+    EHBVM(8,4) imposing its angular momentum at h = 0.01, stopped at step 39393 (t = 393.92): at
+    every depth of splitting one half stalled at increments 2e-12 to 3e-11 (1x1 Gamma nearly zero,
+    b at round-off). The saved kernel state before that step (tests/data/lj_trimer_hard_step.npz)
+    now gives a step with one substep taken without imposing L: its alpha is NaN, L changes by
+    less than round-off, and the state is the one max_halvings = 8 reaches imposing L throughout.
+    With the fallback off (max_halvings = 0) the step still fails."""
+    problem = elimfast.problems.problem_from_file(Path(__file__).parent / "data" / "lj_trimer.py")
+    saved = dict(np.load(Path(__file__).parent / "data" / "lj_trimer_hard_step.npz"))
+
+    def one_step(max_halvings):
+        run = Integration(problem, ehbvm(8, 4), 0.01, n_steps=int(saved["steps_done"]) + 1, conserve=[L1],
+                          y0=saved["y"], store_every=10 ** 6, max_halvings=max_halvings)
+        run.restore(saved)
+        return run, run.advance(1)
+
+    run, chunk = one_step(4)
+    assert run.status == elimfast.kernels.codes.STATUS_OK and chunk.substeps[0] > 1
+    assert np.isnan(chunk.multipliers[0]).all()
+    L_before, L_after = (problem.invariant_values(y)[L1] for y in (saved["y"], run.y))
+    assert abs(L_after - L_before) <= 4 * np.finfo(float).eps * abs(L_before)
+    deeper, deeper_chunk = one_step(8)
+    assert deeper.status == elimfast.kernels.codes.STATUS_OK and np.isfinite(deeper_chunk.multipliers).all()
+    np.testing.assert_allclose(run.y, deeper.y, rtol=0, atol=1e-13)
+    off, _ = one_step(0)
+    assert off.status == elimfast.kernels.codes.STATUS_NOT_CONVERGED
+    # a whole run through the step: Result counts the step (the bookkeeping of inspect: tests/test_cli.py)
+    result = elimfast.integrate(problem, ehbvm(8, 4), 0.01, n_steps=2, conserve=[L1], y0=saved["y"])
+    assert result.unimposed_steps == 0
+    result.alpha[1] = np.nan
+    assert result.unimposed_steps == 1
+
+
 def test_solver_settings_are_validated_with_the_parameter_named():
     for kwargs, parameter in [({"method": "newtn"}, "method"), ({"tol": 1.0}, "tol"), ({"max_iter": 0}, "max_iter"),
                               ({"max_halvings": -1}, "max_halvings"), ({"max_halvings": 99}, "max_halvings"),

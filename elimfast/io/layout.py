@@ -15,7 +15,8 @@ fletcher32 filter, and extended as the run goes:
                                                 H has both too; absent in files written before it)
     steps/iterations       (steps_done,) int32  solver iterations of each step (every try and substep)
     steps/substeps         (steps_done,) int32  1, or the substeps of a step that was split
-    steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants
+    steps/alpha            (steps_done, nu)     ELIM/EHBVM with nu >= 1 imposed invariants (NaN: a substep
+                                                taken without imposing them, docs/solver.md)
     steps/lambda           (steps_done, nu+1)   LIM/GHBVM (H first, then the imposed invariants)
     steps/invariant        (nu or nu+1,)        which invariant each multiplier column belongs to
     method/A, b, c         the Runge-Kutta form (all but LIM/GHBVM; for ELIM/EHBVM the
@@ -75,7 +76,8 @@ STOPPED_PREFIX = "stopped: "
 DIMENSION_ONLY = "This is a netCDF dimension but not a netCDF variable.%10d"
 LONG_NAMES = {"t": "time", "component": "state component (positions q, then momenta p)",
               "y": "state y = (q, p)", "H": "Hamiltonian (energy)", "iterations": "solver iterations per step",
-              "substeps": "substeps per step (1: not split)", "alpha": "ELIM multiplier alpha per step",
+              "substeps": "substeps per step (1: not split)",
+              "alpha": "ELIM multiplier alpha per step (NaN: a substep not imposed)",
               "lambda": "LIM multiplier lambda per step", "invariant": "invariant of each multiplier column",
               "step_t": "time at the end of each step", "step_h": "size of each step"}
 
@@ -432,3 +434,23 @@ def component_names(group) -> list[str]:
     if "component" in group:
         return [str(name) for name in _plain(group["component"][()])]
     return [str(name) for name in _plain(group["y"].attrs.get("coordinates", []))]
+
+
+INITIAL_GIVEN = "problem.initial"   # attribute initial_state: the state given, not the problem's default
+INITIAL_DEFAULT = "default"
+
+
+def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end: float | None,
+                   output_every: int, conserve) -> dict:
+    """The attributes that describe a run, alike in a run file and in each run of a sweep file.
+    ``initial_state``: where y0 came from, 'problem.initial' when it replaced the problem's
+    default state (Problem.initial_given: the parameters that chose the default then do not
+    describe the orbit), else 'default' (files written before it: absent)."""
+    return {"problem": problem.name,
+            "initial_state": INITIAL_GIVEN if getattr(problem, "initial_given", False) else INITIAL_DEFAULT,
+            "method": method.name, "family": method.family, "r": method.r, "k": method.k,
+            "s": method.s, "h": float(h), "t0": float(t0),
+            "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
+            # 0: not known in advance (adaptive steps, docs/adaptive.md)
+            "n_steps": int(n_steps) if n_steps is not None else 0, "output_every": int(output_every),
+            "conserve": list(conserve)}

@@ -58,6 +58,7 @@ from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, S
                      STATUS_KILLED, STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
+                     run_attributes,
                      PROBLEM_FILE_DIGEST, problem_file_attributes, version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
@@ -71,26 +72,6 @@ RUNS_GROUP = "runs"
 
 def _now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-
-
-INITIAL_GIVEN = "problem.initial"   # attribute initial_state: the state given, not the problem's default
-INITIAL_DEFAULT = "default"
-
-
-def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end: float | None,
-                   output_every: int, conserve) -> dict:
-    """The attributes that describe a run, alike in a run file and in each run of a sweep file.
-    ``initial_state``: where y0 came from, 'problem.initial' when it replaced the problem's
-    default state (Problem.initial_given: the parameters that chose the default then do not
-    describe the orbit), else 'default' (files written before it: absent)."""
-    return {"problem": problem.name,
-            "initial_state": INITIAL_GIVEN if getattr(problem, "initial_given", False) else INITIAL_DEFAULT,
-            "method": method.name, "family": method.family, "r": method.r, "k": method.k,
-            "s": method.s, "h": float(h), "t0": float(t0),
-            "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
-            # 0: not known in advance (adaptive steps, docs/adaptive.md)
-            "n_steps": int(n_steps) if n_steps is not None else 0, "output_every": int(output_every),
-            "conserve": list(conserve)}
 
 
 def samples_on_grid(steps_done: int, output_every: int) -> int:
@@ -1112,16 +1093,21 @@ class RunFile:
 
     def substep_stats(self) -> dict:
         """{"split": steps split into substeps (docs/solver.md), "max": the most substeps of
-        one step}; zeros for a file written before the step engine (no /steps/substeps)."""
+        one step, "unimposed": steps with a substep taken without imposing the invariants (their
+        multipliers are NaN, docs/solver.md#a-substep-without-imposing)}; zeros for a file
+        written before the step engine (no /steps/substeps)."""
         with self._reading("/steps"):
             present = "substeps" in self._root["steps"]
-        split, largest = 0, 1 if self.steps_done else 0
+        split, largest, unimposed = 0, 1 if self.steps_done else 0, 0
         if present:
             for block in self._blocks("steps/substeps", self.steps_done):
                 if block.size:
                     split += int(np.count_nonzero(block > 1))
                     largest = max(largest, int(block.max()))
-        return {"split": split, "max": largest}
+        if self.multiplier_name is not None:
+            for block in self._blocks(f"steps/{self.multiplier_name}", self.steps_done):
+                unimposed += int(np.count_nonzero(np.isnan(block).any(axis=1)))
+        return {"split": split, "max": largest, "unimposed": unimposed}
 
     def max_abs_multipliers(self) -> list[float]:
         if self.multiplier_name is None:
@@ -1132,5 +1118,5 @@ class RunFile:
         result = np.zeros(width)
         for block in self._blocks(name, self.steps_done):
             if block.size:
-                result = np.maximum(result, np.max(np.abs(block), axis=0))
+                result = np.fmax(result, np.fmax.reduce(np.abs(block), axis=0))   # NaN: not imposed
         return result.tolist()

@@ -33,12 +33,12 @@ import numpy as np
 from numba import njit, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK
+from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_TIME_SCALE
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
-                      _sample, extrapolate, kahan_add, restore_newton_matrix, try_step)
+                      _sample, extrapolate, kahan_add, record_multipliers, restore_newton_matrix, try_step)
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
@@ -77,6 +77,9 @@ SAFETY = 0.9
 MIN_FACTOR = 0.2
 MAX_FACTOR = 2.0
 MAX_CONSECUTIVE_FAILURES = 40      # halvings of one step before the run fails
+# A time-reversible step below this times |t| (or |t_end|) no longer advances the clock: sigma has
+# collapsed (STATUS_TIME_SCALE).
+COLLAPSED_STEP = 4.0 * 2.0 ** -52
 # The solver's convergence limits the step too (docs/adaptive.md#controller): an accepted step
 # whose solve took more than this fraction of max_iter iterations makes the next one smaller
 # (SLOW_SOLVE_FACTOR), more than NO_GROWTH_FRACTION keeps it from growing. At loose
@@ -215,7 +218,7 @@ def side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserv
     side_last_h[0] = h_side
     status, iterations, _ = try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                      y_side, side_comp, side_clock, side_coef, side_extra, side_mult, h_side,
-                                     side_last_h, newton_base, True, diagnostics)
+                                     side_last_h, newton_base, True, diagnostics, False)
     return status, iterations
 
 
@@ -393,6 +396,17 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         remaining = (t_end - clock[0]) - clock[1]
         if control == CONTROL_TIME_SCALE:
             h = epsilon / control_state[CS_RHO]
+            if not (h > COLLAPSED_STEP * max(abs(clock[0]), abs(t_end))):   # also NaN and h <= 0
+                # sigma reached zero (or left the positive numbers) along the orbit: the steps
+                # collapse, and the solver would fail on a step of 1e-300 blaming Gamma or NaN.
+                sigma, _ = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
+                status = STATUS_TIME_SCALE
+                diagnostics[DIAG_TIME] = clock[0]
+                diagnostics[DIAG_STEP] = h
+                diagnostics[DIAG_INCREMENT] = sigma   # for this status: sigma(y) (integrate.failure_message)
+                diagnostics[DIAG_DEPTH] = 0
+                diagnostics[DIAG_ITERATIONS] = 0
+                break
         else:
             h = control_state[CS_H_NEXT]
         h = min(h, h_max)
@@ -413,7 +427,10 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view,
-            global_step > 0, diagnostics_view)
+            global_step > 0, diagnostics_view,
+            # the error controller retries a failed step with half of it: the unimposed substep is its last resort
+            control != CONTROL_ERROR or consecutive_failures + 1 >= MAX_CONSECUTIVE_FAILURES)
+        unimposed = work.info[5]
         counters[CNT_ITERATIONS] += iterations
         if status != STATUS_OK:
             if control != CONTROL_ERROR:
@@ -440,7 +457,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                     half_status, used, _ = try_step(
                         grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
                         y_half, half_comp, half_clock, half_coef, half_extra, half_mult, 0.5 * h, half_last_h,
-                        base_view, global_step > 0, side_diagnostics)
+                        base_view, global_step > 0, side_diagnostics, False)
                     counters[CNT_ITERATIONS] += used
                     if half_status != STATUS_OK:
                         break
@@ -512,8 +529,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         step_h[step] = h
         iter_out[step] = iterations
         substeps_out[step] = substeps
-        for a in range(n_mult):
-            mult_out[step, a] = multipliers[a]
+        record_multipliers(unimposed, multipliers, mult_out[step])
         step += 1
         progress[0] = step
         if last:

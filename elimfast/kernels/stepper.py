@@ -24,11 +24,11 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
-from .maps import apply_J, project
+from .maps import EPS, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
-from .solver import newton_factor, solve
+from .solver import NEARLY_SINGULAR_GAMMA, newton_factor, solve
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 # First-class function types are the documented way to pass functions to cached
@@ -228,6 +228,41 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     return status, iterations
 
 
+@internal
+def _attempt_unimposed(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                       y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base):
+    """The last resort of an ELIM substep that failed at the deepest halving
+    (docs/solver.md#a-substep-without-imposing): the same substep with alpha = 0 (the HBVM map),
+    accepted only if it changes every imposed invariant by less than rounding the state to
+    doubles does, |h b_a| <= eps sum_p A_{a,p} max(|y_p|, |y1_p|).
+
+    b_a is the right-hand side of Gamma alpha = b at the accepted coefficients: with alpha = 0,
+    h b_a is L_a(y1) - L_a(y) up to the quadrature of the r nodes (docs/methods.md#elim: the
+    full sum over j of phi_j^T gamma_j vanishes, grad L . J grad H = 0), and A_{a,p} =
+    max_i |grad L_a(uhat_i)_p| (maps.gradient_sizes). Where Gamma is nearly singular and b at
+    round-off, alpha = b / Gamma is rounding over rounding and the imposed solve cannot settle
+    (a Lennard-Jones trimer imposing its angular momentum, h = 0.01: at every depth one half
+    stalled at increments 2e-12 to 3e-11, while the unimposed step changed L by 3e-17).
+    Returns (status, iterations); the multipliers are 0 on success."""
+    status, iterations = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx[:0], work,
+                                  y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base)
+    if status != STATUS_OK:
+        return status, iterations
+    # One map evaluation at the accepted coefficients, alpha = 0: b and the gradients of the invariants.
+    elim_map(grad_H, grad_invariants, params, y, h, coef, mult, True, settings.stable_rhs != 0, tables,
+             conserve_idx, work)
+    nu = conserve_idx.shape[0]
+    gradient_sizes(work, nu, tables.Ihat.shape[0])
+    sizes, change = work.sizes, work.small_vector
+    for a in range(nu):
+        allowed = 0.0
+        for p in range(y.shape[0]):
+            allowed += sizes[1 + a, p] * max(abs(y[p]), abs(y[p] + h * coef[0, p]))
+        if not (abs(h * change[a]) <= EPS * allowed):
+            return STATUS_NOT_CONVERGED, iterations
+    return STATUS_OK, iterations
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _initial_guess(tables, settings, work, h, h_prev, cold, coef, coef_extra, mult):
     """The solve's starting coefficients and multipliers: zero (cold), the previous ones
@@ -312,7 +347,8 @@ def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, forc
 
 @internal
 def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-             y, y_comp, clock, coef, coef_extra, mult, h, last_h, newton_base, have_prev, diagnostics):
+             y, y_comp, clock, coef, coef_extra, mult, h, last_h, newton_base, have_prev, diagnostics,
+             last_resort):
     """One step of size h from (y, clock): predict, solve, fall back, commit (docs/solver.md;
     compensated sums: docs/methods.md#round-off-over-long-times).
 
@@ -323,7 +359,12 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     where the Newton matrix in work was factorised (_newton_matrix). have_prev: coef holds a previous
     step (else the first step starts cold). A step that fails is retried from the
     unextrapolated guess, then split into halves, recursively to settings.max_halvings
-    levels (a failed half is split again; the other half is tried whole). The clock
+    levels (a failed half is split again; the other half is tried whole). A substep of ELIM
+    that fails at the deepest level is, when last_resort (the caller will not retry the step
+    itself), max_halvings > 0 and cond(Gamma) <= NEARLY_SINGULAR_GAMMA (above it the imposed
+    invariants themselves are degenerate there, and the run stops with that message), taken
+    without imposing the invariants if that keeps them to rounding (_attempt_unimposed);
+    work.info[5] counts such substeps of the step. The clock
     advances by h in one compensated addition whether or not the step was split.
 
     Returns (status, iterations, substeps). On failure nothing is applied: y, y_comp,
@@ -344,11 +385,27 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     substeps = 0
     previous = have_prev
     h_prev = last_h[0]
+    work.info[5] = 0.0
+    may_leave_unimposed = (last_resort and settings.max_halvings > 0 and settings.family == FAMILY_ELIM
+                           and conserve_idx.shape[0] > 0)
     while units_left > 0:
         h_sub = h * 0.5 ** depth
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                 y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
         iterations += used
+        if (status != STATUS_OK and depth >= settings.max_halvings and may_leave_unimposed
+                and work.info[1] <= NEARLY_SINGULAR_GAMMA):
+            # The failure's diagnostics stay those of the imposed solve.
+            increment, condition = work.info[0], work.info[1]
+            unimposed_status, unimposed_used = _attempt_unimposed(
+                grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
+            iterations += unimposed_used
+            if unimposed_status == STATUS_OK:
+                status = STATUS_OK
+                work.info[5] += 1.0
+            else:
+                work.info[0], work.info[1] = increment, condition
         if status == STATUS_OK:
             finite = True
             for p in range(n):
@@ -387,6 +444,16 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     last_h[0] = h_prev
     clock[0], clock[1] = kahan_add(clock[0], clock[1], h)
     return STATUS_OK, iterations, substeps
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def record_multipliers(unimposed, multipliers, out):
+    """A step's multipliers for the run's output (alpha or lambda history): those of its last
+    substep, or NaN when unimposed (work.info[5] after try_step) says that a substep of it was
+    taken without imposing the invariants: no multiplier then exists
+    (docs/solver.md#a-substep-without-imposing)."""
+    for a in range(multipliers.shape[0]):
+        out[a] = np.nan if unimposed > 0.0 else multipliers[a]
 
 
 @internal
@@ -503,13 +570,12 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view,
-            global_step > 0, diagnostics_view)
+            global_step > 0, diagnostics_view, True)
         iter_out[step] = iterations
         if status != STATUS_OK:
             break
         substeps_out[step] = substeps
-        for a in range(multipliers.shape[0]):
-            mult_out[step, a] = multipliers[a]
+        record_multipliers(work.info[5], multipliers, mult_out[step])
         progress[0] = step + 1
         done = global_step + 1
         if done % store_every == 0 or done == n_total:

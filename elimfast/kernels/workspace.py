@@ -93,8 +93,9 @@ Workspace = namedtuple("Workspace", [
     "predictor_values",  # (s + 1, s + e_max) P_j(1 + theta x_q), e_max = min(k - s, 3) extra terms
     #                      (stepper.extrapolate: the (s+1)-point rule is exact up to 3 of them)
     "extrapolation",     # (s, s + e_max) E(theta)
-    "info",              # (5,) of the last solve: last increment, cond(Gamma), iterations, rounding band;
-    #                      then the count of Newton factorisations (Hessian evaluations) of the call
+    "info",              # (6,) of the last solve: last increment, cond(Gamma), iterations, rounding band;
+    #                      then the count of Newton factorisations (Hessian evaluations) of the call, and
+    #                      the substeps of the last step taken without imposing (stepper.try_step)
     "extra_start",       # (e_max, n) the predictor's extra terms before the step (restored on failure)
 ])
 
@@ -196,5 +197,5 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_real, n_real)),
         np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n, n)), np.zeros((n, n)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
-        np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(5),
+        np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(6),
         np.zeros((e_max, n)))
