@@ -410,6 +410,13 @@ def test_bad_events_name_the_key():
         elimfast.integrate(kepler(0.6), ehbvm(8, 4), t_end=1.0, rtol=1e-10,
                            events={"x": {"expression": "__import__('os')"}})
     assert "events.x" in str(getattr(info.value, "key", "")) + str(info.value)
+    # values sympy finds undefined name the event too (they said 'events: event x ...', a user trial's finding)
+    from elimfast.config import ConfigError, load_run_from_dict
+    for bad in ("sqrt(-1)", "q1/0"):
+        config = {"problem": {"builtin": "kepler"}, "method": {"name": "ehbvm", "s": 4},
+                  "integration": {"rtol": 1e-10, "t_end": 1}, "events": {"x": {"expression": bad}}}
+        with pytest.raises(ConfigError, match=r"^run\.yaml: events\.x: event x "):
+            load_run_from_dict(config, source="run.yaml")
 
 
 def test_lim_and_nbody_adaptive():

@@ -603,7 +603,9 @@ def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gr
         symbols = {n: sympy.Symbol(n, real=True) for n in declared}
         exprs = []
         for name, text, tree in trees:
-            expr = to_sympy(tree, symbols, what=f"{what} {name}", text=text)
+            # a value error found only here (sqrt(-1), q1/0) names the expression's key, as a parse error does
+            expr = _checked(to_sympy, tree, symbols, what=f"{what} {name}", text=text,
+                            key=key_prefix if key_prefix == name else f"{key_prefix}.{name}")
             exprs.append(expr.subs({symbols[c]: sympy.Float(v, 17) for c, v in constants.items()}))
         targets = [f"out[{i}] = " for i in range(len(exprs))]
         if gradient:
