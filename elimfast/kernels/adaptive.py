@@ -218,7 +218,7 @@ def side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserv
     side_last_h[0] = h_side
     status, iterations, _ = try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                      y_side, side_comp, side_clock, side_coef, side_extra, side_mult, h_side,
-                                     side_last_h, newton_base, True, diagnostics, False)
+                                     side_last_h, newton_base, np.bool_(True), diagnostics, np.bool_(False))
     return status, iterations
 
 
@@ -457,7 +457,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                     half_status, used, _ = try_step(
                         grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
                         y_half, half_comp, half_clock, half_coef, half_extra, half_mult, 0.5 * h, half_last_h,
-                        base_view, global_step > 0, side_diagnostics, False)
+                        base_view, global_step > 0, side_diagnostics, np.bool_(False))
                     counters[CNT_ITERATIONS] += used
                     if half_status != STATUS_OK:
                         break

@@ -13,6 +13,10 @@ from numba import njit
 # Workspace structs it was passed: ~200 ns per call, measured, and a step makes about six
 # such calls (GAUSS(4) on Kepler at h = pi/120 spent more time in calls than in its map).
 # A function that must allocate uses internal_allocating.
+# Flags passed to them are runtime values (np.bool_(True), a comparison), never a literal True or
+# False: Numba compiles a function once per literal argument value, and try_step called with
+# literal flags from four places was compiled four times (+15 s to the fixed-step kernel's cache
+# warm, +30 s to the adaptive one's).
 internal = njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 internal_allocating = njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 

@@ -398,7 +398,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 # whatever omega says (LIM(8,10,3) on Kepler stalled at d = 1.3 eps with
                 # omega = 7e-17).
                 if band == 0.0:
-                    band = _band(h, mult, False, newton, settings, tables, nu, s, work)
+                    band = _band(h, mult, np.bool_(False), newton, settings, tables, nu, s, work)
                 if (d > band or best_in_band > band) and not band_complete:
                     band = _band(h, mult, singular == 0 and not plain_sweep, newton, settings, tables, nu, s, work)
                     band_complete = True

@@ -570,7 +570,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view,
-            global_step > 0, diagnostics_view, True)
+            global_step > 0, diagnostics_view, np.bool_(True))
         iter_out[step] = iterations
         if status != STATUS_OK:
             break
