@@ -70,6 +70,19 @@ def test_inspect_summary(kepler_file):
     assert f"{alpha[0]:.3e} (angular_momentum), {alpha[1]:.3e} (lrl_y)" in text
 
 
+def test_inspect_gives_a_finished_runs_wall_time_as_run_printed_it(kepler_file, tmp_path):
+    """inspect showed the wall time of the last saved chunk (0.078 s) where `run` had printed the
+    whole run's, which the root attribute holds (0.0807 s; a user trial's finding). A running or
+    killed run has only its saved state's."""
+    import shutil
+    path = tmp_path / "timed.h5"
+    shutil.copy(kepler_file, path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["wall_time_s"] = 98.7
+        f.attrs["kernel_time_s"] = 65.4
+    assert "wall time    98.7 s, 2 steps/s; kernel 65.4 s, 3 steps/s" in invoke("inspect", path).stdout
+
+
 def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file, tmp_path):
     """A substep that cannot be solved imposing the invariants even at the deepest halving is taken
     without them when that keeps them to round-off; its step's alpha is NaN (docs/solver.md#a-substep-

@@ -781,9 +781,12 @@ class RunFile:
         self.steps_done = self._saved["steps_done"]
         with self._reading("/t"):
             self.n_samples = min(self._saved["n_samples"], f["t"].shape[0])
-        self.wall_time_s = self._saved["wall_time_s"]
-        self.kernel_time_s = self._saved["kernel_time_s"]
         self.status = str(self.attrs.get("status", "?"))
+        # A finished run's times are the root's (RunWriter.finish, what `run` printed); the saved state's
+        # are those of its last chunk, which is all a running or killed run has.
+        times = self.attrs if self.status != STATUS_RUNNING and "wall_time_s" in self.attrs else self._saved
+        self.wall_time_s = float(times["wall_time_s"])
+        self.kernel_time_s = float(times.get("kernel_time_s", self._saved["kernel_time_s"]))
         if self.status == STATUS_RUNNING:
             if int(self.attrs.get("format_version", 1)) >= 2:   # its writer holds the lock while it lives
                 alive = _writer_lock_held(self.path)
