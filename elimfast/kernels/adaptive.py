@@ -428,8 +428,9 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view,
             global_step > 0, diagnostics_view,
-            # the error controller retries a failed step with half of it: the unimposed substep is its last resort
-            control != CONTROL_ERROR or consecutive_failures + 1 >= MAX_CONSECUTIVE_FAILURES)
+            # the error controller retries a failed step with half of it (its main steps are not split):
+            # the unimposed substep is its last resort; max_halvings = 0 turns it off, as it does the splitting
+            max_halvings > 0 and (control != CONTROL_ERROR or consecutive_failures + 1 >= MAX_CONSECUTIVE_FAILURES))
         unimposed = work.info[5]
         counters[CNT_ITERATIONS] += iterations
         if status != STATUS_OK:

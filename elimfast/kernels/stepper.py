@@ -360,8 +360,9 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     step (else the first step starts cold). A step that fails is retried from the
     unextrapolated guess, then split into halves, recursively to settings.max_halvings
     levels (a failed half is split again; the other half is tried whole). A substep of ELIM
-    that fails at the deepest level is, when last_resort (the caller will not retry the step
-    itself), max_halvings > 0 and cond(Gamma) <= NEARLY_SINGULAR_GAMMA (above it the imposed
+    that fails at the deepest level is, when last_resort (the caller's say: the run's
+    max_halvings > 0, which 0 turns off with the splitting, and the caller will not retry the
+    step itself) and cond(Gamma) <= NEARLY_SINGULAR_GAMMA (above it the imposed
     invariants themselves are degenerate there, and the run stops with that message), taken
     without imposing the invariants if that keeps them to rounding (_attempt_unimposed);
     work.info[5] counts such substeps of the step. The clock
@@ -386,8 +387,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     previous = have_prev
     h_prev = last_h[0]
     work.info[5] = 0.0
-    may_leave_unimposed = (last_resort and settings.max_halvings > 0 and settings.family == FAMILY_ELIM
-                           and conserve_idx.shape[0] > 0)
+    may_leave_unimposed = last_resort and settings.family == FAMILY_ELIM and conserve_idx.shape[0] > 0
     while units_left > 0:
         h_sub = h * 0.5 ** depth
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
@@ -570,7 +570,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view,
-            global_step > 0, diagnostics_view, np.bool_(True))
+            global_step > 0, diagnostics_view, max_halvings > 0)
         iter_out[step] = iterations
         if status != STATUS_OK:
             break
