@@ -111,6 +111,14 @@ class EventSection(_Section):
     terminal: StrictBool = False
 
 
+def _event_shorthand(value):
+    """events: {name: "<expression>"} is short for {name: {expression: "<expression>"}}, as in
+    elimfast.integrate(events=...) (adaptive.EventSpec)."""
+    if isinstance(value, dict):
+        return {name: {"expression": entry} if isinstance(entry, str) else entry for name, entry in value.items()}
+    return value
+
+
 class SolverSection(_Section):
     method: str = DEFAULT_SOLVER
     tol: Number | None = None
@@ -134,7 +142,7 @@ class RunConfig(_Section):
     integration: IntegrationSection
     solver: SolverSection = SolverSection()
     output: OutputSection = OutputSection()
-    events: dict[str, EventSection] | None = None
+    events: Annotated[dict[str, EventSection] | None, BeforeValidator(_event_shorthand)] = None
 
 
 # The model of each section, by its key path (config._Builder.describe names the allowed keys); "*" stands

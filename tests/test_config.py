@@ -644,3 +644,14 @@ def test_junk_yaml_text_raises_only_config_errors(text):
 
 def test_config_error_is_an_elimfast_error():
     assert issubclass(ConfigError, elimfast.ElimfastError)
+
+
+def test_an_event_may_be_given_by_its_expression_alone_as_in_python():
+    """events: {peri: "q1*p1 + q2*p2"} said only 'must be a mapping', though
+    elimfast.integrate(events={"peri": "q1*p1 + q2*p2"}) takes it (a user trial's finding)."""
+    from elimfast.config import load_run_from_dict
+    base = {"problem": {"builtin": "kepler"}, "method": {"name": "ehbvm", "s": 4},
+            "integration": {"rtol": 1e-10, "t_end": 1}}
+    short = load_run_from_dict({**base, "events": {"peri": "q1*p1 + q2*p2"}}, source="run.yaml")
+    full = load_run_from_dict({**base, "events": {"peri": {"expression": "q1*p1 + q2*p2"}}}, source="run.yaml")
+    assert short.events == full.events == {"peri": {"expression": "q1*p1 + q2*p2", "direction": 0, "terminal": False}}
