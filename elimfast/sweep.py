@@ -618,13 +618,25 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
     return outcome
 
 
-def _worker_init() -> None:
-    """A forked worker starts with Python's default signal handling, not the parent's watchdog."""
+_PR_SET_PDEATHSIG = 1   # linux/prctl.h
+
+
+def _worker_init(parent: int | None = None) -> None:
+    """A forked worker starts with Python's default signal handling, not the parent's watchdog,
+    and dies with its parent ``parent``: after a kill -9 of the sweep, orphaned workers waited
+    forever on the pool's queue and, sharing the forked output file's descriptor, held its
+    writer lock, so --resume and inspect refused the file until they were found and killed."""
     import signal
     with contextlib.suppress(ValueError, OSError):
         signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if parent is not None:
+        with contextlib.suppress(OSError, AttributeError):
+            import ctypes
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        if os.getppid() != parent:   # the parent died before prctl took effect
+            os._exit(1)
 
 
 def run_bytes(run) -> int:
@@ -737,7 +749,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         # walks (and so never copies, page by page) the parent's Numba objects.
         gc.freeze()
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(jobs))), mp_context=context,
-                                   initializer=_worker_init)
+                                   initializer=_worker_init, initargs=(os.getpid(),))
         try:
             futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
                        for label, coordinates, config in jobs}

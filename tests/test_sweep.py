@@ -385,6 +385,43 @@ def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_complet
         RunFile(out)
 
 
+def test_the_workers_of_a_killed_sweep_die_with_it_and_free_its_file(tmp_path):
+    """kill -9 of `elimfast sweep --workers 2` left its two forked workers waiting forever on
+    the pool's queue, holding the output file's descriptor (and so its writer lock): --resume
+    and inspect refused the file ('is open in another process') until the user found and
+    killed them. The workers must die with the sweep, and --resume complete the file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from elimfast.sweep import run_to_file
+
+    path = small_sweep(tmp_path, [f"2*pi/{n}" for n in (100, 110, 120, 130, 140, 150)], t_end="500*pi")
+    out = tmp_path / "killed.h5"
+    process = subprocess.Popen([str(Path(sys.executable).with_name("elimfast")), "sweep", str(path), "-o", str(out),
+                                "--workers", "2"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    for line in process.stderr:
+        if line.startswith("[2/"):   # the pool's first run: the workers are forked
+            workers = [int(pid) for task in Path(f"/proc/{process.pid}/task").iterdir()
+                       for pid in (task / "children").read_text().split()]
+            process.send_signal(signal.SIGKILL)
+            break
+    process.wait(timeout=120)
+    assert process.returncode == -signal.SIGKILL and len(workers) == 2
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [pid for pid in workers if Path(f"/proc/{pid}").exists()
+             and "Z" not in Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[:1]]
+    for pid in alive:   # leave no process behind when the test fails
+        os.kill(pid, signal.SIGKILL)
+    assert not alive
+    outcome = run_to_file(path, out, resume=True, workers=1)
+    assert [o.status for o in outcome.outcomes] == ["complete"] * 6
+
+
 def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
     from click.testing import CliRunner
     from elimfast_cli.main import cli
