@@ -97,7 +97,9 @@ def connect(scheduler: str, workers: int | None = None, on_message: Callable[[st
         else:
             try:
                 client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError, ValueError) as error:
+            except (OSError, TimeoutError, ValueError, TypeError, ImportError) as error:
+                # TypeError: a tls:// address without dask's TLS settings (no ssl_context), a ucx://
+                # one without ucx-py; both were 'internal error' with exit 1
                 text = " ".join(str(error).split())[:160] or type(error).__name__
                 raise SweepError(f"--scheduler {scheduler}: cannot connect ({text}); start one with `dask scheduler` "
                                  "and `dask worker ADDRESS`, or check the address") from None

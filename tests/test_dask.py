@@ -237,6 +237,7 @@ def free_port() -> int:
 @pytest.mark.parametrize("arguments,message", [
     (["--scheduler", "tcp://127.0.0.1:PORT"], "--scheduler tcp://127.0.0.1:PORT: cannot connect ("),
     (["--scheduler", "not an address"], "--scheduler 'not an address': give the address of a Dask scheduler"),
+    (["--scheduler", "tls://127.0.0.1:PORT"], "--scheduler tls://127.0.0.1:PORT: cannot connect (TLS expects"),
     (["--scheduler", "tcp://127.0.0.1:PORT", "--workers", "2"], "--workers applies to the local pool"),
     (["--resume"], "--resume continues the sweep file given with -o OUT.h5"),
     (["--resume", "--overwrite", "-o", "x.h5"], "--resume and --overwrite exclude each other"),
