@@ -30,7 +30,8 @@ base); the sweep-wide ``set`` merges into nested mappings.
 Errors: ``exact: initial`` compares each run's final state with its initial state
 (a periodic problem over a whole number of periods, e.g. Kepler over 10 periods, the
 paper's Table 1); ``reference`` runs the base with the given overrides once and
-compares every run's final state with it.
+compares every run's final state with it, so every run must have the reference's
+problem (parameters, initial state) and interval (a sweep that varies them is refused).
 """
 from __future__ import annotations
 
@@ -228,6 +229,50 @@ def _check_label(source, key: str, label: str) -> str:
     return label
 
 
+def _first_difference(a, b, prefix: str) -> str | None:
+    """The first dotted key at which two config values differ (None: equal)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in list(a) + [key for key in b if key not in a]:
+            found = _first_difference(a.get(key), b.get(key), f"{prefix}.{key}")
+            if found:
+                return found
+        return None
+    return None if a == b else prefix
+
+
+def _interval(config: dict) -> tuple[float, float] | None:
+    """(t0, t_end) of a raw config (t_end from n_steps x h where it gives no t_end); None where
+    it cannot tell (an expression or value its run's own validation will report)."""
+    from .problems.expressions import evaluate_number
+    try:
+        integration = config.get("integration") or {}
+        t0 = evaluate_number(integration.get("t0", 0.0))
+        if integration.get("t_end") is not None:
+            return t0, evaluate_number(integration["t_end"])
+        return t0, t0 + int(integration["n_steps"]) * evaluate_number(integration["h"])
+    except Exception:   # noqa: BLE001 -- only a consistency check; the run reports a bad value itself
+        return None
+
+
+def _check_same_problem(source: str, runs: list[SweepRun], reference: dict) -> None:
+    """SweepError unless every run solves the reference run's problem from its initial state over
+    its interval: a run of another eccentricity was compared with the base's reference, and the
+    table showed errors of 0.3-2.6 as if they were the method's."""
+    reference_interval = _interval(reference)
+    for run in runs:
+        key = _first_difference(run.config.get("problem"), reference.get("problem"), "problem")
+        interval = _interval(run.config)
+        if key is None and interval is not None and reference_interval is not None and \
+                not np.allclose(interval, reference_interval, rtol=1e-12, atol=0.0):
+            key = "integration (its t0 and t_end)"
+        if key is not None:
+            _fail(source, "error.reference", f"run {run.label!r} differs from the reference run in {key}, so its "
+                                             "error against it would not measure the method; one reference run "
+                                             "serves runs of one problem, initial state and interval: put the "
+                                             "other values in sweeps of their own (or use error: {exact: initial} "
+                                             "for an orbit over whole periods)")
+
+
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
     """Read and expand a sweep file (see the module docstring). Runs are validated later,
     each by the config loader, so that one bad point fails alone with its reason."""
@@ -343,6 +388,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                 _fail(source, "error.reference", "must be {set: {overrides of the base}}")
             reference = _deep_merge(copy.deepcopy(base), ref.get("set", {}))
             error_mode = "reference"
+            _check_same_problem(source, runs, reference)
     order_axis = data.get("order_axis")
     if order_axis is not None and order_axis not in axis_names:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")

@@ -98,6 +98,33 @@ def test_a_failing_run_does_not_stop_the_others(tmp_path):
     assert 0 < errors[outcomes[0].label] < 1e-3 and math.isnan(errors[outcomes[1].label])
 
 
+@pytest.mark.parametrize("axis,key", [
+    ({"name": "e", "key": "problem.parameters.eccentricity", "values": [0.6, 0.3]}, "problem.parameters.eccentricity"),
+    ({"name": "T", "key": "integration.t_end", "values": ["2*pi", "4*pi"]}, "integration (its t0 and t_end)"),
+    ({"name": "start", "values": [{"label": "other", "set": {"problem": {"builtin": "kepler", "initial": {
+        "q1": 0.5, "q2": 0.0, "p1": 0.0, "p2": 1.5}}}}]}, "problem.initial"),
+])
+def test_a_reference_error_refuses_runs_of_another_problem_or_interval(tmp_path, axis, key):
+    """The one reference run is the base's: a grid over the eccentricity was compared with the
+    reference of e = 0.6, and the table showed errors of 0.3-2.6 (and orders of 1e-16) as if
+    they were the method's. Such a sweep must be refused, naming the run and the key."""
+    path = write_sweep(tmp_path, {"base": BASE, "grid": [axis],
+                                  "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}})
+    with pytest.raises(SweepError) as caught:
+        load_sweep(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: error.reference: run ") and f" differs from the reference run in {key}," \
+        in message, message
+    # runs of the base's problem and interval, whatever their h, method or steps, are fine
+    same = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "pi/30", "n_steps": 60}},
+                                  "grid": [{"name": "n", "key": "integration.n_steps", "values": [60, 120]},
+                                           {"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60"]}],
+                                  "error": {"reference": {"set": {"integration": {"h": "2*pi/200", "n_steps": 200}}}}},
+                             "same.yaml")
+    with pytest.raises(SweepError, match="run '60/pi/60' differs from the reference run in integration"):
+        load_sweep(same)   # 60 steps of pi/60: half the interval
+
+
 def test_a_run_that_failed_at_its_first_step_shows_no_figures_never_zero_errors(tmp_path):
     """A run failing at step 1 kept only samples of its initial state, and the table showed
     0.000e+00 for every invariant error: a failed run read as a perfect one."""
