@@ -499,15 +499,27 @@ def ensemble_states(spec: SweepSpec):
     from .integrate import Integration
 
     run = load_run_from_dict(copy.deepcopy(spec.base), source=spec.source, base_dir=Path(spec.source).parent)
+    # The ensemble kernel takes fixed steps and keeps per trajectory its end only: a base with
+    # step control, output times or events ran silently without them (or failed on 'h ... None').
+    integration = spec.base.get("integration") if isinstance(spec.base.get("integration"), dict) else {}
+    control = next((key for key in ("rtol", "atol", "step_control", "epsilon") if key in integration), "step_control")
+    ignored = ((f"integration.{control}", "adaptive steps", run.step_control is not None),
+               ("output.times", "output times", run.t_eval is not None), ("events", "events", bool(run.events)))
+    for key, what, given in ignored:
+        if given:
+            raise SweepError(f"{spec.source}: base.{key}: an ensemble takes fixed steps h and keeps each trajectory's "
+                             f"final state, invariant errors and status, without {what}; remove it, or run the "
+                             "states as a grid sweep (one run per state)")
     y0 = Integration.from_spec(run).y
     if "states" in spec.ensemble:
+        for index, state in enumerate(spec.ensemble["states"]):
+            if len(state) != y0.size:
+                raise SweepError(f"{spec.source}: ensemble.states[{index}]: has {len(state)}; each state needs "
+                                 f"{y0.size} numbers ({', '.join(run.problem.coordinate_names)})")
         try:
             states = np.array(spec.ensemble["states"], dtype=np.float64)
         except (TypeError, ValueError):
             raise SweepError(f"{spec.source}: ensemble.states: every state must be a list of numbers") from None
-        if states.ndim != 2 or states.shape[1] != y0.size:
-            raise SweepError(f"{spec.source}: ensemble.states: each state needs {y0.size} numbers "
-                             f"({', '.join(run.problem.coordinate_names)})")
     else:
         n = spec.ensemble["n"]
         require_memory(ensemble_bytes(n, y0.size, len(run.problem.invariant_names)),

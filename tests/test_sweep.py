@@ -299,6 +299,26 @@ def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
             run_ensemble_sweep(load_sweep(path))
 
 
+@pytest.mark.parametrize("change,key", [
+    ({"integration": {"rtol": 1e-10, "t_end": "2*pi"}}, "base.integration.rtol: an ensemble takes fixed steps h"),
+    ({"integration": {"step_control": "time_scale", "t_end": "2*pi"}}, "base.integration.step_control: "),
+    ({"events": {"peri": {"expression": "q1*p1 + q2*p2", "direction": 1}}}, "base.events: "),
+    ({"output": {"times": [1.0, 2.0]}}, "base.output.times: "),
+])
+def test_an_ensemble_refuses_what_its_kernel_would_silently_drop(tmp_path, change, key):
+    """An ensemble's base with events (or output times) ran without them and said nothing: a
+    user asking for each orbit's pericentre times got none. One with rtol failed on
+    'ensemble: h must be a number, got None'. Both must be refused, naming the key."""
+    from elimfast.sweep import run_ensemble_sweep
+    path = write_sweep(tmp_path, {"base": {**BASE, **change}, "ensemble": {"n": 3}})
+    with pytest.raises(SweepError) as caught:
+        run_ensemble_sweep(load_sweep(path))
+    assert str(caught.value).startswith(f"{path}: {key}"), str(caught.value)
+    ragged = write_sweep(tmp_path, {"base": BASE, "ensemble": {"states": [[0.4, 0, 0, 2], [0.4, 0, 2]]}}, "r.yaml")
+    with pytest.raises(SweepError, match=r"ensemble.states\[1\]: has 3; each state needs 4 numbers"):
+        run_ensemble_sweep(load_sweep(ragged))   # it said 'every state must be a list of numbers'
+
+
 def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
     path = tmp_path / "aliases.yaml"
     path.write_text("a: &x [1, 2]\nb: [*x, *x, *x]\nbase: {}\n")
