@@ -389,6 +389,28 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
     assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
 
 
+def test_a_file_with_a_path_that_is_no_run_is_not_called_missing(tmp_path):
+    """`elimfast inspect SWEEP.h5:/run/GAUSS3/pi/30` (a typo) or `ENSEMBLE.h5:/ensemble` said
+    'no such file' of a file that exists. It must say the file exists and how to name a run."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.io.hdf5 import OutputError
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(small_sweep(tmp_path, ["2*pi/40"]), out, workers=1)
+    expected = (f"{out}:/run/2*pi/40: {out} exists, but '/run/2*pi/40' is no run of it; one run of a sweep file "
+                f"is {out}:/runs/<label>, a run or ensemble file is given alone")
+    for command in ("inspect", "plot"):
+        result = CliRunner().invoke(cli, [command, f"{out}:/run/2*pi/40"])
+        assert result.exit_code == 2 and result.stderr == f"error: {expected}\n", result.output
+    with pytest.raises(OutputError, match="is no run of it"):
+        elimfast.load(f"{out}:/ensemble")
+    assert CliRunner().invoke(cli, ["inspect", str(tmp_path / "none.h5")]).stderr.endswith("none.h5: no such file\n")
+
+
 def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_completes_it(tmp_path):
     """kill -9 leaves a grid sweep's file (written outside SWMR mode) marked open for writing:
     HDF5 refuses it, yet every run stored before is whole and --resume completes it. Readers
