@@ -214,6 +214,7 @@ class EnsembleRun:
 
     h = property(lambda self: self.integration.h)
     n_steps = property(lambda self: self.integration.n_steps)
+    status_names = STATUS_NAMES   # the words of the status codes, for the ensemble file
     conserve = property(lambda self: self.integration.conserve)
     max_iter = property(lambda self: self.integration.max_iter)
     solver = property(lambda self: self.integration.solver)

@@ -30,7 +30,8 @@ base); the sweep-wide ``set`` merges into nested mappings.
 Errors: ``exact: initial`` compares each run's final state with its initial state
 (a periodic problem over a whole number of periods, e.g. Kepler over 10 periods, the
 paper's Table 1); ``reference`` runs the base with the given overrides once and
-compares every run's final state with it.
+compares every run's final state with it, so every run must have the reference's
+problem (parameters, initial state) and interval (a sweep that varies them is refused).
 """
 from __future__ import annotations
 
@@ -228,6 +229,50 @@ def _check_label(source, key: str, label: str) -> str:
     return label
 
 
+def _first_difference(a, b, prefix: str) -> str | None:
+    """The first dotted key at which two config values differ (None: equal)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in list(a) + [key for key in b if key not in a]:
+            found = _first_difference(a.get(key), b.get(key), f"{prefix}.{key}")
+            if found:
+                return found
+        return None
+    return None if a == b else prefix
+
+
+def _interval(config: dict) -> tuple[float, float] | None:
+    """(t0, t_end) of a raw config (t_end from n_steps x h where it gives no t_end); None where
+    it cannot tell (an expression or value its run's own validation will report)."""
+    from .problems.expressions import evaluate_number
+    try:
+        integration = config.get("integration") or {}
+        t0 = evaluate_number(integration.get("t0", 0.0))
+        if integration.get("t_end") is not None:
+            return t0, evaluate_number(integration["t_end"])
+        return t0, t0 + int(integration["n_steps"]) * evaluate_number(integration["h"])
+    except Exception:   # noqa: BLE001 -- only a consistency check; the run reports a bad value itself
+        return None
+
+
+def _check_same_problem(source: str, runs: list[SweepRun], reference: dict) -> None:
+    """SweepError unless every run solves the reference run's problem from its initial state over
+    its interval: a run of another eccentricity was compared with the base's reference, and the
+    table showed errors of 0.3-2.6 as if they were the method's."""
+    reference_interval = _interval(reference)
+    for run in runs:
+        key = _first_difference(run.config.get("problem"), reference.get("problem"), "problem")
+        interval = _interval(run.config)
+        if key is None and interval is not None and reference_interval is not None and \
+                not np.allclose(interval, reference_interval, rtol=1e-12, atol=0.0):
+            key = "integration (its t0 and t_end)"
+        if key is not None:
+            _fail(source, "error.reference", f"run {run.label!r} differs from the reference run in {key}, so its "
+                                             "error against it would not measure the method; one reference run "
+                                             "serves runs of one problem, initial state and interval: put the "
+                                             "other values in sweeps of their own (or use error: {exact: initial} "
+                                             "for an orbit over whole periods)")
+
+
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
     """Read and expand a sweep file (see the module docstring). Runs are validated later,
     each by the config loader, so that one bad point fails alone with its reason."""
@@ -343,6 +388,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                 _fail(source, "error.reference", "must be {set: {overrides of the base}}")
             reference = _deep_merge(copy.deepcopy(base), ref.get("set", {}))
             error_mode = "reference"
+            _check_same_problem(source, runs, reference)
     order_axis = data.get("order_axis")
     if order_axis is not None and order_axis not in axis_names:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
@@ -453,15 +499,27 @@ def ensemble_states(spec: SweepSpec):
     from .integrate import Integration
 
     run = load_run_from_dict(copy.deepcopy(spec.base), source=spec.source, base_dir=Path(spec.source).parent)
+    # The ensemble kernel takes fixed steps and keeps per trajectory its end only: a base with
+    # step control, output times or events ran silently without them (or failed on 'h ... None').
+    integration = spec.base.get("integration") if isinstance(spec.base.get("integration"), dict) else {}
+    control = next((key for key in ("rtol", "atol", "step_control", "epsilon") if key in integration), "step_control")
+    ignored = ((f"integration.{control}", "adaptive steps", run.step_control is not None),
+               ("output.times", "output times", run.t_eval is not None), ("events", "events", bool(run.events)))
+    for key, what, given in ignored:
+        if given:
+            raise SweepError(f"{spec.source}: base.{key}: an ensemble takes fixed steps h and keeps each trajectory's "
+                             f"final state, invariant errors and status, without {what}; remove it, or run the "
+                             "states as a grid sweep (one run per state)")
     y0 = Integration.from_spec(run).y
     if "states" in spec.ensemble:
+        for index, state in enumerate(spec.ensemble["states"]):
+            if len(state) != y0.size:
+                raise SweepError(f"{spec.source}: ensemble.states[{index}]: has {len(state)}; each state needs "
+                                 f"{y0.size} numbers ({', '.join(run.problem.coordinate_names)})")
         try:
             states = np.array(spec.ensemble["states"], dtype=np.float64)
         except (TypeError, ValueError):
             raise SweepError(f"{spec.source}: ensemble.states: every state must be a list of numbers") from None
-        if states.ndim != 2 or states.shape[1] != y0.size:
-            raise SweepError(f"{spec.source}: ensemble.states: each state needs {y0.size} numbers "
-                             f"({', '.join(run.problem.coordinate_names)})")
     else:
         n = spec.ensemble["n"]
         require_memory(ensemble_bytes(n, y0.size, len(run.problem.invariant_names)),
@@ -618,13 +676,25 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
     return outcome
 
 
-def _worker_init() -> None:
-    """A forked worker starts with Python's default signal handling, not the parent's watchdog."""
+_PR_SET_PDEATHSIG = 1   # linux/prctl.h
+
+
+def _worker_init(parent: int | None = None) -> None:
+    """A forked worker starts with Python's default signal handling, not the parent's watchdog,
+    and dies with its parent ``parent``: after a kill -9 of the sweep, orphaned workers waited
+    forever on the pool's queue and, sharing the forked output file's descriptor, held its
+    writer lock, so --resume and inspect refused the file until they were found and killed."""
     import signal
     with contextlib.suppress(ValueError, OSError):
         signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if parent is not None:
+        with contextlib.suppress(OSError, AttributeError):
+            import ctypes
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        if os.getppid() != parent:   # the parent died before prctl took effect
+            os._exit(1)
 
 
 def run_bytes(run) -> int:
@@ -737,7 +807,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         # walks (and so never copies, page by page) the parent's Numba objects.
         gc.freeze()
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(jobs))), mp_context=context,
-                                   initializer=_worker_init)
+                                   initializer=_worker_init, initargs=(os.getpid(),))
         try:
             futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
                        for label, coordinates, config in jobs}

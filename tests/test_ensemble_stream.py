@@ -100,6 +100,29 @@ def test_a_streamed_ensemble_file_opens_in_xarray_on_named_dimensions(tmp_path):
         assert ensemble["diagnostics"].dims == ("trajectory", "diagnostic")
 
 
+def test_an_ensemble_file_says_in_xarray_what_each_variable_is_its_status_codes_and_units(tmp_path):
+    """Every dataset of /ensemble but `stored` came without long_name, units or the meaning of
+    the integer status codes: in xarray a user saw `status (trajectory) int64` and nothing
+    to decode it with. Run files label theirs; an ensemble file must too (CF flags for status)."""
+    xr = pytest.importorskip("xarray")
+    out = tmp_path / "out.h5"
+    path = ensemble_sweep(tmp_path, base={"problem": {"builtin": "nbody"}, "method": {"name": "gauss", "s": 2},
+                                          "integration": {"h": 10, "t_end": 20}})
+    sweeps.run_to_file(path, out, workers=1)
+    with xr.open_datatree(out, engine="h5netcdf") as tree:
+        ensemble = tree["ensemble"].ds
+        unlabelled = [name for name in ensemble.variables if not ensemble[name].attrs.get("long_name")
+                      and name != "trajectory"]
+        assert not unlabelled
+        assert all(tree["ensemble/invariant_errors"].ds[name].attrs["long_name"].startswith(f"max |{name}(t)")
+                   for name in tree["ensemble/invariant_errors"].ds.data_vars)
+        status = ensemble["status"].attrs
+        meanings = dict(zip(status["flag_values"].tolist(), status["flag_meanings"].split()))
+        assert meanings[0] == "ok" and meanings[1] == "not_converged"
+        assert {word.replace("_", " ") for word in meanings.values()} >= set(ensembles.STATUS_NAMES.values())
+        assert ensemble["t_final"].attrs["units"] == "day" and ensemble.attrs["time_unit"] == "day"
+
+
 def test_the_diagnostic_labels_follow_the_kernel_indices():
     from elimfast.io.ensemblefile import DIAGNOSTIC_NAMES
     from elimfast.kernels import stepper

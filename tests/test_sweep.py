@@ -98,6 +98,33 @@ def test_a_failing_run_does_not_stop_the_others(tmp_path):
     assert 0 < errors[outcomes[0].label] < 1e-3 and math.isnan(errors[outcomes[1].label])
 
 
+@pytest.mark.parametrize("axis,key", [
+    ({"name": "e", "key": "problem.parameters.eccentricity", "values": [0.6, 0.3]}, "problem.parameters.eccentricity"),
+    ({"name": "T", "key": "integration.t_end", "values": ["2*pi", "4*pi"]}, "integration (its t0 and t_end)"),
+    ({"name": "start", "values": [{"label": "other", "set": {"problem": {"builtin": "kepler", "initial": {
+        "q1": 0.5, "q2": 0.0, "p1": 0.0, "p2": 1.5}}}}]}, "problem.initial"),
+])
+def test_a_reference_error_refuses_runs_of_another_problem_or_interval(tmp_path, axis, key):
+    """The one reference run is the base's: a grid over the eccentricity was compared with the
+    reference of e = 0.6, and the table showed errors of 0.3-2.6 (and orders of 1e-16) as if
+    they were the method's. Such a sweep must be refused, naming the run and the key."""
+    path = write_sweep(tmp_path, {"base": BASE, "grid": [axis],
+                                  "error": {"reference": {"set": {"integration": {"h": "2*pi/200"}}}}})
+    with pytest.raises(SweepError) as caught:
+        load_sweep(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: error.reference: run ") and f" differs from the reference run in {key}," \
+        in message, message
+    # runs of the base's problem and interval, whatever their h, method or steps, are fine
+    same = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "pi/30", "n_steps": 60}},
+                                  "grid": [{"name": "n", "key": "integration.n_steps", "values": [60, 120]},
+                                           {"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60"]}],
+                                  "error": {"reference": {"set": {"integration": {"h": "2*pi/200", "n_steps": 200}}}}},
+                             "same.yaml")
+    with pytest.raises(SweepError, match="run '60/pi/60' differs from the reference run in integration"):
+        load_sweep(same)   # 60 steps of pi/60: half the interval
+
+
 def test_a_run_that_failed_at_its_first_step_shows_no_figures_never_zero_errors(tmp_path):
     """A run failing at step 1 kept only samples of its initial state, and the table showed
     0.000e+00 for every invariant error: a failed run read as a perfect one."""
@@ -272,6 +299,26 @@ def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
             run_ensemble_sweep(load_sweep(path))
 
 
+@pytest.mark.parametrize("change,key", [
+    ({"integration": {"rtol": 1e-10, "t_end": "2*pi"}}, "base.integration.rtol: an ensemble takes fixed steps h"),
+    ({"integration": {"step_control": "time_scale", "t_end": "2*pi"}}, "base.integration.step_control: "),
+    ({"events": {"peri": {"expression": "q1*p1 + q2*p2", "direction": 1}}}, "base.events: "),
+    ({"output": {"times": [1.0, 2.0]}}, "base.output.times: "),
+])
+def test_an_ensemble_refuses_what_its_kernel_would_silently_drop(tmp_path, change, key):
+    """An ensemble's base with events (or output times) ran without them and said nothing: a
+    user asking for each orbit's pericentre times got none. One with rtol failed on
+    'ensemble: h must be a number, got None'. Both must be refused, naming the key."""
+    from elimfast.sweep import run_ensemble_sweep
+    path = write_sweep(tmp_path, {"base": {**BASE, **change}, "ensemble": {"n": 3}})
+    with pytest.raises(SweepError) as caught:
+        run_ensemble_sweep(load_sweep(path))
+    assert str(caught.value).startswith(f"{path}: {key}"), str(caught.value)
+    ragged = write_sweep(tmp_path, {"base": BASE, "ensemble": {"states": [[0.4, 0, 0, 2], [0.4, 0, 2]]}}, "r.yaml")
+    with pytest.raises(SweepError, match=r"ensemble.states\[1\]: has 3; each state needs 4 numbers"):
+        run_ensemble_sweep(load_sweep(ragged))   # it said 'every state must be a list of numbers'
+
+
 def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
     path = tmp_path / "aliases.yaml"
     path.write_text("a: &x [1, 2]\nb: [*x, *x, *x]\nbase: {}\n")
@@ -342,6 +389,28 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
     assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
 
 
+def test_a_file_with_a_path_that_is_no_run_is_not_called_missing(tmp_path):
+    """`elimfast inspect SWEEP.h5:/run/GAUSS3/pi/30` (a typo) or `ENSEMBLE.h5:/ensemble` said
+    'no such file' of a file that exists. It must say the file exists and how to name a run."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.io.hdf5 import OutputError
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(small_sweep(tmp_path, ["2*pi/40"]), out, workers=1)
+    expected = (f"{out}:/run/2*pi/40: {out} exists, but '/run/2*pi/40' is no run of it; one run of a sweep file "
+                f"is {out}:/runs/<label>, a run or ensemble file is given alone")
+    for command in ("inspect", "plot"):
+        result = CliRunner().invoke(cli, [command, f"{out}:/run/2*pi/40"])
+        assert result.exit_code == 2 and result.stderr == f"error: {expected}\n", result.output
+    with pytest.raises(OutputError, match="is no run of it"):
+        elimfast.load(f"{out}:/ensemble")
+    assert CliRunner().invoke(cli, ["inspect", str(tmp_path / "none.h5")]).stderr.endswith("none.h5: no such file\n")
+
+
 def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_completes_it(tmp_path):
     """kill -9 leaves a grid sweep's file (written outside SWMR mode) marked open for writing:
     HDF5 refuses it, yet every run stored before is whole and --resume completes it. Readers
@@ -383,6 +452,43 @@ def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_complet
     run_to_file(path, out, resume=True, workers=1)
     with pytest.raises(OutputError, match="4 of 4 runs stored"):
         RunFile(out)
+
+
+def test_the_workers_of_a_killed_sweep_die_with_it_and_free_its_file(tmp_path):
+    """kill -9 of `elimfast sweep --workers 2` left its two forked workers waiting forever on
+    the pool's queue, holding the output file's descriptor (and so its writer lock): --resume
+    and inspect refused the file ('is open in another process') until the user found and
+    killed them. The workers must die with the sweep, and --resume complete the file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from elimfast.sweep import run_to_file
+
+    path = small_sweep(tmp_path, [f"2*pi/{n}" for n in (100, 110, 120, 130, 140, 150)], t_end="500*pi")
+    out = tmp_path / "killed.h5"
+    process = subprocess.Popen([str(Path(sys.executable).with_name("elimfast")), "sweep", str(path), "-o", str(out),
+                                "--workers", "2"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    for line in process.stderr:
+        if line.startswith("[2/"):   # the pool's first run: the workers are forked
+            workers = [int(pid) for task in Path(f"/proc/{process.pid}/task").iterdir()
+                       for pid in (task / "children").read_text().split()]
+            process.send_signal(signal.SIGKILL)
+            break
+    process.wait(timeout=120)
+    assert process.returncode == -signal.SIGKILL and len(workers) == 2
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [pid for pid in workers if Path(f"/proc/{pid}").exists()
+             and "Z" not in Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[:1]]
+    for pid in alive:   # leave no process behind when the test fails
+        os.kill(pid, signal.SIGKILL)
+    assert not alive
+    outcome = run_to_file(path, out, resume=True, workers=1)
+    assert [o.status for o in outcome.outcomes] == ["complete"] * 6
 
 
 def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):

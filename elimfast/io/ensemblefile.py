@@ -19,7 +19,9 @@ An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
 Attributes of /ensemble: problem, method, h, n_steps, conserve, config (the resolved
 YAML) and status: 'running' until every trajectory is stored, then 'complete', with
 threads, failed (how many trajectories failed) and reasons (each trajectory's status as
-a word) written then.
+a word) written then; ``<quantity>_unit`` where the problem states its units. Every dataset
+has a ``long_name`` (ROW_LONG_NAMES), t_final its ``units``, and status CF's ``flag_values``
+and ``flag_meanings`` (the words of its codes).
 
 Every dataset is created with its final shape and its storage allocated at once
 (contiguous; floats filled with NaN until written), so writing a block changes no
@@ -37,7 +39,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .layout import _set_attributes, _small_dataset, _string_dataset, attach, dimension, write_method
+from .layout import (LONG_NAMES, _set_attributes, _small_dataset, _string_dataset, attach, dimension, label,
+                     unit_attributes, write_method)
 from .safety import OutputError, _damaged, _open, _plain, _writer_lock_held
 
 GROUP = "ensemble"
@@ -47,6 +50,15 @@ READ_BLOCK_ROWS = 1 << 16     # rows per read where a reader scans a whole colum
 # The labels of the diagnostic dimension, in the order of kernels/stepper.py's DIAG_* indices
 # (not imported: the file layer loads no kernels; tests/test_ensemble_stream.py checks the order).
 DIAGNOSTIC_NAMES = ("t", "h", "increment", "condition", "depth", "iterations")
+# What xarray and h5py show of each per-trajectory dataset (run files label theirs in layout.py).
+ROW_LONG_NAMES = {"y0": "initial state y = (q, p)", "y_final": "state after the last completed step",
+                  "t_final": "time after the last completed step",
+                  "iterations": "solver iterations summed over the steps (a failed step's included)",
+                  "max_multiplier": "max |alpha| (ELIM) or |lambda| (LIM) over the steps",
+                  "status": "0: complete; otherwise why the trajectory stopped (flag_meanings; "
+                            "EnsembleResult.failure_message(i) explains it)",
+                  "steps_done": "steps completed", "split_steps": "steps split into substeps",
+                  "diagnostics": "the failed step's diagnostics (0 where the trajectory completed)"}
 
 
 def _allocated(group, name: str, shape: tuple, dtype) -> h5py.Dataset:
@@ -78,11 +90,16 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
     _set_attributes(group, {
         "problem": run.problem.name, "method": run.method.name, "h": run.h, "n_steps": run.n_steps,
         "conserve": list(run.conserve) or [""], "config": config_text, "status": STATUS_RUNNING})
+    _set_attributes(group, unit_attributes(run.problem))
+    time_unit = dict(getattr(run.problem, "units", {}) or {}).get("time")
     n = states.shape[0]
     component = _string_dataset(group, "component", run.problem.coordinate_names)
     component.make_scale("component")
+    label(component, LONG_NAMES["component"])
     trajectory = dimension(group, "trajectory", n)
-    attach(_small_dataset(group, "y0", states), trajectory, component)
+    y0 = _small_dataset(group, "y0", states)
+    attach(y0, trajectory, component)
+    label(y0, ROW_LONG_NAMES["y0"])
     for name, (shape, dtype) in run.row_layout().items():
         dataset = _allocated(group, name, (n,) + shape, dtype)
         if not shape:
@@ -92,13 +109,21 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
         elif name == "diagnostics":   # one per diagnostic, labelled as the component dimension is
             diagnostic = _string_dataset(group, "diagnostic", DIAGNOSTIC_NAMES[:shape[0]])
             diagnostic.make_scale("diagnostic")
+            label(diagnostic, "diagnostic of the failed step (kernels/stepper.py try_step)")
             attach(dataset, trajectory, diagnostic)
         else:   # a row of its own kind of entries
             attach(dataset, trajectory, dimension(group, name.removesuffix("s"), shape[0]))
+        label(dataset, ROW_LONG_NAMES.get(name), time_unit if name == "t_final" else None)
+        if name == "status":   # CF flags: the words of the codes (one word each)
+            names = run.status_names
+            _set_attributes(dataset, {"flag_values": np.array(sorted(names), dtype=dtype),
+                                      "flag_meanings": " ".join(names[code].replace(" ", "_") for code in sorted(names))})
     errors = group.create_group("invariant_errors")
     _set_attributes(errors, {"order": list(run.invariant_names)})   # HDF5 lists members by name
     for name in run.invariant_names:
-        attach(_allocated(errors, name, (n,), "f8"), trajectory)
+        dataset = _allocated(errors, name, (n,), "f8")
+        attach(dataset, trajectory)
+        label(dataset, f"max |{name}(t) - {name}(t0)| over the steps")
     stored = _allocated(group, STORED, (n,), "u1")
     attach(stored, trajectory)
     _set_attributes(stored, {"long_name": "1 where the trajectory's results are written (the rest are not yet)"})

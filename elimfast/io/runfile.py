@@ -110,6 +110,13 @@ def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
                 if os.path.isfile(text[:at]):
                     return Path(text[:at]), text[at + len(marker):]
                 at = text.find(marker, at + 1)
+        at = text.find(":")
+        while at > 0:   # FILE:/something else: the file exists, the part after it names no run
+            if os.path.isfile(text[:at]):
+                raise OutputError(f"{text}: {text[:at]} exists, but {text[at + 1:]!r} is no run of it; one run "
+                                  f"of a sweep file is {text[:at]}:/{RUNS_GROUP}/<label>, a run or ensemble file "
+                                  "is given alone")
+            at = text.find(":", at + 1)
     return Path(text), run
 
 
