@@ -555,7 +555,7 @@ def plot(file, kind, output, overwrite):
     Missing directories of FIG are created, as `elimfast run` creates those of OUT.h5.
     """
     from elimfast.io.hdf5 import OutputError, RunFile, check_creatable
-    from elimfast.io.runfile import split_run_path
+    from elimfast.io.layout import split_run_path
 
     from .plots import check_image_path, plot_run
 

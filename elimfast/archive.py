@@ -29,7 +29,8 @@ def load(path, run: str | None = None):
     from .config import load_run_from_dict, parse_yaml
     from .integrate import Result
     from .io.ensemblefile import is_ensemble_file
-    from .io.runfile import RunFile, split_run_path
+    from .io.layout import split_run_path
+    from .io.runfile import RunFile
 
     file_path, run = split_run_path(path, run)
     if run is None and is_ensemble_file(file_path):

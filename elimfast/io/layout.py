@@ -39,12 +39,13 @@ scales, ``component``, long_name and units).
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from .safety import _plain  # noqa: F401 (the attribute reader, re-exported for the readers)
+from .safety import OutputError, _plain  # noqa: F401 (_plain: the attribute reader, re-exported for the readers)
 
 FORMAT = "elimfast-run"
 FORMAT_VERSION = 3            # 2: fletcher32 on every chunk, /state/record; 3: dimension scales, /component
@@ -454,3 +455,29 @@ def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end:
             # 0: not known in advance (adaptive steps, docs/adaptive.md)
             "n_steps": int(n_steps) if n_steps is not None else 0, "output_every": int(output_every),
             "conserve": list(conserve)}
+
+
+# A sweep file: its root's format, and the group of its runs, each a run group (run files have theirs at the root).
+SWEEP_FORMAT = "elimfast-sweep"
+RUNS_GROUP = "runs"
+
+
+def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
+    """(file, run label) of ``file.h5`` or ``file.h5:/runs/<label>`` (a run of a sweep file;
+    ``file.h5:runs/<label>``, as h5py writes group paths relative to the root, too)."""
+    text = os.fspath(path)
+    if run is None and not os.path.exists(text):
+        for marker in (f":/{RUNS_GROUP}/", f":{RUNS_GROUP}/"):
+            at = text.find(marker)
+            while at > 0:
+                if os.path.isfile(text[:at]):
+                    return Path(text[:at]), text[at + len(marker):]
+                at = text.find(marker, at + 1)
+        at = text.find(":")
+        while at > 0:   # FILE:/something else: the file exists, the part after it names no run
+            if os.path.isfile(text[:at]):
+                raise OutputError(f"{text}: {text[:at]} exists, but {text[at + 1:]!r} is no run of it; one run "
+                                  f"of a sweep file is {text[:at]}:/{RUNS_GROUP}/<label>, a run or ensemble file "
+                                  "is given alone")
+            at = text.find(":", at + 1)
+    return Path(text), run

@@ -58,7 +58,7 @@ from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, S
                      STATUS_KILLED, STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
-                     run_attributes,
+                     RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
                      PROBLEM_FILE_DIGEST, problem_file_attributes, version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
@@ -66,8 +66,6 @@ from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyErro
                      _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
                      damaged_row_ranges, ensure_not_busy, open_unflagged, rows_text, set_consistency_flags)
 
-SWEEP_FORMAT = "elimfast-sweep"
-RUNS_GROUP = "runs"
 
 
 def _now() -> str:
@@ -97,27 +95,6 @@ def _state_dimensions(f, state, record) -> None:
             attach(datasets[name], dimension(state, axis, datasets[name].shape[0]))
     record = h5py.Dataset(record)
     attach(record, dimension(state, "record_slot", record.shape[0]), dimension(state, "record_field", record.shape[1]))
-
-
-def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
-    """(file, run label) of ``file.h5`` or ``file.h5:/runs/<label>`` (a run of a sweep file;
-    ``file.h5:runs/<label>``, as h5py writes group paths relative to the root, too)."""
-    text = os.fspath(path)
-    if run is None and not os.path.exists(text):
-        for marker in (f":/{RUNS_GROUP}/", f":{RUNS_GROUP}/"):
-            at = text.find(marker)
-            while at > 0:
-                if os.path.isfile(text[:at]):
-                    return Path(text[:at]), text[at + len(marker):]
-                at = text.find(marker, at + 1)
-        at = text.find(":")
-        while at > 0:   # FILE:/something else: the file exists, the part after it names no run
-            if os.path.isfile(text[:at]):
-                raise OutputError(f"{text}: {text[:at]} exists, but {text[at + 1:]!r} is no run of it; one run "
-                                  f"of a sweep file is {text[:at]}:/{RUNS_GROUP}/<label>, a run or ensemble file "
-                                  "is given alone")
-            at = text.find(":", at + 1)
-    return Path(text), run
 
 
 def _sweep_run_group(path: Path, f, label: str):

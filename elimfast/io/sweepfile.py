@@ -23,8 +23,8 @@ import numpy as np
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
 from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _set_attributes, append_rows,
-                     create_run_group, run_attributes, version_attributes)
-from .runfile import SWEEP_FORMAT, _now
+                     SWEEP_FORMAT, create_run_group, run_attributes, version_attributes)
+from .runfile import _now
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
                      ensure_not_busy)
