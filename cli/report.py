@@ -110,18 +110,27 @@ def run_notes(run_file) -> list[str]:
         notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
                      "solver could not converge them whole; every invariant is kept there too")
     if substeps.get("unimposed"):
-        notes.append(unimposed_text(substeps["unimposed"]))
+        notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done))
     warning = energy_note(run_file)
     if warning:
         notes.append(warning)
     return notes
 
 
-def unimposed_text(count: int) -> str:
+# Above this fraction of a run's steps, substeps taken without imposing are no transient zero of
+# Gamma: the imposed invariant is degenerate along the orbit (L on a circular Kepler orbit: 234 of 240).
+UNIMPOSED_DEGENERATE_FRACTION = 0.01
+
+
+def unimposed_text(count: int, steps_done: int) -> str:
     """What a run's steps with a substep taken without imposing the invariants mean (docs/solver.md)."""
-    return (f"{count:,} step(s) had a substep the solver could not converge even after the last halving, "
+    text = (f"{count:,} step(s) had a substep the solver could not converge even after the last halving, "
             "taken without imposing the invariants because that kept them to round-off (their alpha is NaN; "
             "docs/solver.md#a-substep-without-imposing)")
+    if count > UNIMPOSED_DEGENERATE_FRACTION * steps_done:
+        text += ("; that many means the imposed invariants are degenerate along this orbit (e.g. L on a "
+                 "circular orbit), where the method keeps them by itself: impose fewer or none, which is faster")
+    return text
 
 
 def adaptive_text(settings) -> str:
@@ -278,7 +287,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
     if substeps.get("unimposed"):
-        row("", unimposed_text(substeps["unimposed"]))
+        row("", unimposed_text(substeps["unimposed"], run_file.steps_done))
     warning = energy_note(run_file)
     if warning:
         row("note", warning)

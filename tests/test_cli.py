@@ -103,6 +103,11 @@ def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file,
     with RunFile(path) as run_file:
         assert any("taken without imposing the invariants" in note for note in run_notes(run_file))
     assert "without imposing" not in invoke("inspect", kepler_file).stdout
+    assert "degenerate along this orbit" not in text    # 1 of 200 steps: a transient zero of Gamma
+    with h5py.File(path, "r+") as f:                    # most steps: L on a circular orbit did that
+        f["steps/alpha"][:150] = np.nan
+    text = invoke("inspect", path).stdout
+    assert "150 step(s) had a substep" in text and "degenerate along this orbit" in text
 
 
 def test_inspect_says_the_initial_state_comes_from_problem_initial(kepler_file, tmp_path):
