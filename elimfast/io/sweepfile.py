@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
 from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _set_attributes, append_rows,
-                     SWEEP_FORMAT, create_run_group, run_attributes, version_attributes)
+                     RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes, version_attributes)
 from .runfile import _now
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
@@ -50,7 +50,7 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
     if ensemblefile.GROUP in f:
         return (f"{path}: the file of an ensemble sweep (no single runs); read it with elimfast inspect {path} or "
                 f"elimfast.load('{path}')")
-    runs = f["runs"] if "runs" in f else {}
+    runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
     stored = [str(_plain(runs[name].attrs.get("label", name))) for name in runs
               if runs[name].attrs.get("stored", False)]
     planned = int(f.attrs.get(RUNS_PLANNED, 0))
@@ -118,7 +118,7 @@ class SweepWriter:
                 **version_attributes(), "format": SWEEP_FORMAT, "format_version": FORMAT_VERSION,
                 "created": _now(),
                 "sweep": sweep_text, **(attributes or {})})
-            self._runs = self._file.create_group("runs")
+            self._runs = self._file.create_group(RUNS_GROUP)
             if ensemble is not None:
                 self._ensemble = ensemblefile.create(self._file, *ensemble)
                 self.ensemble_todo = [(0, ensemble[1].shape[0])]
@@ -158,13 +158,13 @@ class SweepWriter:
             if not self._guard.lock():
                 raise OutputError(f"{self.path}: is being written by another process; stop it first or choose "
                                   "another output file")
-            if str(_plain(self._file.attrs.get("format", ""))) != SWEEP_FORMAT or "runs" not in self._file:
+            if str(_plain(self._file.attrs.get("format", ""))) != SWEEP_FORMAT or RUNS_GROUP not in self._file:
                 raise OutputError(f"{self.path}: not an elimfast sweep file, so --resume cannot continue it; "
                                   "choose another output file or pass --overwrite")
             if str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text:
                 raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
                                   "differs); pass --overwrite to start again, or choose another output file")
-            self._runs = self._file["runs"]
+            self._runs = self._file[RUNS_GROUP]
             for name in list(self._runs):
                 attributes = self._runs[name].attrs
                 label = str(_plain(attributes.get("label", "")))
