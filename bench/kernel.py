@@ -3,7 +3,8 @@
 The README's run (issue 8): EHBVM(12,3) imposing angular momentum and lrl_y on Kepler
 e = 0.6, h = 0.1, t in [0, 1000] (10^4 steps), whole runs of elimfast.integrate:
 
-- simplified Newton with the predictor (the default, docs/solver.md);
+- simplified Newton with the predictor and its secant acceleration (the default, docs/solver.md);
+- the same without the acceleration (solver.accelerate: false);
 - the fixed point with the predictor;
 - the fixed point without it (elimfast's iteration before the step engine).
 
@@ -30,6 +31,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 import numba  # noqa: E402
 
 import elimfast  # noqa: E402
+from elimfast.integrate import SolverSettings  # noqa: E402
 from elimfast.methods import ehbvm  # noqa: E402
 from elimfast.problems import kepler  # noqa: E402
 
@@ -37,6 +39,7 @@ CONSERVE = ("angular_momentum", "lrl_y")
 H, T_END = 0.1, 1000.0
 VARIANTS = {
     "newton (default)": {"solver": "newton"},
+    "newton, no secant acceleration": {"solver": SolverSettings(accelerate=False)},
     "fixed point + predictor": {"solver": "fixed_point"},
     "fixed point, no predictor": {"solver": "fixed_point", "predictor": False},
 }

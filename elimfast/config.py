@@ -26,7 +26,7 @@ Format (every section but ``problem``, ``method`` and ``integration`` is optiona
     # integration: {rtol: 1e-12, t_end: 2000*pi}   # adaptive steps (docs/adaptive.md): rtol [atol, h (first
     #   step), h_max, verify], or step_control: time_scale with epsilon; method k defaults to 2s
     solver: {method: newton, max_halvings: 4}   # optional; see docs/solver.md (method: fixed_point,
-                                                #   tol, max_iter, predictor, warm_start, rhs)
+                                                #   tol, max_iter, predictor, warm_start, rhs, accelerate)
     output: {path: out/kepler.h5, every: 10}        # path as given (the CLI resolves it)
     #   times: {start: 0, stop: 100, step: 0.5}     # or a list: samples at these times (side steps)
     events:                                         # optional: g(y) = 0, located to the integrator's accuracy

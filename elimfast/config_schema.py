@@ -127,6 +127,7 @@ class SolverSection(_Section):
     predictor: StrictBool = True
     rhs: Literal["stable", "literal"] = "stable"
     warm_start: StrictBool = True
+    accelerate: StrictBool = True
 
 
 class OutputSection(_Section):

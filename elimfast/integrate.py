@@ -116,7 +116,9 @@ class SolverSettings:
     solve; max_halvings: how often a failing step may be split in two (0: never);
     predictor: start from the previous step's polynomial carried over; warm_start: start
     from the previous step at all (False: every step cold, from y_n); rhs: 'stable'
-    (docs/methods.md#stable-right-hand-side, the default) or 'literal' (the paper's right-hand side).
+    (docs/methods.md#stable-right-hand-side, the default) or 'literal' (the paper's right-hand side);
+    accelerate: simplified Newton's secant acceleration (docs/solver.md#secant-acceleration;
+    False: the plain iteration of the spec; the fixed point is never accelerated).
     """
 
     method: str = DEFAULT_SOLVER
@@ -126,6 +128,7 @@ class SolverSettings:
     predictor: bool = True
     warm_start: bool = True
     rhs: str = "stable"
+    accelerate: bool = True
 
     def __post_init__(self):
         if self.method not in SOLVERS:
@@ -153,7 +156,7 @@ class SolverSettings:
             raise ParameterError("rhs", f"must be 'stable' (the default, docs/methods.md#stable-right-hand-side) or "
                                         "'literal' (the paper's), "
                                         f"got {self.rhs!r}")
-        for name in ("predictor", "warm_start"):
+        for name in ("predictor", "warm_start", "accelerate"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ParameterError(name, f"must be true or false, got {getattr(self, name)!r}")
             object.__setattr__(self, name, bool(getattr(self, name)))
@@ -168,10 +171,13 @@ class SolverSettings:
     def as_dict(self) -> dict:
         """The settings as plain data (the resolved config's solver section)."""
         return {"method": self.method, "tol": self.tol, "max_iter": self.max_iter, "max_halvings": self.max_halvings,
-                "predictor": self.predictor, "warm_start": self.warm_start, "rhs": self.rhs}
+                "predictor": self.predictor, "warm_start": self.warm_start, "rhs": self.rhs,
+                "accelerate": self.accelerate}
 
     @property
     def code(self) -> int:
+        if self.method == "newton" and self.accelerate:
+            return codes.SOLVER_NEWTON_ACCELERATED
         return SOLVERS[self.method]
 
     @property

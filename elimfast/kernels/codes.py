@@ -36,3 +36,6 @@ FAMILY_LIM = 1
 # Solvers of one step's nonlinear system (docs/solver.md).
 SOLVER_FIXED_POINT = 0
 SOLVER_NEWTON = 1
+# Simplified Newton with the secant acceleration of docs/solver.md#secant-acceleration (the default);
+# SOLVER_NEWTON is the plain iteration (solver.accelerate: false).
+SOLVER_NEWTON_ACCELERATED = 2

@@ -22,8 +22,8 @@ from numba import njit, types
 from numba.extending import overload
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
-                    STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
+from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON,  # noqa: F401
+                    SOLVER_NEWTON_ACCELERATED, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
 from .maps import EPS, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
@@ -176,7 +176,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     newton_base (n + 3,) = [valid, h, iterations of the last solve, y...]: where the Newton
     matrix in work was factorised (see _newton_matrix). Returns (status, iterations).
     """
-    newton = settings.solver == SOLVER_NEWTON
+    newton = settings.solver != SOLVER_FIXED_POINT
     fresh = False
     # cold is a variable, not a literal True/False at the calls: one compiled solve serves both.
     cold = not (have_prev and settings.warm_start != 0)
@@ -388,11 +388,19 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     h_prev = last_h[0]
     work.info[5] = 0.0
     may_leave_unimposed = last_resort and settings.family == FAMILY_ELIM and conserve_idx.shape[0] > 0
+    plain = Settings(settings.family, np.int64(SOLVER_NEWTON), settings.stable_rhs, settings.warm_start, settings.predictor,
+                     settings.tol, settings.max_iter, settings.max_halvings)
     while units_left > 0:
         h_sub = h * 0.5 ** depth
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                 y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
         iterations += used
+        if status != STATUS_OK and settings.solver == SOLVER_NEWTON_ACCELERATED:
+            # The secant steps can carry a hard solve to a spurious alpha, which is rejected
+            # (docs/solver.md#secant-acceleration): plain Newton tries the substep before it is split.
+            status, used = _attempt(grad_H, hess_H, grad_invariants, params, plain, tables, conserve_idx, work,
+                                    y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
+            iterations += used
         if (status != STATUS_OK and depth >= settings.max_halvings and may_leave_unimposed
                 and work.info[1] <= NEARLY_SINGULAR_GAMMA):
             # The failure's diagnostics stay those of the imposed solve.
@@ -460,7 +468,7 @@ def record_multipliers(unimposed, multipliers, out):
 def restore_newton_matrix(grad_H, hess_H, params, settings, tables, work, newton_base):
     """Factorise the Newton matrix where newton_base says it was (a new kernel call's work is
     empty); a base that no longer factorises is dropped (the next step makes a new one)."""
-    if settings.solver != SOLVER_NEWTON or newton_base[0] == 0.0:
+    if settings.solver == SOLVER_FIXED_POINT or newton_base[0] == 0.0:
         return
     n = work.newton_scale.shape[0]
     if newton_factor(grad_H, hess_H, params, newton_base[3:3 + n], newton_base[1], tables, work) != STATUS_OK:

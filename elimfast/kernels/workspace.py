@@ -66,7 +66,9 @@ Workspace = namedtuple("Workspace", [
     "carried",           # (n,) rounding carried into each component by the Jacobian (solver._carried_level)
     "h_powers",          # (max(nu, 1),) w_c = h^(2(nu-1-c)) of the step being solved
     "new_coef",          # (s, n) the map G(coef)
-    "delta",             # (s n,) the increment (Newton: M^-1 (G - coef))
+    "delta",             # (3 s n,) the increment (Newton: M^-1 (G - coef)), then Newton's previous
+    #                      iterate and its increment, the secant acceleration's history
+    #                      (solver._secant_update)
     "scale",             # (n,) sc_i of the stopping rule
     "newton_matrix",     # (s n, s n) M~ = I - h X (x) J0~, factored (full form; else 0 x 0)
     "newton_pivots",     # (s n,) int64
@@ -190,7 +192,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros(n_t),
         np.zeros(n_t, dtype=np.int64), np.zeros((1, n_t)), np.zeros((1 + n_t, n)), np.zeros(n), np.zeros(n),
         np.zeros(n), np.zeros(max(nu, 1)),
-        np.zeros((s, n)), np.zeros(s * n), np.zeros(n),
+        np.zeros((s, n)), np.zeros(3 * s * n), np.zeros(n),
         np.zeros((n_full, n_full)), np.zeros(n_full, dtype=np.int64),
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
