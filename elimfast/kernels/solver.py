@@ -208,6 +208,15 @@ def newton_solve(tables, work, delta):
             delta[j * n + p] *= unit[p]
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def accelerates(settings, nu):
+    """Does a solve with these settings, imposing nu invariants, take secant steps
+    (docs/solver.md#secant-acceleration)? Only simplified Newton with the acceleration on, and only on
+    ELIM imposing invariants: elsewhere Newton has no slow mode for it to remove (HBVM(12,3),
+    GHBVM(12,3) on Kepler e = 0.6: 4.41 and 4.49 iterations per step either way), and it costs ~5%."""
+    return settings.solver == SOLVER_NEWTON_ACCELERATED and settings.family != FAMILY_LIM and nu > 0
+
+
 @internal
 def _secant_update(h, scale, delta, coef, component, have_history, d_before, s, n):
     """One update of simplified Newton with the secant acceleration (docs/solver.md#secant-acceleration);
@@ -388,9 +397,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     for c in range(nu):
         h_powers[c] = h ** (2 * (nu - 1 - c))
 
-    # ELIM imposing invariants only: elsewhere Newton has no slow mode for it to remove (HBVM(12,3),
-    # GHBVM(12,3) on Kepler e = 0.6: 4.41 and 4.49 iterations per step either way), and it costs ~5%.
-    accelerate = settings.solver == SOLVER_NEWTON_ACCELERATED and not is_lim and nu > 0
+    accelerate = accelerates(settings, nu)
     have_history = False
     d_before = np.inf
     best = np.inf

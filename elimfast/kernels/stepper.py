@@ -22,13 +22,13 @@ from numba import njit, types
 from numba.extending import overload
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON,  # noqa: F401
-                    SOLVER_NEWTON_ACCELERATED, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
+from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
+                    STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
 from .maps import EPS, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
-from .solver import NEARLY_SINGULAR_GAMMA, newton_factor, solve
+from .solver import NEARLY_SINGULAR_GAMMA, accelerates, newton_factor, solve
 from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
 
 # First-class function types are the documented way to pass functions to cached
@@ -388,14 +388,16 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     h_prev = last_h[0]
     work.info[5] = 0.0
     may_leave_unimposed = last_resort and settings.family == FAMILY_ELIM and conserve_idx.shape[0] > 0
-    plain = Settings(settings.family, np.int64(SOLVER_NEWTON), settings.stable_rhs, settings.warm_start, settings.predictor,
-                     settings.tol, settings.max_iter, settings.max_halvings)
+    # Only where the solve took secant steps: elsewhere a plain retry would repeat the same solve.
+    retry_plain = accelerates(settings, conserve_idx.shape[0])
+    plain = Settings(settings.family, np.int64(SOLVER_NEWTON), settings.stable_rhs, settings.warm_start,
+                     settings.predictor, settings.tol, settings.max_iter, settings.max_halvings)
     while units_left > 0:
         h_sub = h * 0.5 ** depth
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                 y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
         iterations += used
-        if status != STATUS_OK and settings.solver == SOLVER_NEWTON_ACCELERATED:
+        if status != STATUS_OK and retry_plain:
             # The secant steps can carry a hard solve to a spurious alpha, which is rejected
             # (docs/solver.md#secant-acceleration): plain Newton tries the substep before it is split.
             status, used = _attempt(grad_H, hess_H, grad_invariants, params, plain, tables, conserve_idx, work,
