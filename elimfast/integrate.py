@@ -71,6 +71,11 @@ _ADAPTIVE_FAILURE_ADVICE = {
                               "(docs/adaptive.md#time-reversible-steps-step_controltime_scale)"),
 }
 ADAPTIVE_MEASURED_S = 6   # docs/adaptive.md: the range of s measured for adaptive runs; above it, advise a lower s
+# LIM has no Gamma and no Assumption 1: its small system is the Gram matrix of the gradients of H and
+# the imposed invariants (docs/methods.md#lim), singular where they are linearly dependent.
+_LIM_SINGULAR_ADVICE = ("the gradients of H and the imposed invariants are (nearly) linearly dependent here "
+                        "(LIM's Gram matrix, docs/methods.md#lim; e.g. angular momentum on a circular orbit); "
+                        "impose fewer or other invariants")
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
                            "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
                            "other invariants, whose gradients stay independent along the orbit")
@@ -704,9 +709,13 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
     if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot
         seen = [f"sigma(y) = {d[stepper.DIAG_INCREMENT]:.3g} there, next step h = {d[stepper.DIAG_STEP]:.3g}"]
+    elif d[stepper.DIAG_CONDITION] != 0.0 and method.kind.kernel_map == "lim":
+        seen.append("Gram matrix not positive definite")
     elif d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
+    if status == codes.STATUS_SINGULAR and method.kind.kernel_map == "lim":
+        advice = _LIM_SINGULAR_ADVICE
     if (adaptive and status not in (codes.STATUS_NONFINITE, codes.STATUS_TIME_SCALE)
             and method.s > ADAPTIVE_MEASURED_S):
         # at s <= 6 a lower s was advice that did not help (LIM(6,6,3) imposing L, A_x, A_y: singular at t0)
