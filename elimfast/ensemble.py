@@ -105,6 +105,12 @@ class EnsembleResult:
         """'ok', 'not converged', 'singular', 'non-finite' or 'exception' for each trajectory."""
         return [STATUS_NAMES[int(code)] for code in self.status]
 
+    def to_xarray(self):
+        """An xarray.Dataset on (trajectory, component, ...), named as an ensemble file's
+        /ensemble (``elimfast.io.xarray_view.ensemble_dataset``; needs xarray)."""
+        from .io.xarray_view import ensemble_dataset
+        return ensemble_dataset(self, STATUS_NAMES)
+
     def failure_message(self, index: int) -> str | None:
         """The message integrate would raise for trajectory ``index`` (None if it completed)."""
         code = int(self.status[index])

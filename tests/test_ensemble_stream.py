@@ -123,6 +123,37 @@ def test_an_ensemble_file_says_in_xarray_what_each_variable_is_its_status_codes_
         assert ensemble["t_final"].attrs["units"] == "day" and ensemble.attrs["time_unit"] == "day"
 
 
+def test_an_ensemble_result_as_xarray_holds_what_its_file_holds(tmp_path):
+    """EnsembleResult.to_xarray (in memory, and of the result elimfast.load reads from the file)
+    gives the file's /ensemble variables on the same named dimensions, with the same labels and
+    CF status flags, and the invariant errors as one variable on (trajectory, invariant)."""
+    xr = pytest.importorskip("xarray")
+    out = tmp_path / "out.h5"
+    path = ensemble_sweep(tmp_path, base={"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}},
+                                          "method": {"name": "gauss", "s": 3},
+                                          "solver": {"method": "fixed_point", "max_iter": 2, "max_halvings": 0},
+                                          "integration": {"h": 0.1, "t_end": 5}})
+    sweeps.run_to_file(path, out, workers=1)
+    in_memory = sweeps.run_to_file(path, workers=1).ensemble
+    assert in_memory.n_failed > 0 and not isinstance(in_memory, ensembles.LazyEnsembleResult)
+    with xr.open_datatree(out, engine="h5netcdf") as tree:
+        stored, errors = tree["ensemble"].ds, tree["ensemble/invariant_errors"].ds
+        for result in (in_memory, elimfast.load(out)):
+            ds = result.to_xarray()
+            for name in ARRAYS:
+                assert ds[name].dims == stored[name].dims, name
+                np.testing.assert_array_equal(ds[name].values, stored[name].values, err_msg=name)
+                assert ds[name].attrs["long_name"] == stored[name].attrs["long_name"], name
+            assert ds["status"].attrs["flag_meanings"] == stored["status"].attrs["flag_meanings"]
+            np.testing.assert_array_equal(ds["status"].attrs["flag_values"], stored["status"].attrs["flag_values"])
+            assert list(ds["invariant"].values) == ["H", "angular_momentum", "lrl_x", "lrl_y"]
+            for name in ds["invariant"].values:
+                np.testing.assert_array_equal(ds["invariant_error"].sel(invariant=name).values, errors[name].values)
+            assert ds.attrs["failed"] == in_memory.n_failed and ds.attrs["method"] == "GAUSS(3)"
+            failed = int(np.flatnonzero(ds["status"].values != 0)[0])
+            assert ds["diagnostics"].sel(trajectory=failed, diagnostic="iterations") == 2
+
+
 def test_the_diagnostic_labels_follow_the_kernel_indices():
     from elimfast.io.ensemblefile import DIAGNOSTIC_NAMES
     from elimfast.kernels import stepper

@@ -58,3 +58,49 @@ def result_dataset(result):
         attrs.update({key: value for key, value in settings.items() if value is not None})
         attrs.update({key: int(value) for key, value in result.stats.items()})
     return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def ensemble_dataset(result, status_names: dict):
+    """An EnsembleResult as an xarray.Dataset, with the names of an ensemble file's /ensemble
+    (ensemblefile.py): y0 and y_final on (trajectory, component); t_final, iterations,
+    max_multiplier, status (CF flag_values and flag_meanings), steps_done and split_steps on
+    trajectory; diagnostics on (trajectory, diagnostic); the file's invariant_errors/<name> as
+    one variable invariant_error on (trajectory, invariant), H first. Attributes: problem,
+    method, h, n_steps, conserve, failed and the units. status_names: code -> word (the
+    caller's: io does not import the ensemble module). A result read from a file reads
+    every column."""
+    try:
+        import xarray as xr
+    except ImportError:
+        raise ImportError("EnsembleResult.to_xarray needs xarray: pip install xarray") from None
+    from .ensemblefile import DIAGNOSTIC_NAMES, ROW_LONG_NAMES
+    units = dict(getattr(result.problem, "units", {}) or {})
+    time_unit = {"units": units["time"]} if "time" in units else {}
+    n = result.n_trajectories
+    coords = {"trajectory": ("trajectory", np.arange(n), {"long_name": "trajectory (row of the initial states)"}),
+              "component": ("component", np.array(result.problem.coordinate_names, dtype=object),
+                            {"long_name": LONG_NAMES["component"]})}
+    data = {"y0": (("trajectory", "component"), np.asarray(result.y0), {"long_name": ROW_LONG_NAMES["y0"]}),
+            "y_final": (("trajectory", "component"), np.asarray(result.y_final),
+                        {"long_name": ROW_LONG_NAMES["y_final"]})}
+    for name in ("t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps"):
+        data[name] = ("trajectory", np.asarray(getattr(result, name)),
+                      {"long_name": ROW_LONG_NAMES[name], **(time_unit if name == "t_final" else {})})
+    names = status_names
+    codes = sorted(names)
+    data["status"][2].update({"flag_values": np.array(codes, dtype=np.asarray(result.status).dtype),
+                              "flag_meanings": " ".join(names[code].replace(" ", "_") for code in codes)})
+    diagnostics = np.asarray(result.diagnostics)
+    coords["diagnostic"] = ("diagnostic", np.array(DIAGNOSTIC_NAMES[:diagnostics.shape[1]], dtype=object),
+                            {"long_name": "diagnostic of the failed step (kernels/stepper.py try_step)"})
+    data["diagnostics"] = (("trajectory", "diagnostic"), diagnostics, {"long_name": ROW_LONG_NAMES["diagnostics"]})
+    invariants = list(result.invariant_errors)
+    coords["invariant"] = ("invariant", np.array(invariants, dtype=object), {"long_name": "invariant (H first)"})
+    data["invariant_error"] = (("trajectory", "invariant"),
+                               np.stack([np.asarray(result.invariant_errors[name]) for name in invariants], axis=1)
+                               if invariants else np.zeros((n, 0)),
+                               {"long_name": "max |I(t) - I(t0)| over the steps, for each invariant"})
+    attrs = {"problem": result.problem.name, "method": result.method.name, "h": float(result.h),
+             "n_steps": int(result.n_steps), "conserve": list(result.conserve), "failed": int(result.n_failed),
+             **unit_attributes(result.problem)}
+    return xr.Dataset(data, coords=coords, attrs=attrs)
