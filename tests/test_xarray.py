@@ -142,6 +142,24 @@ def test_result_to_xarray_matches_the_file_layout(kepler):
     assert list(ds["invariant"].values) == list(CONSERVE) and ds.attrs["status"] == "complete"
 
 
+def test_result_to_xarray_labels_the_invariants_as_the_file_does_and_writes_to_netcdf(kepler_file, tmp_path):
+    """Each invariant carries the file's attributes: scale (the size of its terms at t0, which
+    relative errors divide by; it was missing), value_at_t0 and imposed, as 0/1 so that the
+    Dataset can be written with to_netcdf (netCDF has no boolean attributes)."""
+    _, path = kepler_file
+    ds = elimfast.load(path).to_xarray()
+    with xr.open_datatree(path, engine="h5netcdf") as tree:
+        stored = tree["invariants"].ds
+        for name in ("H", "angular_momentum", "lrl_x", "lrl_y"):
+            assert ds[name].attrs["scale"] == stored[name].attrs["scale"] > 0, name
+            assert ds[name].attrs["value_at_t0"] == stored[name].attrs["value_at_t0"], name
+            assert ds[name].attrs["imposed"] == int(bool(stored[name].attrs["imposed"])), name
+    assert ds["angular_momentum"].attrs["imposed"] == 1 and ds["lrl_x"].attrs["imposed"] == 0
+    ds.to_netcdf(tmp_path / "copy.nc", engine="h5netcdf")
+    with xr.open_dataset(tmp_path / "copy.nc", engine="h5netcdf") as copy:
+        assert copy["H"].attrs["scale"] == ds["H"].attrs["scale"]
+
+
 def test_the_solar_system_states_its_units_in_the_file_and_in_xarray(tmp_path):
     problem = problems.nbody()
     run = Integration(problem, methods.gauss(2), 10.0, 4)

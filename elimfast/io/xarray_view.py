@@ -12,7 +12,8 @@ def result_dataset(result):
     Adaptive runs add step_t and step_h on step (a run file's /steps/t and /steps/h), and
     every event its times ``<name>_t`` on ``<name>_occurrence`` and states ``<name>_y`` on
     (``<name>_occurrence``, component) (a run file's /events/<name>). H and each invariant
-    carry ``value_at_t0``, I of the initial state (as in a run file).
+    carry ``value_at_t0``, I of the initial state, and ``scale``, the size of its terms there
+    (for relative errors), as in a run file; ``imposed`` is 0 or 1.
     Attributes: problem, method, h (adaptive: the first step, also as h_first), conserve,
     n_steps, steps_done, status and the units; adaptive runs add the step control's
     settings (step_control, rtol, atol or epsilon, verify) and the counts of Result.stats."""
@@ -27,10 +28,12 @@ def result_dataset(result):
               "component": ("component", np.array(result.problem.coordinate_names, dtype=object),
                             {"long_name": LONG_NAMES["component"]})}
     data = {"y": (("t", "component"), np.asarray(result.y), {"long_name": LONG_NAMES["y"]})}
-    at_t0 = result.initial_invariants()
+    at_t0, scales = result.initial_invariants(), result.invariant_scales()
     for name, values in result.invariants.items():
+        # imposed as 0/1, where a run file has a boolean: netCDF (Dataset.to_netcdf) has no boolean attributes
         data[name] = ("t", np.asarray(values), {"long_name": LONG_NAMES["H"] if name == "H" else f"invariant {name}",
                                                 "imposed": int(name in result.conserve),
+                                                **({"scale": float(scales[name])} if name in scales else {}),
                                                 VALUE_AT_T0: at_t0.get(name, float("nan"))})
     done = result.steps_done
     data["iterations"] = ("step", np.asarray(result.iterations[:done]), {"long_name": LONG_NAMES["iterations"]})
