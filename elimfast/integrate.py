@@ -707,6 +707,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         where += f", in its substep from t = {d[stepper.DIAG_TIME]:.17g} of h = {d[stepper.DIAG_STEP]:.6g} " \
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
+    if status == codes.STATUS_SINGULAR and d[stepper.DIAG_INCREMENT] == math.inf:
+        seen = ["before any increment"]   # the solve's d before its first one: the first map failed
     if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot
         seen = [f"sigma(y) = {d[stepper.DIAG_INCREMENT]:.3g} there, next step h = {d[stepper.DIAG_STEP]:.3g}"]
     elif d[stepper.DIAG_CONDITION] != 0.0 and method.kind.kernel_map == "lim":
