@@ -716,9 +716,10 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     elif d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
-    if status == codes.STATUS_SINGULAR and method.kind.kernel_map == "lim":
+    dependent_gradients = status == codes.STATUS_SINGULAR and method.kind.kernel_map == "lim"
+    if dependent_gradients:   # no step size or s makes dependent gradients independent
         advice = _LIM_SINGULAR_ADVICE
-    if (adaptive and status not in (codes.STATUS_NONFINITE, codes.STATUS_TIME_SCALE)
+    elif (adaptive and status not in (codes.STATUS_NONFINITE, codes.STATUS_TIME_SCALE)
             and method.s > ADAPTIVE_MEASURED_S):
         # at s <= 6 a lower s was advice that did not help (LIM(6,6,3) imposing L, A_x, A_y: singular at t0)
         advice += f", or use a lower s (docs/adaptive.md measures s <= {ADAPTIVE_MEASURED_S})"
