@@ -168,17 +168,20 @@ def test_an_unknown_solver_is_named_by_integrates_keyword():
 def test_an_initial_state_that_is_not_real_numbers_is_refused_naming_y0(kepler, y0, detail):
     """A complex y0 was run on its real part with only numpy's ComplexWarning (the imaginary part
     dropped), and y0='abc' said "could not convert string to float: 'abc'", naming nothing. Every
-    way of giving a state refuses them by name, and without a warning first."""
+    way of giving a state refuses them by name (the problem's shape check says its own words), and
+    without a warning first."""
     import dataclasses
     import warnings
     from elimfast.errors import ParameterError
+    from elimfast.problems.check import check_derivatives
     runs = {"integrate": lambda: elimfast.integrate(kepler, gauss(2), h=0.1, n_steps=2, y0=y0),
             "adaptive integrate": lambda: elimfast.integrate(kepler, ehbvm(8, 4), rtol=1e-8, t_end=0.5, y0=y0),
             "Integration": lambda: Integration(kepler, gauss(2), h=0.1, n_steps=2, y0=y0),
             "with_initial": lambda: kepler.with_initial(y0),
-            "Problem": lambda: dataclasses.replace(kepler, y0=y0)}
+            "Problem": lambda: dataclasses.replace(kepler, y0=y0),
+            "check_derivatives": lambda: check_derivatives(kepler, y0=y0)}
     for name, run in runs.items():
-        if name in ("with_initial", "Problem") and "finite numbers" in detail:
+        if name in ("with_initial", "Problem", "check_derivatives") and "finite numbers" in detail:
             continue   # the Problem says its shape its own way (4 entries)
         with warnings.catch_warnings():
             warnings.simplefilter("error")   # no ComplexWarning on the way to the error
