@@ -280,8 +280,12 @@ def summary(run_file, integrity: dict | None = None) -> str:
         row("", f"the failed step used {a['failed_step_iterations']} iterations")
     solver = (config_of(run_file).get("solver") or {})
     if solver:
+        # A file written before a setting existed ran without it (no predictor, no acceleration).
         row("solver", f"{solver.get('method', 'fixed_point')}, max_iter {solver.get('max_iter')}, "
-                      f"max_halvings {solver.get('max_halvings', 0)}, predictor {solver.get('predictor', False)}")
+                      f"max_halvings {solver.get('max_halvings', 0)}, predictor {solver.get('predictor', False)}, "
+                      f"accelerate {solver.get('accelerate', False)}"
+                      + (" (simplified Newton's only)" if solver.get("method") == "fixed_point"
+                         and solver.get("accelerate") else ""))
     substeps = run_file.substep_stats()
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"
