@@ -740,7 +740,9 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     when absent; verify=True estimates by step doubling, verify=False by the cheap estimate,
     the default None by step doubling where the cheap estimate is not trusted: s > 5, unless
     ELIM imposes invariants), or step_control='time_scale'
-    with epsilon (time-reversible steps for problems with a time scale). Adaptive runs
+    with epsilon (time-reversible steps for problems with a time scale; the controller takes
+    every step, the first too, so h is not used). Result.h of an adaptive run is its first
+    step (StepControl.first_step). Adaptive runs
     take t_end and land on it exactly. t_eval: times at which to sample the solution
     (side steps of the method itself: the integrator's accuracy, every invariant kept);
     events: {name: {"expression": "...", "direction": 1|-1|0, "terminal": bool}}, found
