@@ -340,8 +340,8 @@ def _stored_spec(path, overrides, config, quiet):
             try:
                 load_run_from_dict(data, source=source, overrides=[*kept, item])
             except ConfigError:
-                raise resume_refusal(path, _set_key(item)) from None
-        raise resume_refusal(path, _set_key(others[0])) from None
+                raise resume_refusal(path, _set_key(item), configs=(data,)) from None
+        raise resume_refusal(path, _set_key(others[0]), configs=(data,)) from None
 
 
 def _note_other_config(config, path, stored_config: dict) -> None:
