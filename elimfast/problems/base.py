@@ -8,6 +8,7 @@ from expressions, or user files) never touch the kernels.
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -35,10 +36,14 @@ def real_state(value, parameter: str = "y0") -> np.ndarray:
     """
     try:
         array = np.asarray(value)
-        if array.dtype == object:   # e.g. Fractions, or a list mixing numbers and other things
-            array = np.array(array.tolist())
     except (TypeError, ValueError):   # ragged nesting
         array = None
+    if array is not None and array.dtype == object:   # Python objects: Fractions, or None, or ...
+        items = list(array.flat)
+        if all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in items):
+            array = np.array(items, dtype=np.float64).reshape(array.shape)
+        elif any(isinstance(v, numbers.Complex) and not isinstance(v, numbers.Real) for v in items):
+            array = np.zeros(0, dtype=complex)   # refused as complex below
     if array is not None and array.dtype.kind == "c":
         raise ParameterError(parameter, f"must be real numbers, got complex values {_shown(value)}: the state of "
                                         "a Hamiltonian system is real; pass the real part (numpy.real) if that is "
