@@ -340,8 +340,8 @@ def _stored_spec(path, overrides, config, quiet):
             try:
                 load_run_from_dict(data, source=source, overrides=[*kept, item])
             except ConfigError:
-                raise resume_refusal(path, _set_key(item)) from None
-        raise resume_refusal(path, _set_key(others[0])) from None
+                raise resume_refusal(path, _set_key(item), configs=(data,)) from None
+        raise resume_refusal(path, _set_key(others[0]), configs=(data,)) from None
 
 
 def _note_other_config(config, path, stored_config: dict) -> None:
@@ -433,13 +433,16 @@ def check(config, overrides):
                                          require_invariants)
     from elimfast.problems.expressions import ProblemDefinitionError
 
-    from .report import adaptive_text
+    from .report import adaptive_text, unused_h_note
 
     spec = _load(config, overrides)
     problem, method = spec.problem, spec.method
     if spec.step_control is not None:
         settings = spec.resolved["integration"]   # the step control's settings, as a run file stores them
         first = f", first step h = {spec.h!r}" if spec.h is not None else ""
+        if spec.step_control.controller == "time_scale":   # every step is the controller's: h is not used
+            h_first = spec.step_control.first_step(problem, method, problem.y0, spec.t_end - spec.t0)
+            first = f", first step h = {h_first!r}" + (f"; {unused_h_note(spec.h)}" if spec.h is not None else "")
         steps = f"{adaptive_text(settings)} from t = {spec.t0!r} to {spec.t_end!r}{first}"
     else:
         steps = f"{spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"

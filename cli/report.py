@@ -103,7 +103,7 @@ def energy_note(run_file) -> str | None:
 
 
 def run_notes(run_file) -> list[str]:
-    """What the end-of-run line adds: split steps, and an H error above round-off."""
+    """What the end-of-run line adds: split steps, an H error above round-off, an unused h."""
     notes = []
     substeps = run_file.substep_stats()
     if substeps["split"]:
@@ -114,7 +114,18 @@ def run_notes(run_file) -> list[str]:
     warning = energy_note(run_file)
     if warning:
         notes.append(warning)
+    h = (config_of(run_file).get("integration") or {}).get("h")
+    if run_file.attrs.get("step_control") == "time_scale" and h is not None:
+        notes.append(unused_h_note(h, run_file.attrs.get("h_first")))
     return notes
+
+
+def unused_h_note(h, first=None) -> str:
+    """An h given beside step_control: time_scale (say left from a fixed-step config under --set
+    integration.step_control=time_scale): that controller takes every step, the first too."""
+    taken = f" ({first!r} here)" if first is not None else ""
+    return (f"integration.h = {h!r} is not used: time-scale steps are all the controller's, the first "
+            f"too{taken}, epsilon / rho at y0: integration.epsilon sets their size (docs/adaptive.md)")
 
 
 # Above this fraction of a run's steps, substeps taken without imposing are no transient zero of
@@ -280,8 +291,12 @@ def summary(run_file, integrity: dict | None = None) -> str:
         row("", f"the failed step used {a['failed_step_iterations']} iterations")
     solver = (config_of(run_file).get("solver") or {})
     if solver:
+        # A file written before a setting existed ran without it (no predictor, no acceleration).
         row("solver", f"{solver.get('method', 'fixed_point')}, max_iter {solver.get('max_iter')}, "
-                      f"max_halvings {solver.get('max_halvings', 0)}, predictor {solver.get('predictor', False)}")
+                      f"max_halvings {solver.get('max_halvings', 0)}, predictor {solver.get('predictor', False)}, "
+                      f"accelerate {solver.get('accelerate', False)}"
+                      + (" (simplified Newton's only)" if solver.get("method") == "fixed_point"
+                         and solver.get("accelerate") else ""))
     substeps = run_file.substep_stats()
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"

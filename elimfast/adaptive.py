@@ -54,7 +54,9 @@ class StepControl:
     (exact to 0.2%, three steps' work); None (the default) lets ``for_method`` choose it
     where the cheap estimate is not trusted; h: the first step (None: chosen from the problem).
     controller 'time_scale': Hairer & Soderlind's time-reversible steps h ~ epsilon
-    sigma(y), for problems that define a time scale sigma. h_max: the largest step.
+    sigma(y), for problems that define a time scale sigma; every step, the first too, is the
+    controller's, so h is not used (``first_step`` gives the one it takes). h_max: the
+    largest step.
     """
 
     controller: str = "error"
@@ -134,6 +136,34 @@ class StepControl:
                                            f"{'hbvm' if method.family in ('gauss', 'hbvm') else method.family}"
                                            f"(k={2 * method.s}, s={method.s})), or verify = true (step doubling)")
         return replace(self, verify=verify)
+
+    def first_step(self, problem: Problem, method: Method, y0, span: float) -> float:
+        """The first step the kernel tries from y0 on a run of length span = t_end - t0 (a run
+        file's h_first, Result.h): error control's h, else initial_step's guess (the controller
+        may reject it and take a smaller one); time-scale steps' epsilon / rho_1/2, rho_1/2 =
+        1/sigma(y0) + epsilon G(y0)/2 (h is not used). Then, as kernels/adaptive.py takes it:
+        at most h_max, and the whole span when it would leave less than 1% of itself."""
+        y = np.array(y0, dtype=np.float64)   # writable, C-contiguous
+        if self.controller == "time_scale":
+            # kernels/adaptive.py _time_scale_rate and its rho_1/2, operation for operation, so that
+            # h_first is bit for bit the kernel's first step
+            n, m = y.size, y.size // 2
+            out, grad = np.zeros(n + 1), np.zeros(n)
+            with np.errstate(all="ignore"):
+                problem.time_scale(y, problem.params, out)
+                problem.grad_H(y, problem.params, grad)
+                acc = 0.0
+                for p in range(m):
+                    acc += float(out[1 + p]) * float(grad[m + p]) - float(out[1 + m + p]) * float(grad[p])
+                sigma = float(out[0])
+                h = self.epsilon / (1.0 / sigma + 0.5 * self.epsilon * (-acc / sigma))
+        else:
+            h = self.h if self.h is not None else initial_step(problem, method, y, self.rtol, self.atol)
+        if self.h_max is not None:
+            h = min(h, self.h_max)
+        if h >= span or span - h < 0.01 * h:   # the kernel's "no sliver of a step at the end"
+            h = span
+        return float(h)
 
     def check_problem(self, problem: Problem, y0=None) -> None:
         """Refuse a problem this control cannot step: no time scale, or one that is not positive
@@ -373,10 +403,7 @@ class AdaptiveIntegration:
             self.options = np.array([kernel.CONTROL_FIXED, 0, store_every, self.n_steps], dtype=np.int64)
         else:
             self.n_steps = None
-            self.h = control.h if control.h is not None else (
-                initial_step(problem, method, self.y, control.rtol, control.atol) if control.controller == "error"
-                else 0.0)
-            self.h = min(self.h, self.t_end - self.t0) if self.h > 0 else self.h
+            self.h = control.first_step(problem, method, self.y, self.t_end - self.t0)
             self.controls = np.array([control.rtol or 0.0, control.atol or 0.0, control.epsilon or 0.0, self.t_end,
                                       np.inf if control.h_max is None else control.h_max])
             self.options = np.array([control.code, int(control.verify), store_every, 0], dtype=np.int64)
@@ -407,8 +434,9 @@ class AdaptiveIntegration:
         control = self.control
         values = {"step_control": control.controller if control is not None else "fixed"}
         if control is not None:
+            # h: the first step (run_attributes), not a time-scale run's unused h
             values.update({key: value for key, value in control.as_dict().items()
-                           if value is not None and key not in ("controller",)})
+                           if value is not None and key not in ("controller", "h")})
             values["h_first"] = float(self.h)
         if self.t_eval.size:
             values["output_times"] = int(self.t_eval.size)

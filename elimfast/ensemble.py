@@ -31,6 +31,7 @@ from .function_addresses import remembered_addresses
 from .kernels.ensemble import ensemble_loop
 from .methods import Method
 from .problems import Problem
+from .problems.base import real_state
 
 # Blocks of a local ensemble written to a file (elimfast sweep -o): sized from the measured
 # speed, as a run's chunks are (streaming.next_chunk_steps), to take about this long. Each
@@ -143,10 +144,7 @@ def check_states(problem: Problem, Y0) -> np.ndarray:
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
     n = 2 * problem.degrees_of_freedom
-    try:
-        states = np.array(Y0, dtype=np.float64, order="C")
-    except (TypeError, ValueError):
-        raise TypeError(f"Y0 must be an array of initial states, shape (n_traj, {n})") from None
+    states = np.ascontiguousarray(real_state(Y0, "Y0"))
     if states.ndim != 2 or states.shape[0] < 1 or states.shape[1] != n:
         raise ValueError(f"Y0 must have shape (n_traj, {n}) with n_traj >= 1 "
                          f"(rows: {', '.join(problem.coordinate_names)}), got shape {states.shape}")

@@ -19,6 +19,7 @@ from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
 from .methods import Method
 from .problems import Problem
+from .problems.base import real_state
 
 # The kernels are loaded (or compiled) from their key folder: mark it used, and prune the
 # key folders of old kernels if it is new (cache.py). Once per process, a few system calls.
@@ -477,12 +478,13 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
 
 
 def resolve_initial_state(problem: Problem, y0=None) -> np.ndarray:
-    """The run's initial state: y0, or the problem's; 2m finite numbers (a fresh copy)."""
+    """The run's initial state: y0, or the problem's; 2m finite real numbers (a fresh copy),
+    else a ParameterError naming y0."""
     n = 2 * problem.degrees_of_freedom
-    y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
+    y = real_state(problem.y0 if y0 is None else y0)
     if y.shape != (n,) or not np.all(np.isfinite(y)):
-        raise ValueError(f"the initial state must be {n} finite numbers ({', '.join(problem.coordinate_names)}), "
-                         f"got {y!r}")
+        raise ParameterError("y0", f"must be {n} finite numbers ({', '.join(problem.coordinate_names)}), "
+                                   f"got {y!r}")
     return y
 
 
@@ -750,13 +752,16 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     when absent; verify=True estimates by step doubling, verify=False by the cheap estimate,
     the default None by step doubling where the cheap estimate is not trusted: s > 5, unless
     ELIM imposes invariants), or step_control='time_scale'
-    with epsilon (time-reversible steps for problems with a time scale). Adaptive runs
+    with epsilon (time-reversible steps for problems with a time scale; the controller takes
+    every step, the first too, so h is not used). Result.h of an adaptive run is its first
+    step (StepControl.first_step). Adaptive runs
     take t_end and land on it exactly. t_eval: times at which to sample the solution
     (side steps of the method itself: the integrator's accuracy, every invariant kept);
     events: {name: {"expression": "...", "direction": 1|-1|0, "terminal": bool}}, found
     to the integrator's accuracy (Result.events[name].t, .y). h_max bounds the steps.
 
-    Give t_end (a whole number of steps after t0, to 1e-9 relative) or n_steps.
+    Give t_end (a whole number of steps after t0, to 1e-9 relative) or n_steps. y0: the
+    initial state, 2m finite real numbers (q, then p; default: the problem's own).
     conserve: names of the problem's invariants to impose (ELIM/EHBVM: fewer than s;
     LIM/GHBVM: any number; must be empty for GAUSS/HBVM). store_every: keep every n-th
     state (the last one always). backward: integrate towards t0 - n_steps h.

@@ -545,11 +545,38 @@ SOLVER_SECTIONS = ("solver",)
 EXTENSION_KEYS = ("integration.t_end", "integration.n_steps", "output.times")
 
 
-def resume_refusal(path, key: str, prefix: str = "") -> OutputError:
-    """The refusal of a --resume that would change ``key``, a key outside SOLVER_SECTIONS."""
+def resume_refusal(path, key: str, prefix: str = "", configs=()) -> OutputError:
+    """The refusal of a --resume that would change ``key``, a key outside SOLVER_SECTIONS;
+    ``configs``: the stored config and the new one, as far as known (parsed YAML), which tell
+    a terminal event from one that is not (``change_effect``)."""
     return OutputError(f"{path}: {prefix}only {'/'.join(s + '.*' for s in SOLVER_SECTIONS)} may change on --resume; "
-                       f"{key} changes the trajectory: start a new run (-o NEW.h5), or replace this one with "
+                       f"{change_effect(key, configs)}: start a new run (-o NEW.h5), or replace this one with "
                        "--overwrite")
+
+
+def change_effect(key: str, configs=()) -> str:
+    """What changing ``key`` of a stored run would do, in the words of resume_refusal. Only a
+    terminal event ends the run: one that is not leaves every step as it is (events are
+    located by side steps with their own workspace, docs/adaptive.md), but the events the
+    file holds were found with the stored definitions. output.every changes the sampling."""
+    section, _, rest = key.partition(".")
+    if section == "events":
+        name, _, field = rest.partition(".")
+
+        def terminal(config) -> bool:
+            events = config.get("events") if isinstance(config, dict) else None
+            entries = ([events.get(name)] if name else list(events.values())) if isinstance(events, dict) else []
+            return any(isinstance(entry, dict) and bool(entry.get("terminal")) for entry in entries)
+
+        if field == "terminal" or any(terminal(config) for config in configs):
+            return f"{key} changes where the run ends (a terminal event stops it), and so the trajectory"
+        return (f"{key} leaves the trajectory as it is (an event that is not terminal only records where it "
+                "occurs), but the events stored for the steps already done were found with the stored definition, "
+                "so the file would hold events of two definitions")
+    if section == "output":
+        return (f"{key} leaves the trajectory as it is, but changes which states are sampled, so the file's "
+                "samples would change their spacing part-way")
+    return f"{key} changes the trajectory"
 
 
 def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
@@ -582,6 +609,18 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
         return None if a == b else prefix.rstrip(".") or "config"
 
     return first_difference(old, new)
+
+
+def _parsed(*texts: str) -> list:
+    """YAML texts as data (an unreadable one as None)."""
+    import yaml
+    parsed = []
+    for text in texts:
+        try:
+            parsed.append(yaml.safe_load(text))
+        except yaml.YAMLError:
+            parsed.append(None)
+    return parsed
 
 
 def integration_t_eval(integration) -> np.ndarray:
@@ -693,7 +732,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             stored = str(attrs.get("config", ""))
             difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS, ignore_keys=EXTENSION_KEYS)
             if difference is not None:
-                raise resume_refusal(path, difference, prefix="was written from a different config; ")
+                raise resume_refusal(path, difference, prefix="was written from a different config; ",
+                                     configs=_parsed(stored, config_text))
             extension = run_extension(path, attrs, status, clock, stored_t, integration, t_end)
             solver_changed = config_difference(stored, config_text, ignore_keys=EXTENSION_KEYS) is not None
             if status == STATUS_COMPLETE and extension is None:

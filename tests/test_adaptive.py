@@ -435,6 +435,32 @@ def test_lim_and_nbody_adaptive():
     assert rev.status == "complete" and rev.steps_done < r.steps_done * 10
 
 
+def test_the_first_step_recorded_is_the_one_the_controller_took():
+    """Time-scale steps are all the controller's, the first too: an h given beside them was
+    reported as the first step (Result.h, a run file's h and h_first: 50 on the solar system,
+    whose first step was 36.49) and Result.h was 0.0 without one. The first step recorded is
+    the one taken, bit for bit, whatever h says, and h changes no step; the end of the run (and
+    for error control h_max) bound it as they bound the kernel's."""
+    from elimfast.problems import nbody
+    for problem, span, h in ((kepler(0.6), 1.0, 0.3), (nbody(), 300.0, 50.0)):
+        runs = [elimfast.integrate(problem, hbvm(8, 4), t_end=span, step_control="time_scale", h=given)
+                for given in (None, h)]
+        for run in runs:
+            assert run.h == run.step_h[0] and run.h != h, (problem.name, run.h)
+        np.testing.assert_array_equal(runs[0].step_h, runs[1].step_h)
+        np.testing.assert_array_equal(runs[0].y, runs[1].y)
+    first = runs[0].h
+    assert abs(first - 36.49) < 0.01                   # the solar system's, from epsilon = 0.05 and sigma(y0)
+    p = kepler(0.6)
+    free = elimfast.integrate(p, hbvm(8, 4), t_end=1.0, step_control="time_scale")
+    whole = elimfast.integrate(p, hbvm(8, 4), t_end=1.005 * free.h, step_control="time_scale")
+    assert whole.steps_done == 1 and whole.h == whole.step_h[0] == 1.005 * free.h   # no sliver left at the end
+    # the error controller: h or its own guess, bounded alike (its first step was not rejected here)
+    for given in (None, 0.01):
+        error = elimfast.integrate(p, hbvm(8, 4), t_end=1.0, rtol=1e-10, h=given, h_max=0.004)
+        assert error.stats["rejected_steps"] == 0 and error.h == error.step_h[0] == 0.004
+
+
 def test_expression_time_scale_matches_the_builtin():
     from elimfast.problems import problem_from_expressions
     e = 0.9

@@ -90,6 +90,34 @@ def test_bad_adaptive_config_names_the_key(change, key):
     assert "\n" not in str(info.value)
 
 
+def test_a_time_scale_run_records_its_first_step_and_says_h_is_not_used(tmp_path):
+    """configs/nbody.yaml has h: 50; run with --set integration.step_control=time_scale, its file
+    said h = h_first = 50 while the first step taken was 36.49 (time-scale steps are all the
+    controller's). The file records the step taken, and run and check say that h is not used."""
+    nbody = Path(__file__).resolve().parents[1] / "configs" / "nbody.yaml"
+    assert yaml.safe_load(nbody.read_text())["integration"]["h"] == 50
+    switch = ["--set", "integration.step_control=time_scale", "--set", "integration.t_end=300"]
+    out = tmp_path / "nbody.h5"
+    result = CliRunner().invoke(cli, ["run", str(nbody), "-o", str(out), *switch])
+    assert result.exit_code == 0, result.output
+    with h5py.File(out, "r") as f:
+        first = float(f["steps/h"][0])
+        assert f.attrs["h_first"] == f.attrs["h"] == first and abs(first - 36.49) < 0.01
+    assert elimfast.load(out).h == first
+    assert (f"note: integration.h = 50.0 is not used: time-scale steps are all the controller's, the first too "
+            f"({first!r} here)") in result.stderr
+    checked = CliRunner().invoke(cli, ["check", str(nbody), *switch]).stdout.splitlines()[1]
+    assert checked.endswith(f", first step h = {first!r}; integration.h = 50.0 is not used: time-scale steps are all "
+                            "the controller's, the first too, epsilon / rho at y0: integration.epsilon sets their "
+                            "size (docs/adaptive.md)"), checked
+    # without h in the config, nothing to say
+    quiet = CliRunner().invoke(cli, ["run", str(nbody), "-o", str(tmp_path / "no_h.h5"), *switch,
+                                     "--set", "integration.h=null"])
+    assert quiet.exit_code == 0 and "not used" not in quiet.stderr, quiet.output
+    with h5py.File(tmp_path / "no_h.h5", "r") as f:
+        assert f.attrs["h_first"] == f.attrs["h"] == first
+
+
 def test_adaptive_run_file_layout_and_inspect(tmp_path, reference):
     config = write_config(tmp_path)
     out = tmp_path / "run.h5"

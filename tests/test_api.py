@@ -1,5 +1,6 @@
 """The Python API: arguments, errors, results, chunking."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -154,3 +155,63 @@ def test_an_unknown_solver_is_named_by_integrates_keyword():
             run()
         assert str(info.value).startswith("solver must be one of newton, fixed_point"), str(info.value)
         assert info.value.parameter == "solver"
+
+
+@pytest.mark.parametrize("y0, detail", [
+    (np.array([0.4, 0.0, 0.0, 2.0 + 1e-3j]), "must be real numbers, got complex values"),
+    ([0.4, 0.0, 0.0, 2.0 + 1e-3j], "must be real numbers, got complex values"),
+    ("abc", "must be a list of real numbers, got 'abc'"),
+    ([0.4, 0.0, "x", 2.0], "must be a list of real numbers, got [0.4, 0.0, 'x', 2.0]"),
+    ([[0.4, 0.0], [0.0]], "must be a list of real numbers"),
+    ([0.4, 0.0, 0.0], "must be 4 finite numbers (q1, q2, p1, p2)"),
+])
+def test_an_initial_state_that_is_not_real_numbers_is_refused_naming_y0(kepler, y0, detail):
+    """A complex y0 was run on its real part with only numpy's ComplexWarning (the imaginary part
+    dropped), and y0='abc' said "could not convert string to float: 'abc'", naming nothing. Every
+    way of giving a state refuses them by name (the problem's shape check says its own words), and
+    without a warning first."""
+    import dataclasses
+    import warnings
+    from elimfast.errors import ParameterError
+    from elimfast.problems.check import check_derivatives
+    runs = {"integrate": lambda: elimfast.integrate(kepler, gauss(2), h=0.1, n_steps=2, y0=y0),
+            "adaptive integrate": lambda: elimfast.integrate(kepler, ehbvm(8, 4), rtol=1e-8, t_end=0.5, y0=y0),
+            "Integration": lambda: Integration(kepler, gauss(2), h=0.1, n_steps=2, y0=y0),
+            "with_initial": lambda: kepler.with_initial(y0),
+            "Problem": lambda: dataclasses.replace(kepler, y0=y0),
+            "check_derivatives": lambda: check_derivatives(kepler, y0=y0)}
+    for name, run in runs.items():
+        if name in ("with_initial", "Problem", "check_derivatives") and "finite numbers" in detail:
+            continue   # the Problem says its shape its own way (4 entries)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")   # no ComplexWarning on the way to the error
+            with pytest.raises(ParameterError) as info:
+                run()
+        assert info.value.parameter == "y0", name
+        message = str(info.value)
+        assert message.startswith("y0 of problem 'kepler' " if name == "Problem" else "y0 "), (name, message)
+        assert detail in message and "\n" not in message, (name, message)
+
+
+def test_an_ensemble_and_a_python_problem_refuse_complex_initial_states(kepler, tmp_path):
+    """The same check for an ensemble's Y0 and a python problem file's Y0 (numpy's conversion
+    dropped the imaginary part there too)."""
+    import warnings
+    from elimfast.ensemble import integrate_ensemble
+    from elimfast.errors import ParameterError
+    from elimfast.problems.user_file import UserProblemError, problem_from_file
+    states = np.array([kepler.y0, kepler.y0 + 1e-3j])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ParameterError, match=r"^Y0 must be real numbers, got complex values") as info:
+            integrate_ensemble(kepler, gauss(2), h=0.1, Y0=states, n_steps=2)
+    assert info.value.parameter == "Y0"
+    source = (Path(__file__).resolve().parents[1] / "configs" / "kepler_problem.py").read_text()
+    assert "\nY0 = [" in source
+    path = tmp_path / "complex_problem.py"
+    path.write_text(source + "\nimport numpy\nY0 = numpy.array(Y0) + 1e-3j\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(UserProblemError, match=r": Y0 must be real numbers, got complex values") as info:
+            problem_from_file(path)
+    assert "\n" not in str(info.value)

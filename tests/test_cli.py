@@ -83,6 +83,32 @@ def test_inspect_gives_a_finished_runs_wall_time_as_run_printed_it(kepler_file, 
     assert "wall time    98.7 s, 2 steps/s; kernel 65.4 s, 3 steps/s" in invoke("inspect", path).stdout
 
 
+def test_inspect_shows_every_solver_setting_that_decides_the_iteration(kepler_file, tmp_path):
+    """inspect's solver line left out solver.accelerate (simplified Newton's secant steps, on by
+    default), which changes the iteration counts the line above it reports. It is read from the
+    stored config; a file written before the setting existed ran without acceleration."""
+    import shutil
+    solver_line = lambda path: next(line for line in invoke("inspect", path).stdout.splitlines()
+                                    if line.startswith("solver "))
+    assert solver_line(kepler_file) == "solver       newton, max_iter 30, max_halvings 4, predictor True, accelerate True"
+    with h5py.File(kepler_file, "r") as f:
+        config = yaml.safe_load(f.attrs["config"])
+    for settings, shown in (({"accelerate": False}, "newton, max_iter 30, max_halvings 4, predictor True, "
+                                                    "accelerate False"),
+                            ({"accelerate": None}, "newton, max_iter 30, max_halvings 4, predictor True, "
+                                                   "accelerate False"),
+                            ({"method": "fixed_point", "max_iter": 100}, "fixed_point, max_iter 100, max_halvings 4, "
+                             "predictor True, accelerate True (simplified Newton's only)")):
+        path = tmp_path / "solver.h5"
+        shutil.copy(kepler_file, path)
+        solver = {**config["solver"], **settings}
+        if settings.get("accelerate", "") is None:   # a file from before the setting
+            del solver["accelerate"]
+        with h5py.File(path, "r+") as f:
+            f.attrs["config"] = yaml.safe_dump({**config, "solver": solver}, sort_keys=False)
+        assert solver_line(path) == "solver       " + shown
+
+
 def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file, tmp_path):
     """A substep that cannot be solved imposing the invariants even at the deepest halving is taken
     without them when that keeps them to round-off; its step's alpha is NaN (docs/solver.md#a-substep-

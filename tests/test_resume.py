@@ -172,6 +172,42 @@ def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
     assert repeated.exit_code == 0, repeated.stderr
 
 
+def test_resume_says_what_a_changed_event_would_do(tmp_path):
+    """--resume with a changed event said it "changes the trajectory", which only a terminal
+    event does (it ends the run). One that is not terminal leaves every step as it is (checked
+    here: a fresh run with the changed event has the same states bit for bit); what it would
+    spoil is the file's events, found with the old definition. output.every changes the samples."""
+    event = 'events={peri: {expression: "q1*p1 + q2*p2", direction: 1}}'
+    path = tmp_path / "events.h5"
+    args = ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=8", "--set", event, "--quiet"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    refusal = f"error: {path}: was written from a different config; only solver.* may change on --resume; "
+    advice = ": start a new run (-o NEW.h5), or replace this one with --overwrite\n"
+    for change in ("events.peri.direction=-1", "events.peri.expression=q2",
+                   'events.apo={expression: "q1*p1 + q2*p2", direction: -1}'):
+        result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", change])
+        assert result.exit_code == 2
+        assert result.stderr.endswith(refusal + f"{change.split('=')[0]} leaves the trajectory as it is (an event that is "
+                                 "not terminal only records where it occurs), but the events stored for the steps "
+                                 "already done were found with the stored definition, so the file would hold events "
+                                 "of two definitions" + advice), result.stderr
+    other = tmp_path / "other.h5"
+    assert CliRunner().invoke(cli, [*args[:2], "-o", str(other), *args[4:-1], "--quiet", "--set",
+                                    "events.peri.direction=-1"]).exit_code == 0
+    with h5py.File(path, "r") as a, h5py.File(other, "r") as b:
+        np.testing.assert_array_equal(a["y"][:], b["y"][:])
+        # the events differ: the pericentre at t = 2 pi, the apocentre at pi
+        assert abs(a["events/peri/t"][0] - 2 * np.pi) < 1e-5 and abs(b["events/peri/t"][0] - np.pi) < 1e-5
+    # a terminal event, or making one terminal, changes where the run ends
+    for change in ("events.peri.terminal=true", 'events.apo={expression: "q1*p1 + q2*p2", terminal: true}'):
+        result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", change])
+        assert result.stderr.endswith(refusal + f"{change.split('=')[0]} changes where the run ends (a terminal event stops "
+                                 "it), and so the trajectory" + advice), result.stderr
+    result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", "output.every=5"])
+    assert result.stderr.endswith(refusal + "output.every leaves the trajectory as it is, but changes which states are "
+                             "sampled, so the file's samples would change their spacing part-way" + advice)
+
+
 def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_path):
     """A user trial's finding: the config names a python: problem by its path only, so a file
     edited between a kill and --resume (H scaled by 1.01 in H, grad_H and hess_H) was continued

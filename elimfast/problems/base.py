@@ -8,11 +8,14 @@ from expressions, or user files) never touch the kernels.
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
 import numpy as np
+
+from ..errors import ParameterError
 
 # Where a problem's hess_H comes from -> how reports say it.
 HESSIAN_SOURCES = {
@@ -21,6 +24,39 @@ HESSIAN_SOURCES = {
     "user": "the python file's own hess_H",
     "finite differences": "finite differences of grad_H (the python file defines no hess_H)",
 }
+
+
+def real_state(value, parameter: str = "y0") -> np.ndarray:
+    """An initial state as a fresh float64 array, or a ParameterError naming ``parameter``.
+
+    The one check of what a state is made of (Problem's y0, ``with_initial``, integrate's y0,
+    an ensemble's Y0, a python problem's Y0; the shape is checked by each): real numbers
+    only. numpy's own conversion dropped the imaginary part of a complex state with only a
+    ComplexWarning, and a string got "could not convert string to float", naming nothing.
+    """
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError):   # ragged nesting
+        array = None
+    if array is not None and array.dtype == object:   # Python objects: Fractions, or None, or ...
+        items = list(array.flat)
+        if all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in items):
+            array = np.array(items, dtype=np.float64).reshape(array.shape)
+        elif any(isinstance(v, numbers.Complex) and not isinstance(v, numbers.Real) for v in items):
+            array = np.zeros(0, dtype=complex)   # refused as complex below
+    if array is not None and array.dtype.kind == "c":
+        raise ParameterError(parameter, f"must be real numbers, got complex values {_shown(value)}: the state of "
+                                        "a Hamiltonian system is real; pass the real part (numpy.real) if that is "
+                                        "what you mean")
+    if array is None or array.dtype.kind not in "iuf":
+        raise ParameterError(parameter, f"must be a list of real numbers, got {_shown(value)}")
+    return np.array(array, dtype=np.float64)
+
+
+def _shown(value, limit: int = 60) -> str:
+    with np.printoptions(threshold=8):   # a large array's repr is summarised, not built whole
+        text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _vector(y) -> np.ndarray:
@@ -74,7 +110,10 @@ class Problem:
     def __post_init__(self):
         if len(self.q_names) != len(self.p_names):
             raise ValueError(f"problem {self.name!r}: {len(self.q_names)} q names but {len(self.p_names)} p names")
-        y0 = np.ascontiguousarray(self.y0, dtype=np.float64).copy()
+        try:
+            y0 = np.ascontiguousarray(real_state(self.y0))
+        except ParameterError as err:
+            raise ParameterError("y0", f"of problem {self.name!r} {err.detail}") from None
         if y0.shape != (2 * len(self.q_names),):
             raise ValueError(f"problem {self.name!r}: y0 must have {2 * len(self.q_names)} entries, got shape {y0.shape}")
         y0.setflags(write=False)
@@ -110,7 +149,7 @@ class Problem:
 
     def with_initial(self, y0) -> "Problem":
         """The same problem from another initial state (``initial_given`` when it differs from y0)."""
-        y0 = np.asarray(y0, dtype=np.float64)
+        y0 = real_state(y0)
         given = self.initial_given or y0.shape != self.y0.shape or not np.array_equal(y0, self.y0)
         return replace(self, y0=y0, initial_given=given)
 

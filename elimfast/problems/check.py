@@ -58,7 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .base import Problem
+from .base import Problem, real_state
 from .expressions import ProblemDefinitionError
 
 DEFAULT_POINTS = 8          # random points besides y0
@@ -95,7 +95,7 @@ class DerivativeCheckError(ProblemDefinitionError):
 def check_points(problem: Problem, n_points: int = DEFAULT_POINTS, seed: int = 0, radius: float = DEFAULT_RADIUS,
                  y0=None) -> list[np.ndarray]:
     """y0 (the problem's, or the one given) and n_points seeded random points near it."""
-    centre = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)
+    centre = real_state(problem.y0 if y0 is None else y0)
     rng = np.random.default_rng(seed)
     scale = radius * max(float(np.max(np.abs(centre))) if centre.size else 0.0, 1.0)
     return [centre] + [centre + scale * rng.standard_normal(centre.size) for _ in range(n_points)]

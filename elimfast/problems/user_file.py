@@ -61,7 +61,8 @@ import numpy as np
 
 from .. import cache
 from ..kernels import signatures
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_state
 from .expressions import ProblemDefinitionError, check_name, did_you_mean, evaluate_number
 
 # Appended to the cached copy of every python: problem file (after its last line, so its
@@ -257,9 +258,9 @@ def _load_module(path: Path, text: str):
 def _coordinates(label, q_names, p_names, default_y0, initial, param_values):
     if default_y0 is not None:
         try:
-            default_y0 = np.array(default_y0, dtype=np.float64).ravel()
-        except (TypeError, ValueError):
-            raise UserProblemError(f"{label}: Y0 must be a list of numbers", key="python") from None
+            default_y0 = real_state(default_y0, "Y0").ravel()
+        except ParameterError as err:
+            raise UserProblemError(f"{label}: {err}", key="python") from None
     if q_names is None and p_names is None:
         if default_y0 is None:
             raise UserProblemError(f"{label}: define Y0 (the default initial state) or Q_NAMES and P_NAMES",
