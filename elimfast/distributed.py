@@ -83,7 +83,13 @@ def check_scheduler(scheduler: str, workers: int | None = None) -> None:
 @contextlib.contextmanager
 def connect(scheduler: str, workers: int | None = None, on_message: Callable[[str], None] | None = None):
     """A Client of the cluster at ``scheduler``, or of a new LocalCluster ('local': ``workers``
-    processes, default one per core, one thread each); closed (and the cluster stopped) after."""
+    processes, default one per core, one thread each); closed (and the cluster stopped) after.
+
+    Not the process's default client (set_as_default=False): elimfast submits to it by name,
+    and a default client sets dask's global scheduler option, which a client that failed to
+    connect restored only when garbage-collected, possibly after another client's close: the
+    process was left asking for a distributed scheduler with none active, and xarray's
+    to_netcdf then raised "Requested dask.distributed scheduler but no Client active"."""
     check_scheduler(scheduler, workers)
     distributed = _distributed()
     say = on_message or (lambda line: None)
@@ -92,11 +98,11 @@ def connect(scheduler: str, workers: int | None = None, on_message: Callable[[st
             n = default_workers() if workers is None else int(workers)
             cluster = stack.enter_context(distributed.LocalCluster(
                 n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0"))
-            client = stack.enter_context(distributed.Client(cluster))
+            client = stack.enter_context(distributed.Client(cluster, set_as_default=False))
             say(f"dask: a local cluster of {n} worker process(es) at {cluster.scheduler_address}")
         else:
             try:
-                client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+                client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
             except (OSError, TimeoutError, ValueError, TypeError, ImportError) as error:
                 # TypeError: a tls:// address without dask's TLS settings (no ssl_context), a ucx://
                 # one without ucx-py; both were 'internal error' with exit 1
@@ -245,7 +251,7 @@ def run_sweep_on(client, spec: SweepSpec, store_arrays: bool = True,
                                    retries=RETRIES)
             futures[future] = (label, coordinates, config)
         try:
-            for done, future in enumerate(distributed.as_completed(futures), start=1):
+            for done, future in enumerate(distributed.as_completed(futures, loop=client.loop), start=1):
                 label, coordinates, config = futures[future]
                 try:
                     outcome = future.result()
@@ -345,7 +351,7 @@ def ensemble_blocks_on(client, spec: SweepSpec, states: np.ndarray, ranges,
         return future
 
     arriving = distributed.as_completed([future for future in (submit_next() for _ in range(window))
-                                         if future is not None])
+                                         if future is not None], loop=client.loop)
     try:
         for future in arriving:
             start, stop = futures.pop(future)

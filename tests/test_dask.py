@@ -289,6 +289,25 @@ def test_bad_scheduler_options_give_one_line_errors(tmp_path, arguments, message
     assert time.perf_counter() - start < 3 * on_dask.CONNECT_TIMEOUT_S
 
 
+def test_elimfast_leaves_dask_s_global_scheduler_option_alone(tmp_path, monkeypatch):
+    """elimfast submits to its client by name; a client it makes is not the process's default,
+    which would set dask's global 'scheduler' option. A default client that failed to connect
+    restored that option only when garbage-collected, which in this suite happened after the
+    module's own client had closed: the process was left asking for a distributed scheduler
+    with none active, and xarray's to_netcdf failed in a later test."""
+    dask = pytest.importorskip("dask")
+    import gc
+    monkeypatch.setattr(on_dask, "CONNECT_TIMEOUT_S", 1)
+    before = dask.config.get("scheduler", None)
+    with pytest.raises(SweepError, match="cannot connect"):
+        sweeps.run(grid_sweep(tmp_path), scheduler=f"tcp://127.0.0.1:{free_port()}")
+    with on_dask.connect("local", workers=1) as client:
+        assert dask.config.get("scheduler", None) == before
+        assert client.status == "running"
+    gc.collect()
+    assert dask.config.get("scheduler", None) == before
+
+
 def test_without_dask_the_error_says_how_to_install_it(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)   # import distributed raises ImportError
     result = CliRunner().invoke(cli, ["sweep", str(grid_sweep(tmp_path)), "--scheduler", "local"])
