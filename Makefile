@@ -39,6 +39,7 @@ bench: $(VENV)/.installed-test
 	$(BIN)/python bench/end_to_end.py
 	$(BIN)/python bench/sweep.py
 	$(BIN)/python bench/sweep_dask.py --dask
+	$(BIN)/python bench/sweep_xarray.py --out bench/results/sweep_xarray.md
 	$(BIN)/python bench/user_problem.py
 	$(BIN)/python bench/ensemble.py
 	$(BIN)/python bench/adaptive_vs_fixed.py --markdown bench/results/adaptive_vs_fixed.md

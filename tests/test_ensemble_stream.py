@@ -98,6 +98,8 @@ def test_a_streamed_ensemble_file_opens_in_xarray_on_named_dimensions(tmp_path):
         # the diagnostics are labelled, in the kernel's order (it was a bare dimension)
         assert list(ensemble["diagnostic"].values) == ["t", "h", "increment", "condition", "depth", "iterations"]
         assert ensemble["diagnostics"].dims == ("trajectory", "diagnostic")
+        with elimfast.open_datatree(out) as ours:   # the same tree, built without h5netcdf's path searches
+            xr.testing.assert_identical(ours, tree)
 
 
 def test_an_ensemble_file_says_in_xarray_what_each_variable_is_its_status_codes_and_units(tmp_path):

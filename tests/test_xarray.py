@@ -266,3 +266,92 @@ def test_an_event_whose_xarray_names_are_taken_is_refused():
     r = elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=1.0, rtol=1e-10,
                            events={"steps": {"expression": "q2"}})
     assert r.to_xarray()["step_t"].dims == ("step",)
+
+
+GHBVM_80 = "GHBVM/2*pi/80"        # a run of the sweep_file fixture, and its group (sweepfile.sweep_group_name)
+GHBVM_80_GROUP = "runs/GHBVM|2*pi|80"
+
+
+def test_elimfast_open_datatree_gives_the_tree_h5netcdf_gives(kepler_file, sweep_file):
+    """elimfast.open_datatree reads a file into the nodes, variables, dimensions, coordinates and
+    attributes that xr.open_datatree(path, engine="h5netcdf") gives: a run file, a sweep file,
+    one run of it (by label or FILE:/runs/<label>), and one group through xr.open_dataset."""
+    from elimfast.io.xarray_tree import ElimfastBackend
+    for path in (kepler_file[1], sweep_file[0]):
+        with xr.open_datatree(path, engine="h5netcdf") as theirs, elimfast.open_datatree(path) as ours:
+            xr.testing.assert_identical(ours, theirs)
+    path = sweep_file[0]
+    with xr.open_datatree(path, engine="h5netcdf", group=GHBVM_80_GROUP) as theirs:
+        for ours in (elimfast.open_datatree(path, run=GHBVM_80), elimfast.open_datatree(f"{path}:/runs/{GHBVM_80}")):
+            with ours:
+                xr.testing.assert_identical(ours, theirs)
+    group = f"{GHBVM_80_GROUP}/steps"
+    with xr.open_dataset(path, engine="h5netcdf", group=group) as theirs, \
+            xr.open_dataset(path, engine=ElimfastBackend, group=group) as ours:
+        xr.testing.assert_identical(ours, theirs)
+        assert ours["lambda"].dims == ("step", "invariant")
+
+
+def test_open_datatree_never_asks_hdf5_for_the_path_of_a_dimension_scale(sweep_file, monkeypatch):
+    """What keeps elimfast.open_datatree linear in the runs of a sweep file: h5netcdf names the
+    dimension of each axis by the HDF5 path of the scale its DIMENSION_LIST refers to (h5py
+    .name, H5Iget_name), and HDF5 finds the path of an object reached by reference by visiting
+    the file's links from the root until it meets the object, past the runs stored before it:
+    O(runs) per lookup, O(runs^2) per file (bench/sweep_xarray.py). open_datatree knows every
+    scale by object identity as it walks the groups, and asks HDF5 for no path at all."""
+    path, _ = sweep_file
+    asked = []
+    get_name = h5py.h5i.get_name
+
+    def counting(obj, *args):
+        asked.append(obj)
+        return get_name(obj, *args)
+
+    monkeypatch.setattr(h5py.h5i, "get_name", counting)
+    with elimfast.open_datatree(path) as tree:
+        assert len(tree["runs"].children) == 4 and tree[f"{GHBVM_80_GROUP}/steps"]["lambda"].dims == \
+            ("step", "invariant")
+    assert asked == []
+    with xr.open_datatree(path, engine="h5netcdf"):   # the search this avoids: one per axis of each variable
+        pass
+    assert len(asked) >= 4 * 6      # each run: y (2 axes), H and 3 invariants, iterations, substeps, lambda (2)
+
+
+def test_a_sweep_run_in_xarray_holds_the_data_elimfast_load_gives(sweep_file):
+    """A run of a sweep file, opened with xr.open_datatree (h5netcdf) or elimfast.open_datatree,
+    holds the arrays elimfast.load(path, run=label) returns, on its named dimensions."""
+    path, _ = sweep_file
+    loaded = elimfast.load(path, run=GHBVM_80)
+    with xr.open_datatree(path, engine="h5netcdf") as theirs, elimfast.open_datatree(path) as ours:
+        for tree in (theirs, ours):
+            run = tree[GHBVM_80_GROUP]
+            assert run.attrs["label"] == GHBVM_80 and run["y"].dims == ("t", "component")
+            np.testing.assert_array_equal(run["t"].values, loaded.t)
+            np.testing.assert_array_equal(run["y"].values, loaded.y)
+            assert list(run["component"].values) == list(loaded.problem.coordinate_names)
+            for name, values in loaded.invariants.items():
+                np.testing.assert_array_equal(run["invariants"][name].values, values, err_msg=name)
+            np.testing.assert_array_equal(run["steps"]["iterations"].values, loaded.iterations)
+            np.testing.assert_array_equal(run["steps"]["substeps"].values, loaded.substeps)
+            np.testing.assert_array_equal(run["steps"]["lambda"].values, loaded.lam)
+
+
+def test_open_datatree_says_in_one_line_what_it_cannot_open(tmp_path, sweep_file, kepler):
+    path, _ = sweep_file
+    with pytest.raises(elimfast.ElimfastError, match=r"has no run 'nope'; its runs: GAUSS3/2"):
+        elimfast.open_datatree(path, run="nope")
+    with pytest.raises(elimfast.ElimfastError, match=r"missing\.h5: no such file$"):
+        elimfast.open_datatree(tmp_path / "missing.h5")
+    (tmp_path / "text.h5").write_text("not HDF5\n")
+    with pytest.raises(elimfast.ElimfastError, match=r"text\.h5: not an HDF5 file"):
+        elimfast.open_datatree(tmp_path / "text.h5")
+    old = tmp_path / "old.h5"    # format 2: no /component scale (test_files_of_format_2_are_still_read)
+    streaming.run_to_file(Integration(kepler, methods.ehbvm(6, 3), 0.1, 20, conserve=CONSERVE), old,
+                          config_text="a: 1\n", handle_signals=False)
+    with h5py.File(old, "r+") as f:
+        f["y"].dims[1].detach_scale(f["component"])
+        del f["component"]
+        f.attrs["format_version"] = 2
+    with pytest.raises(elimfast.ElimfastError, match=r"old\.h5:/y: an axis without a dimension scale; read the "
+                                                     r"run with elimfast\.load$"):
+        elimfast.open_datatree(old)

@@ -27,7 +27,8 @@ fletcher32 filter, and extended as the run goes:
 Every dataset has HDF5 dimension scales (netCDF-4's convention), so that
 ``xarray.open_dataset(path, engine="h5netcdf")`` opens a run file with ``t`` and
 ``component`` as coordinates, and ``xarray.open_datatree`` opens every group (a sweep
-file: one node per run). Dimensions that are not variables (``step``, ``node``, ...) are
+file: one node per run; ``elimfast.open_datatree`` builds the same tree in time linear in
+the runs, where h5netcdf's grows with their square: io/xarray_tree.py). Dimensions that are not variables (``step``, ``node``, ...) are
 netCDF's "dimension but not a variable" scales: empty datasets that hold only a length.
 Variables carry ``long_name``, and ``units`` where the problem states its units (the
 built-in solar system: AU, days, solar masses; also the group attributes

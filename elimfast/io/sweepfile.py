@@ -8,9 +8,10 @@ t, component, y, invariants/<name>, steps/..., method/... on the same dimension 
 and a run file's attributes (config, problem, method, h, n_steps, steps_done, status,
 wall_time_s, ...) plus ``label`` and ``axis_<name>`` for its coordinates. An ensemble
 sweep stores /ensemble instead, block by block (``ensemblefile.py``: its layout, its done
-record and its reader). ``xarray.open_datatree(path, engine="h5netcdf")`` reads
-the file, one node per run; ``RunFile("file.h5:/runs/<label>")`` and
-``elimfast.load(path, run=label)`` read one run.
+record and its reader). ``elimfast.open_datatree(path)`` reads the file into an xarray
+DataTree, one node per run (``xarray.open_datatree(path, engine="h5netcdf")`` gives the
+same tree, in time that grows with the square of the runs: io/xarray_tree.py);
+``RunFile("file.h5:/runs/<label>")`` and ``elimfast.load(path, run=label)`` read one run.
 """
 from __future__ import annotations
 

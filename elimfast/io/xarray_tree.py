@@ -1,0 +1,271 @@
+"""An elimfast file as an xarray DataTree, in time linear in its groups: ``open_datatree``.
+
+Why not only ``xr.open_datatree(path, engine="h5netcdf")``: h5netcdf names the dimensions
+of a variable by dereferencing the dimension scale of each axis (the DIMENSION_LIST
+attribute) and asking HDF5 for the path of that scale (``Variable._lookup_dimensions``,
+h5py's ``.name``). An object reached through a reference has no path of its own, so HDF5
+(H5Iget_name -> H5G_get_name_by_addr) finds one by visiting the file's links from the root,
+in their native order, until it meets the object: each lookup costs the objects visited
+before it. A sweep file holds one run group per run, each with its own scales (t, step,
+...: their lengths differ), so opening it costs O(runs^2): 2.0 s for 30 Kepler runs, 13 s
+for 100, 118 s for 300, of which about 97 s in those lookups (18 per run at 18 ms each;
+bench/results/sweep_xarray.md).
+No layout with a dimension scale per run avoids it (HDF5 searches every lookup from the
+root), and scales shared between runs would pad each run to the longest.
+
+Here every dimension scale is known by its object identity (file number and address:
+h5py's ObjectID equality) as the walk meets it, in the variable's group or an ancestor,
+as netCDF-C matches them: a variable's dimension names are a dereference and a dictionary
+lookup per axis, and the walk never asks HDF5 for the path of a dereferenced object.
+
+The tree is the one h5netcdf gives: the same nodes, variables, dimensions, coordinates and
+attributes (without netCDF's own: CLASS, NAME, REFERENCE_LIST, DIMENSION_LIST, ...),
+decoded by xarray (the decode_* options of ``xr.open_datatree``, which also takes ``chunks``
+and ``cache``). Numeric data are read when used (``.load()`` reads them into memory);
+string variables (the component names) are read at once. Encodings (chunk sizes,
+compression) are not filled in. Files of elimfast's format 1 and 2 have no dimension
+scales: ``elimfast.load`` reads them.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .layout import DIMENSION_ONLY, split_run_path
+from .safety import READ_ERRORS, OutputError, _damaged
+
+try:
+    import xarray as xr
+    from xarray.backends import BackendArray, BackendEntrypoint, CachingFileManager
+    from xarray.core import indexing   # BackendArray's indexing helpers (xarray's guide to writing a backend)
+except ImportError:
+    raise ImportError("elimfast.open_datatree needs xarray: pip install xarray") from None
+
+# Attributes that the HDF5 dimension-scale API and netCDF-4 keep for themselves (h5netcdf hides the same).
+HIDDEN_ATTRIBUTES = frozenset({"REFERENCE_LIST", "CLASS", "DIMENSION_LIST", "NAME", "_Netcdf4Dimid",
+                               "_Netcdf4Coordinates", "_nc3_strict", "_NCProperties"})
+# The NAME of a scale that is a netCDF dimension and no variable (netCDF-C's text; layout.DIMENSION_ONLY).
+DIMENSION_ONLY_PREFIX = DIMENSION_ONLY.split("%")[0].rstrip(".").encode()
+DECODERS = ("mask_and_scale", "decode_times", "concat_characters", "decode_coords", "use_cftime",
+            "decode_timedelta")
+
+
+def open_datatree(path, run: str | None = None, **options):
+    """The file ``path`` as an xarray DataTree: every group a node, as
+    ``xr.open_datatree(path, engine="h5netcdf")`` gives it, but in time linear in the groups
+    (a sweep file of 300 runs: 3.9 s instead of 118 s; the module doc says why).
+
+    ``run``: the label of one run of a sweep file (or ``path`` given as
+    ``"sweep.h5:/runs/<label>"``): the tree of that run's group alone, as a run file's.
+    ``options``: those of ``xr.open_datatree`` (``chunks``, ``cache``, ``decode_times``, ...).
+    The data are read when used; ``tree.close()`` closes the file. Raises OutputError (an
+    ElimfastError) for a file or run that cannot be read.
+    """
+    file_path, run = split_run_path(path, run)
+    group = None
+    if run is not None:
+        from .runfile import _sweep_run_group
+        with _open_file(file_path) as f:
+            group = _sweep_run_group(file_path, f, run).name
+    return xr.open_datatree(os.fspath(file_path), engine=ElimfastBackend, group=group, **options)
+
+
+def _open_file(path) -> h5py.File:
+    """The file opened for reading as RunFile opens it (a killed run's file in SWMR mode), or
+    OutputError in one line (no file, not HDF5, a sweep whose writer was killed)."""
+    from .runfile import _killed_sweep
+    from .safety import DamagedFileError, _open
+    try:
+        return _open(path)
+    except DamagedFileError:
+        message = _killed_sweep(Path(path))
+        if message is None:
+            raise
+        raise OutputError(message) from None
+
+
+def _attribute(value):
+    """An attribute as h5netcdf and xarray give it: strings as str, arrays of strings as
+    lists, a one-element array as its element."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.ndarray) and value.ndim:
+        if value.dtype.kind in "OS":
+            value = [item.decode("utf-8", "replace") if isinstance(item, bytes) else item for item in value.flat]
+        if len(value) == 1:
+            return value[0]
+    return value
+
+
+def _is_scale(attrs, names) -> bool:
+    """Whether the dataset of ``attrs`` (its attribute names: ``names``) is a dimension scale."""
+    return "CLASS" in names and bytes(attrs["CLASS"]) == b"DIMENSION_SCALE"
+
+
+class _Walk:
+    """Reads the groups of one open file into {path relative to the first group: xr.Dataset}.
+    Every object is reached by its path, which the walk carries (it never asks HDF5 for one)."""
+
+    def __init__(self, f, manager, path, decoders: dict, drop_variables):
+        self.f, self.manager, self.path = f, manager, path
+        self.decoders = decoders
+        if isinstance(drop_variables, str):
+            drop_variables = [drop_variables]
+        self.drop = set(drop_variables or ())
+
+    def scales_above(self, location: str) -> dict:
+        """{ObjectID: dimension name} of the dimension scales in the ancestors of the group at
+        ``location`` (an absolute path): the dimensions its variables may use."""
+        scales: dict = {}
+        names = [name for name in location.split("/") if name]
+        for depth in range(len(names)):
+            self._members(self.f["/" + "/".join(names[:depth])], scales)
+        return scales
+
+    @staticmethod
+    def _members(group, scales: dict) -> tuple[dict, list]:
+        """The datasets {name: Dataset} and the subgroups [name] of ``group``; its dimension
+        scales are added to ``scales``, keyed by object identity (file number and address)."""
+        datasets, groups = {}, []
+        for name in group:
+            member = group.get(name)
+            if isinstance(member, h5py.Dataset):
+                datasets[name] = member
+                attrs = member.attrs
+                if _is_scale(attrs, attrs):
+                    scales[member.id] = name
+            elif isinstance(member, h5py.Group):
+                groups.append(name)
+        return datasets, groups
+
+    def groups(self, location: str, relative: str, scales: dict, recursive: bool, out: dict) -> dict:
+        scales = dict(scales)
+        try:
+            datasets, groups = self._members(self.f[location], scales)
+            raw = self.dataset(location, datasets, scales)
+        except READ_ERRORS as err:   # HDF5 failing to read the group's metadata (a checksum, a bad reference)
+            raise _damaged(self.path, location, err) from None
+        dataset = xr.decode_cf(raw, **self.decoders)
+        dataset.set_close(self.manager.close)
+        out[relative or "/"] = dataset
+        if recursive:
+            for name in groups:
+                self.groups(f"{location.rstrip('/')}/{name}", f"{relative}/{name}", scales, True, out)
+        return out
+
+    def dataset(self, location: str, datasets: dict, scales: dict):
+        variables = {}
+        for name, member in datasets.items():
+            attrs = member.attrs
+            keys = list(attrs)
+            scale = _is_scale(attrs, keys)
+            if scale and bytes(attrs.get("NAME", b"")).startswith(DIMENSION_ONLY_PREFIX):
+                continue   # a netCDF dimension that is no variable
+            if name in self.drop:
+                continue
+            path = f"{location.rstrip('/')}/{name}"
+            variables[name] = xr.Variable(self.dimensions(path, member, attrs, keys, scale, scales),
+                                          self.data(member, path),
+                                          {key: _attribute(attrs[key]) for key in keys
+                                           if key not in HIDDEN_ATTRIBUTES})
+        group = self.f[location]
+        attributes = {key: _attribute(value) for key, value in group.attrs.items() if key not in HIDDEN_ATTRIBUTES}
+        return xr.Dataset(variables, attrs=attributes)
+
+    def dimensions(self, path: str, member, attrs, keys, scale: bool, scales: dict) -> tuple:
+        """The dimension names of the dataset at ``path``: a 1-d scale is its own dimension; any
+        other dataset's come from the scales its DIMENSION_LIST refers to, known by identity."""
+        if scale:
+            if member.ndim != 1:
+                raise OutputError(f"{self.path}:{path}: a {member.ndim}-d dimension scale, which "
+                                  "elimfast.open_datatree does not read; use xr.open_datatree(path, engine='h5netcdf')")
+            return (path.rsplit("/", 1)[-1],)
+        if member.ndim == 0:
+            return ()
+        if "DIMENSION_LIST" not in keys:
+            raise OutputError(f"{self.path}:{path}: has no dimension scales (files of elimfast format 1 and 2 have "
+                              "none); read the run with elimfast.load")
+        dims = []
+        for axis in attrs["DIMENSION_LIST"]:
+            if len(axis) == 0:
+                raise OutputError(f"{self.path}:{path}: an axis without a dimension scale; read the run with "
+                                  "elimfast.load")
+            target = self.f[axis[-1]]   # netCDF-C and h5netcdf take the last scale attached to an axis
+            dimension = scales.get(target.id)
+            if dimension is None:   # a scale outside the group and its ancestors: named as h5netcdf names it
+                dimension = target.name.rsplit("/", 1)[-1]
+            dims.append(dimension)
+        return tuple(dims)
+
+    def data(self, member, path: str):
+        if h5py.check_string_dtype(member.dtype) is not None:
+            return np.asarray(member.asstr()[()], dtype=object)
+        return indexing.LazilyIndexedArray(_LazyDataset(self.manager, path, member.shape, member.dtype))
+
+
+class _LazyDataset(BackendArray):
+    """One HDF5 dataset, read when used through the file manager (which reopens a closed file)."""
+
+    def __init__(self, manager, path: str, shape, dtype):
+        self.manager, self.path, self.shape, self.dtype = manager, path, tuple(shape), np.dtype(dtype)
+
+    def __getitem__(self, key):
+        return indexing.explicit_indexing_adapter(key, self.shape, indexing.IndexingSupport.BASIC, self._read)
+
+    def _read(self, key):
+        with self.manager.acquire_context() as f:
+            try:
+                return np.asarray(f[self.path][key])
+            except READ_ERRORS as err:
+                raise _damaged(f.filename, self.path, err) from None
+
+
+class ElimfastBackend(BackendEntrypoint):
+    """xarray's backend for elimfast files, asked for by class: ``xr.open_datatree(path,
+    engine=ElimfastBackend)`` (what ``open_datatree`` calls), ``xr.open_dataset(path,
+    engine=ElimfastBackend, group="runs/<name>")``, ``xr.open_groups``."""
+
+    description = "elimfast run and sweep files, opened in time linear in their groups"
+    open_dataset_parameters = ("filename_or_obj", "drop_variables", "group") + DECODERS
+
+    def guess_can_open(self, filename_or_obj) -> bool:
+        return False   # only when asked for: h5netcdf stays xarray's choice for .h5 files
+
+    def _groups(self, filename_or_obj, group, drop_variables, decoders, recursive: bool) -> dict:
+        path = os.fspath(filename_or_obj)
+        manager = CachingFileManager(_open_file, path)
+        try:
+            f = manager.acquire()
+            location = "/" + (group or "").strip("/")
+            if location not in f or not isinstance(f[location], h5py.Group):
+                raise OutputError(f"{path}: has no group {group!r}")
+            walk = _Walk(f, manager, path, decoders, drop_variables)
+            return walk.groups(location, "", walk.scales_above(location), recursive, {})
+        except BaseException:
+            manager.close()
+            raise
+
+    def open_dataset(self, filename_or_obj, *, drop_variables=None, group=None, mask_and_scale=True,
+                     decode_times=True, concat_characters=True, decode_coords=True, use_cftime=None,
+                     decode_timedelta=None):
+        return self._groups(filename_or_obj, group, drop_variables, _decoders(locals()), recursive=False)["/"]
+
+    def open_groups_as_dict(self, filename_or_obj, *, drop_variables=None, group=None, mask_and_scale=True,
+                            decode_times=True, concat_characters=True, decode_coords=True, use_cftime=None,
+                            decode_timedelta=None) -> dict:
+        return self._groups(filename_or_obj, group, drop_variables, _decoders(locals()), recursive=True)
+
+    def open_datatree(self, filename_or_obj, *, drop_variables=None, group=None, mask_and_scale=True,
+                      decode_times=True, concat_characters=True, decode_coords=True, use_cftime=None,
+                      decode_timedelta=None):
+        groups = self._groups(filename_or_obj, group, drop_variables, _decoders(locals()), recursive=True)
+        tree = xr.DataTree.from_dict(groups)
+        tree.set_close(groups["/"].close)   # every group's close closes the one file
+        return tree
+
+
+def _decoders(arguments: dict) -> dict:
+    return {name: arguments[name] for name in DECODERS}
