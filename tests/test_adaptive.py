@@ -578,6 +578,27 @@ def test_a_stall_where_gamma_is_nearly_singular_is_not_blamed_on_h():
     assert "reduce h" not in message and "halvings (" not in message, message
 
 
+def test_time_scale_steps_capped_by_h_max_keep_following_the_time_scale():
+    """h_max with time-reversible steps: a step cut by h_max advances the controller's fictive
+    time by h rho, not epsilon. Adding epsilon G after every capped step drove rho through zero:
+    HBVM(8,4) on Kepler e = 0.6 with h_max = 0.004 stopped at step 62 ('time scale collapsed',
+    next step h = -1.58). Now the capped run completes, its steps away from the cap are the
+    controller's (the pericentre's smallest as without the cap, to 0.1%), and a cap that never
+    binds leaves the run bit for bit as it was."""
+    p, method = kepler(0.6), hbvm(8, 4)
+    assert elimfast.integrate(p, method, t_end=1.0, step_control="time_scale", h_max=0.004).status == "complete"
+    free = elimfast.integrate(p, method, t_end=2 * PERIOD, step_control="time_scale", epsilon=0.05)
+    cap = 0.8 * np.max(free.step_h)
+    capped = elimfast.integrate(p, method, t_end=2 * PERIOD, step_control="time_scale", epsilon=0.05, h_max=cap)
+    assert capped.status == "complete" and np.max(capped.step_h) <= cap
+    assert np.sum(capped.step_h == cap) >= 10     # the cap did bind, around both apocentres
+    assert abs(np.min(capped.step_h[:-1]) / np.min(free.step_h[:-1]) - 1) < 1e-3
+    assert max(capped.relative_invariant_errors().values()) < 1e-13
+    loose = elimfast.integrate(p, method, t_end=2 * PERIOD, step_control="time_scale", epsilon=0.05, h_max=10.0)
+    np.testing.assert_array_equal(loose.step_h, free.step_h)
+    np.testing.assert_array_equal(loose.y_final, free.y_final)
+
+
 def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
     """An adaptive run that fails must not tell the user to change an h the run chooses
     itself; beyond the measured s (docs/adaptive.md: s <= 6) it suggests a lower s; a

@@ -409,6 +409,8 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 break
         else:
             h = control_state[CS_H_NEXT]
+        # A time-scale step cut by h_max advances the fictive time by h rho, not epsilon (below).
+        capped = control == CONTROL_TIME_SCALE and h > h_max
         h = min(h, h_max)
         last = False
         if control == CONTROL_FIXED:
@@ -518,7 +520,15 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 control_state[CS_H_NEXT] = h * min(MAX_FACTOR, max(MIN_FACTOR, factor))
         elif control == CONTROL_TIME_SCALE:
             sigma, rate = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
-            control_state[CS_RHO] += epsilon * rate
+            if capped:
+                # rho follows d rho / d tau = G with d t / d tau = 1 / rho: a step of h is a
+                # fictive time h rho, which is epsilon only for the controller's own step. Adding
+                # epsilon G after a step cut by h_max drove rho through zero (Kepler e = 0.6,
+                # h_max = 0.004: "time scale collapsed" at step 62). Not time-reversible while
+                # capped, as no cap can be.
+                control_state[CS_RHO] += h * control_state[CS_RHO] * rate
+            else:
+                control_state[CS_RHO] += epsilon * rate
         consecutive_failures = 0
         if last and control != CONTROL_FIXED:
             clock[0] = t_end   # exactly, whatever the rounding of the sum of the steps
