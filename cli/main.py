@@ -512,22 +512,30 @@ def inspect(file):
     is read back, so HDF5 checks every checksum: a damaged file is reported (exit 2)
     with the place of the damage. One run of a sweep file: SWEEP.h5:/runs/<label>. The
     file of an ensemble sweep: how many trajectories it stores (complete, or how to
-    complete it with --resume), failures and invariant errors over those stored.
+    complete it with --resume), failures and invariant errors over those stored. A
+    sweep file: its runs, one row each (status, steps, iterations, invariant error).
 
     \b
     Examples:
       elimfast inspect out/kepler.h5
+      elimfast inspect out/table1.h5
       elimfast inspect out/table1.h5:/runs/GAUSS3/pi/30
       elimfast inspect out/ensemble.h5
     """
     from elimfast.io.ensemblefile import EnsembleFile, is_ensemble_file
     from elimfast.io.hdf5 import RunFile
 
-    from .report import ensemble_summary, summary
+    from elimfast.io.sweepfile import grid_sweep_runs
+
+    from .report import ensemble_summary, summary, sweep_summary
 
     if is_ensemble_file(file):
         with EnsembleFile(file) as ensemble_file:
             click.echo(ensemble_summary(ensemble_file))
+        return EXIT_OK
+    sweep = grid_sweep_runs(file)
+    if sweep is not None:
+        click.echo(sweep_summary(file, *sweep))
         return EXIT_OK
     with RunFile(file) as run_file:
         integrity = run_file.verify()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import shlex
 
 import numpy as np
 
@@ -383,3 +384,59 @@ def ensemble_summary(ensemble_file) -> str:
     row("created", f"{root.get('created')} with elimfast {root.get('elimfast_version')}, numba "
                    f"{root.get('numba_version')}, numpy {root.get('numpy_version')}, h5py {root.get('h5py_version')}")
     return "\n".join(rows)
+
+
+def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool]]) -> str:
+    """The inspect summary of a grid sweep's file (io/sweepfile.grid_sweep_runs gives attrs and
+    runs): what it holds, whether it is complete (else how to complete it), and a row per
+    stored run: status, steps, iterations per step, the largest relative invariant error (H's
+    and every invariant's, as inspect of one run computes them) and the wall time."""
+    from elimfast.integrate import relative_error
+    from elimfast.io.hdf5 import RunFile
+    from elimfast.sweep import format_table
+
+    lines = []
+
+    def row(key, value):
+        lines.append(f"{key:<12} {value}")
+
+    planned = int(attrs.get("runs_planned", 0) or 0)
+    stored = [label for label, done in runs if done]
+    source = str(attrs.get("source", "")) or "SWEEP.yaml"
+    axes = [axis for axis in (attrs.get("axes") or []) if axis]
+    row("file", str(path))
+    row("sweep", source + (f", axes {', '.join(axes)}" if axes else ""))
+    table, failed, wall = [], 0, 0.0
+    for label in stored:
+        with RunFile(f"{path}:/runs/{label}") as run_file:
+            a = run_file.attrs
+            status = str(a.get("status", "?"))
+            drift, initial, scales = (run_file.invariant_drift(), run_file.initial_invariants(),
+                                      run_file.invariant_scales())
+            worst, worst_name = -1.0, ""
+            for name, error in drift.items():
+                value = relative_error(error, initial.get(name, math.nan), scales.get(name, 0.0))
+                if math.isfinite(value) and value > worst:
+                    worst, worst_name = value, name
+            stats = run_file.iteration_stats()
+            steps = int(a.get("steps_done", 0))
+            mean = f"{stats['total'] / stats['count']:.2f}" if stats.get("count") else "-"
+            seconds = float(a.get("wall_time_s", 0.0) or 0.0)
+        failed += not status.startswith("complete")
+        wall += seconds
+        table.append([label, status if len(status) <= 40 else status[:37] + "...", f"{steps:,}", mean,
+                      f"{worst:.2e} ({worst_name})" if worst >= 0 else "-", _fmt_time(seconds)])
+    count = f"{len(stored)} of {planned}" if planned else f"{len(stored)}"
+    row("runs", f"{count} stored" + (f", {failed} failed" if failed else ", all complete" if stored else ""))
+    if planned and len(stored) < planned:
+        row("status", f"incomplete: complete it with elimfast sweep {source} -o {path} --resume")
+    row("wall time", f"{_fmt_time(wall)} in all (the runs' own, summed)")
+    lines.append("")
+    header = ["run", "status", "steps", "iterations/step", "max relative invariant error", "wall time"]
+    lines.append(format_table(header, table, "markdown").rstrip("\n"))
+    example = shlex.quote(f"{path}:/runs/{stored[0] if stored else '<label>'}")
+    lines.append("")
+    lines.append(f"One run in full: elimfast inspect {example}; the sweep's table (errors, orders), from the "
+                 f"stored runs: elimfast sweep {shlex.quote(source)} -o {shlex.quote(str(path))} --resume; "
+                 f"in xarray: elimfast.open_datatree({str(path)!r})")
+    return "\n".join(lines)

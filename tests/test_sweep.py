@@ -379,14 +379,49 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
         with pytest.raises(NotAnElimfastFile) as caught:
             read(out)
         assert str(caught.value) == expected
-    result = CliRunner().invoke(cli, ["inspect", str(out)])
-    assert result.exit_code == 2 and result.stderr == f"error: {expected}\n"
     inspected = CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/40"])
     assert inspected.exit_code == 0
     # the run is named by its label, as the user writes it (its group name is 2*pi|40)
     assert inspected.stdout.startswith(f"file         {out}:/runs/2*pi/40\n")
     # and found without the leading slash, as h5py writes group paths
     assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
+
+
+def test_inspect_of_a_sweep_file_summarises_its_runs(tmp_path):
+    """`elimfast inspect SWEEP.h5` was an error ('a sweep file, not a single run'); it now
+    summarises the sweep: every stored run's status, steps, iterations per step and largest
+    relative invariant error (as inspect of that run gives them), a failed run counted, and for
+    a sweep stopped before every run was stored, how to complete it."""
+    import h5py
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast
+    from elimfast.sweep import run_to_file
+
+    sweep = write_sweep(tmp_path, {"base": BASE, "set": {"integration": {"t_end": "2*pi", "h": "2*pi/40"}},
+                                   "grid": [{"name": "iterations", "key": "solver.max_iter", "values": [30, 2]},
+                                            {"name": "halvings", "key": "solver.max_halvings", "values": [0]}]})
+    out = tmp_path / "sw.h5"
+    run_to_file(sweep, out, workers=1)
+    result = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.splitlines()
+    assert lines[0] == f"file         {out}" and lines[2] == "runs         2 of 2 stored, 1 failed"
+    rows = {line.split("|")[1].strip(): [cell.strip() for cell in line.split("|")[2:-1]]
+            for line in lines if line.startswith("| ") and not line.startswith("| run ")}
+    assert set(rows) == {"30/0", "2/0"} and rows["2/0"][0].startswith("failed")
+    full = CliRunner().invoke(cli, ["inspect", f"{out}:/runs/30/0"]).stdout
+    good = elimfast.load(out, run="30/0")
+    assert rows["30/0"][:3] == ["complete", f"{good.steps_done:,}", f"{good.iterations.mean():.2f}"]
+    worst = max(good.relative_invariant_errors().items(), key=lambda item: item[1])
+    assert rows["30/0"][3] == f"{worst[1]:.2e} ({worst[0]})" and "relative" in full
+    assert "--resume" in lines[-1] and f"elimfast inspect {out}:/runs/2/0;" in lines[-1]
+    with h5py.File(out, "a") as f:        # as if the sweep had stopped before storing this run
+        f["runs/2|0"].attrs["stored"] = False
+    stopped = CliRunner().invoke(cli, ["inspect", str(out)]).stdout.splitlines()
+    assert stopped[2] == "runs         1 of 2 stored, all complete"
+    assert stopped[3].startswith("status       incomplete: complete it with elimfast sweep ") and "--resume" in stopped[3]
 
 
 def test_a_file_with_a_path_that_is_no_run_is_not_called_missing(tmp_path):

@@ -71,6 +71,23 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
             f"elimfast.load('{path}', run='{label}')); {listing}")
 
 
+def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool]]] | None:
+    """(root attributes, [(label, stored)] in the file's order) of a grid sweep's file, or None
+    for anything else (a run file, an ensemble sweep's file, a file that cannot be opened:
+    the caller's own reader says what). ``inspect`` summarises a sweep file from this."""
+    from .safety import _open
+    try:
+        with _open(Path(path)) as f:
+            if str(_plain(f.attrs.get("format", ""))) != SWEEP_FORMAT or ensemblefile.GROUP in f:
+                return None
+            attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
+            runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
+            return attrs, [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)))
+                           for name in runs]
+    except Exception:   # noqa: BLE001 -- damaged, busy, not HDF5: RunFile reports it
+        return None
+
+
 class SweepWriter:
     """One HDF5 file for a whole sweep: /runs/<label>/ per run, in the layout of a run file.
 
