@@ -543,6 +543,8 @@ def _problem_raised(integration, step: int, t: float, err: BaseException, writer
 SOLVER_SECTIONS = ("solver",)
 # Keys that may grow on --resume: a run continued to a later end (run_extension; README, "Ctrl-C").
 EXTENSION_KEYS = ("integration.t_end", "integration.n_steps", "output.times")
+# Keys that decide only what is checked when the problem loads (grad L . J grad H = 0), never a step.
+LOAD_ONLY_KEYS = ("problem.check",)
 
 
 def resume_refusal(path, key: str, prefix: str = "", configs=()) -> OutputError:
@@ -730,12 +732,14 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 stored_t = existing.t() if attrs.get("output_times") else None
                 clock = existing.saved_state().get("clock")
             stored = str(attrs.get("config", ""))
-            difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS, ignore_keys=EXTENSION_KEYS)
+            difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS,
+                                           ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS)
             if difference is not None:
                 raise resume_refusal(path, difference, prefix="was written from a different config; ",
                                      configs=_parsed(stored, config_text))
             extension = run_extension(path, attrs, status, clock, stored_t, integration, t_end)
-            solver_changed = config_difference(stored, config_text, ignore_keys=EXTENSION_KEYS) is not None
+            solver_changed = config_difference(stored, config_text,
+                                               ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS) is not None
             if status == STATUS_COMPLETE and extension is None:
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,
                                n_steps=int(attrs["n_steps"]), wall_time_s=float(attrs.get("wall_time_s", 0.0)),

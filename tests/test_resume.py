@@ -172,6 +172,21 @@ def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
     assert repeated.exit_code == 0, repeated.stderr
 
 
+def test_resume_allows_problem_check_to_change(tmp_path):
+    """problem.check only decides whether grad L . J grad H = 0 is checked when the problem
+    loads; a --resume that turned it off was refused as 'changes the trajectory'."""
+    path, whole = tmp_path / "part.h5", tmp_path / "whole.h5"
+    args = ["run", KEPLER, "--set", "integration.t_end=5", "--quiet"]
+    assert CliRunner().invoke(cli, [*args, "-o", str(path)]).exit_code == 0
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "integration.t_end=8",
+                                      "--set", "problem.check=false"])
+    assert result.exit_code == 0, result.stderr
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(whole), "--set", "integration.t_end=8",
+                                    "--quiet"]).exit_code == 0
+    with h5py.File(path, "r") as a, h5py.File(whole, "r") as b:
+        np.testing.assert_array_equal(a["y"][:], b["y"][:])
+
+
 def test_resume_says_what_a_changed_event_would_do(tmp_path):
     """--resume with a changed event said it "changes the trajectory", which only a terminal
     event does (it ends the run). One that is not terminal leaves every step as it is (checked
