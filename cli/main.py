@@ -340,6 +340,10 @@ def _stored_spec(path, overrides, config, quiet):
             try:
                 load_run_from_dict(data, source=source, overrides=[*kept, item])
             except ConfigError:
+                if _set_key(item).split(".")[0] != "integration":
+                    # not a contradiction with the stored n_steps (only integration.* can be): a value
+                    # that is invalid in itself, whose own message says what is wrong with it
+                    raise
                 raise resume_refusal(path, _set_key(item), configs=(data,)) from None
         raise resume_refusal(path, _set_key(others[0]), configs=(data,)) from None
 

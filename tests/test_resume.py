@@ -172,6 +172,21 @@ def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
     assert repeated.exit_code == 0, repeated.stderr
 
 
+def test_resume_with_an_invalid_value_reports_the_value_not_the_resume_rule(tmp_path):
+    """--resume --set events.p.direction=5 said 'only solver.* may change on --resume', as if 5
+    were a valid change; the value is invalid whatever the resume, and its own message says so.
+    (integration.h still gets the resume's rule: it contradicts the stored n_steps.)"""
+    path = tmp_path / "events.h5"
+    event = 'events={p: {expression: "q1*p1 + q2*p2", direction: 1}}'
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--set", event,
+                                    "--quiet"]).exit_code == 0
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "events.p.direction=5"])
+    assert result.exit_code == 2 and result.stderr.count("\n") == 1
+    assert "events.p.direction: must be 1" in result.stderr and "may change on --resume" not in result.stderr
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "integration.h=0.05"])
+    assert result.exit_code == 2 and "only solver.* may change on --resume; integration.h" in result.stderr
+
+
 def test_resume_allows_problem_check_to_change(tmp_path):
     """problem.check only decides whether grad L . J grad H = 0 is checked when the problem
     loads; a --resume that turned it off was refused as 'changes the trajectory'."""
