@@ -521,12 +521,14 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
         elif control == CONTROL_TIME_SCALE:
             sigma, rate = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
             if capped:
-                # rho follows d rho / d tau = G with d t / d tau = 1 / rho: a step of h is a
-                # fictive time h rho, which is epsilon only for the controller's own step. Adding
-                # epsilon G after a step cut by h_max drove rho through zero (Kepler e = 0.6,
-                # h_max = 0.004: "time scale collapsed" at step 62). Not time-reversible while
+                # A step cut by h_max is not the controller's (its fictive time is h rho, not
+                # epsilon), so the recurrence below does not hold across it: the controller starts
+                # afresh from the new state, rho = 1/sigma + epsilon G / 2, as at t0. Adding
+                # epsilon G after capped steps drove rho through zero (Kepler e = 0.6, h_max = 0.004:
+                # "time scale collapsed" at step 62); integrating d rho/dt = rho G over them instead
+                # drifted, the pericentre's steps growing 2% an orbit. Not time-reversible while
                 # capped, as no cap can be.
-                control_state[CS_RHO] += h * control_state[CS_RHO] * rate
+                control_state[CS_RHO] = 1.0 / sigma + 0.5 * epsilon * rate
             else:
                 control_state[CS_RHO] += epsilon * rate
         consecutive_failures = 0
