@@ -386,13 +386,14 @@ def ensemble_summary(ensemble_file) -> str:
     return "\n".join(rows)
 
 
-def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool]]) -> str:
+def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool, str]]) -> str:
     """The inspect summary of a grid sweep's file (io/sweepfile.grid_sweep_runs gives attrs and
     runs): what it holds, whether it is complete (else how to complete it), and a row per
     stored run: status, steps, iterations per step, the largest relative invariant error (H's
     and every invariant's, as inspect of one run computes them) and the wall time."""
     from elimfast.integrate import relative_error
     from elimfast.io.hdf5 import RunFile
+    from elimfast.errors import ElimfastError
     from elimfast.sweep import format_table
 
     lines = []
@@ -401,14 +402,20 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool]]) -> str:
         lines.append(f"{key:<12} {value}")
 
     planned = int(attrs.get("runs_planned", 0) or 0)
-    stored = [label for label, done in runs if done]
+    stored = [(label, status) for label, done, status in runs if done]
     source = str(attrs.get("source", "")) or "SWEEP.yaml"
     axes = [axis for axis in (attrs.get("axes") or []) if axis]
     row("file", str(path))
     row("sweep", source + (f", axes {', '.join(axes)}" if axes else ""))
     table, failed, wall = [], 0, 0.0
-    for label in stored:
-        with RunFile(f"{path}:/runs/{label}") as run_file:
+    for label, stored_status in stored:
+        try:
+            run_file = RunFile(f"{path}:/runs/{label}")
+        except ElimfastError:   # a run that failed before it stored any data (a bad config value, say)
+            failed += 1
+            table.append([label, _clipped(stored_status), "-", "-", "-", "-"])
+            continue
+        with run_file:
             a = run_file.attrs
             status = str(a.get("status", "?"))
             drift, initial, scales = (run_file.invariant_drift(), run_file.initial_invariants(),
@@ -424,7 +431,7 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool]]) -> str:
             seconds = float(a.get("wall_time_s", 0.0) or 0.0)
         failed += not status.startswith("complete")
         wall += seconds
-        table.append([label, status if len(status) <= 40 else status[:37] + "...", f"{steps:,}", mean,
+        table.append([label, _clipped(status), f"{steps:,}", mean,
                       f"{worst:.2e} ({worst_name})" if worst >= 0 else "-", _fmt_time(seconds)])
     count = f"{len(stored)} of {planned}" if planned else f"{len(stored)}"
     row("runs", f"{count} stored" + (f", {failed} failed" if failed else ", all complete" if stored else ""))
@@ -434,9 +441,13 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool]]) -> str:
     lines.append("")
     header = ["run", "status", "steps", "iterations/step", "max relative invariant error", "wall time"]
     lines.append(format_table(header, table, "markdown").rstrip("\n"))
-    example = shlex.quote(f"{path}:/runs/{stored[0] if stored else '<label>'}")
+    example = shlex.quote(f"{path}:/runs/{stored[0][0] if stored else '<label>'}")
     lines.append("")
     lines.append(f"One run in full: elimfast inspect {example}; the sweep's table (errors, orders), from the "
                  f"stored runs: elimfast sweep {shlex.quote(source)} -o {shlex.quote(str(path))} --resume; "
                  f"in xarray: elimfast.open_datatree({str(path)!r})")
     return "\n".join(lines)
+
+
+def _clipped(status: str, width: int = 40) -> str:
+    return status if len(status) <= width else status[:width - 3] + "..."

@@ -417,6 +417,15 @@ def test_inspect_of_a_sweep_file_summarises_its_runs(tmp_path):
     worst = max(good.relative_invariant_errors().items(), key=lambda item: item[1])
     assert rows["30/0"][3] == f"{worst[1]:.2e} ({worst[0]})" and "relative" in full
     assert "--resume" in lines[-1] and f"elimfast inspect {out}:/runs/2/0;" in lines[-1]
+    # a run that failed before storing any data (h does not divide t_end) has a row too
+    bad = write_sweep(tmp_path, {"base": BASE, "set": {"integration": {"t_end": 2}},
+                                 "grid": [{"name": "h", "key": "integration.h", "values": [0.1, 0.3]}]}, name="bad.yaml")
+    bad_out = tmp_path / "bad.h5"
+    run_to_file(bad, bad_out, workers=1)
+    summary = CliRunner().invoke(cli, ["inspect", str(bad_out)])
+    assert summary.exit_code == 0, summary.output
+    assert "runs         2 of 2 stored, 1 failed" in summary.stdout
+    assert [line for line in summary.stdout.splitlines() if line.startswith("| 0.3 ")][0].split("|")[3].strip() == "-"
     with h5py.File(out, "a") as f:        # as if the sweep had stopped before storing this run
         f["runs/2|0"].attrs["stored"] = False
     stopped = CliRunner().invoke(cli, ["inspect", str(out)]).stdout.splitlines()

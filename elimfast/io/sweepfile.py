@@ -71,8 +71,8 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
             f"elimfast.load('{path}', run='{label}')); {listing}")
 
 
-def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool]]] | None:
-    """(root attributes, [(label, stored)] in the file's order) of a grid sweep's file, or None
+def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
+    """(root attributes, [(label, stored, status)] in the file's order) of a grid sweep's file, or None
     for anything else (a run file, an ensemble sweep's file, a file that cannot be opened:
     the caller's own reader says what). ``inspect`` summarises a sweep file from this."""
     from .safety import _open
@@ -82,8 +82,8 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool]]] | None:
                 return None
             attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
             runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-            return attrs, [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)))
-                           for name in runs]
+            return attrs, [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
+                            str(_plain(runs[name].attrs.get("status", "?")))) for name in runs]
     except Exception:   # noqa: BLE001 -- damaged, busy, not HDF5: RunFile reports it
         return None
 

@@ -58,7 +58,9 @@ def result_dataset(result):
         attrs["h_first"] = float(result.h)
         settings = control.as_dict()
         attrs["step_control"] = settings.pop("controller")     # the run file's name for it
-        attrs.update({key: value for key, value in settings.items() if value is not None})
+        # verify as 0/1, as imposed: netCDF has no boolean attributes (to_netcdf refused every adaptive run)
+        attrs.update({key: int(value) if isinstance(value, (bool, np.bool_)) else value
+                      for key, value in settings.items() if value is not None})
         attrs.update({key: int(value) for key, value in result.stats.items()})
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
