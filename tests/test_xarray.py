@@ -292,6 +292,28 @@ def test_elimfast_open_datatree_gives_the_tree_h5netcdf_gives(kepler_file, sweep
         assert ours["lambda"].dims == ("step", "invariant")
 
 
+def test_open_datatree_keeps_each_group_s_own_step_and_event_times(tmp_path):
+    """An adaptive run's /steps/t and /events/<name>/t are variables of their groups named as the
+    root's coordinate t. Through xarray's default index pass they came back as the root's sample
+    times, silently (a user trial: the pericentre times were lost); assert_identical of the two
+    trees did not show it, so every group's own variables are compared here."""
+    config = tmp_path / "adaptive.yaml"
+    config.write_text("problem: {builtin: kepler, parameters: {eccentricity: 0.9}}\n"
+                      "conserve: [angular_momentum]\nmethod: {name: ehbvm, s: 4}\n"
+                      "integration: {rtol: 1e-10, t_end: 4*pi}\noutput: {every: 10}\n"
+                      "events: {pericentre: {expression: 'q1*p1 + q2*p2', direction: 1}}\n")
+    path = tmp_path / "adaptive.h5"
+    assert run_file(path, config=config)[1].status == "complete"
+    with h5py.File(path, "r") as f:
+        stored = {name: f[name][()] for name in ("steps/t", "events/pericentre/t")}
+    with elimfast.open_datatree(path) as ours, xr.open_datatree(path, engine="h5netcdf") as theirs:
+        for node in ("steps", "events/pericentre"):
+            mine = ours[node].to_dataset(inherit=False)
+            assert sorted(mine.variables) == sorted(theirs[node].to_dataset(inherit=False).variables), node
+            np.testing.assert_array_equal(mine["t"].values, stored[f"{node}/t"])
+        assert len(stored["events/pericentre/t"]) == 2
+
+
 def test_open_datatree_never_asks_hdf5_for_the_path_of_a_dimension_scale(sweep_file, monkeypatch):
     """What keeps elimfast.open_datatree linear in the runs of a sweep file: h5netcdf names the
     dimension of each axis by the HDF5 path of the scale its DIMENSION_LIST refers to (h5py
@@ -334,6 +356,28 @@ def test_a_sweep_run_in_xarray_holds_the_data_elimfast_load_gives(sweep_file):
             np.testing.assert_array_equal(run["steps"]["iterations"].values, loaded.iterations)
             np.testing.assert_array_equal(run["steps"]["substeps"].values, loaded.substeps)
             np.testing.assert_array_equal(run["steps"]["lambda"].values, loaded.lam)
+
+
+def test_open_datatree_takes_group_refuses_engine_and_runs_may_be_numbers(tmp_path, sweep_file):
+    """xr.open_datatree's group option raised 'got multiple values for keyword argument', and an
+    engine likewise; a run named by a number (a sweep over h: run=0.1) raised AttributeError
+    ('float' object has no attribute 'replace') in open_datatree and elimfast.load alike."""
+    path, _ = sweep_file
+    with elimfast.open_datatree(path, group=GHBVM_80_GROUP) as by_group, \
+            elimfast.open_datatree(path, run=GHBVM_80) as by_run:
+        xr.testing.assert_identical(by_group, by_run)
+    with pytest.raises(TypeError, match="its own backend"):
+        elimfast.open_datatree(path, engine="h5netcdf")
+    with pytest.raises(TypeError, match="not both"):
+        elimfast.open_datatree(path, run=GHBVM_80, group=GHBVM_80_GROUP)
+    sweep = tmp_path / "h.yaml"
+    sweep.write_text(yaml.safe_dump({"base": str(KEPLER), "set": {"integration": {"t_end": 1}},
+                                     "grid": [{"name": "h", "key": "integration.h", "values": [0.1, 0.05]}]}))
+    out = tmp_path / "h.h5"
+    run_to_file(sweep, out, workers=1)
+    assert elimfast.load(out, run=0.1).h == 0.1
+    with elimfast.open_datatree(out, run=0.05) as tree:
+        assert tree.attrs["label"] == "0.05"
 
 
 def test_open_datatree_says_in_one_line_what_it_cannot_open(tmp_path, sweep_file, kepler):

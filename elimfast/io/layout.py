@@ -465,8 +465,11 @@ RUNS_GROUP = "runs"
 
 def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
     """(file, run label) of ``file.h5`` or ``file.h5:/runs/<label>`` (a run of a sweep file;
-    ``file.h5:runs/<label>``, as h5py writes group paths relative to the root, too)."""
+    ``file.h5:runs/<label>``, as h5py writes group paths relative to the root, too). A run given
+    as a number (run=0.1, a sweep over h) is its text."""
     text = os.fspath(path)
+    if run is not None and not isinstance(run, str):
+        run = str(run)
     if run is None and not os.path.exists(text):
         for marker in (f":/{RUNS_GROUP}/", f":{RUNS_GROUP}/"):
             at = text.find(marker)

@@ -60,16 +60,29 @@ def open_datatree(path, run: str | None = None, **options):
 
     ``run``: the label of one run of a sweep file (or ``path`` given as
     ``"sweep.h5:/runs/<label>"``): the tree of that run's group alone, as a run file's.
-    ``options``: those of ``xr.open_datatree`` (``chunks``, ``cache``, ``decode_times``, ...).
+    ``options``: those of ``xr.open_datatree`` (``group``, ``chunks``, ``cache``, ``decode_times``, ...).
+    With ``chunks``, xarray's own rebuild of the tree replaces a group's variable named as an
+    inherited coordinate (the ``t`` of /steps and /events/<name> of adaptive runs) by the
+    root's ``t``, as with h5netcdf: read those with ``elimfast.load(path).to_xarray()``.
     The data are read when used; ``tree.close()`` closes the file. Raises OutputError (an
     ElimfastError) for a file or run that cannot be read.
     """
+    if "engine" in options:
+        raise TypeError("elimfast.open_datatree reads with its own backend: leave out engine, or call "
+                        "xr.open_datatree(path, engine=...) for another one")
     file_path, run = split_run_path(path, run)
-    group = None
+    group = options.pop("group", None)   # a group of the file, as xr.open_datatree takes it
+    if run is not None and group is not None:
+        raise TypeError("give run (a run of a sweep file) or group (any group of the file), not both")
     if run is not None:
         from .runfile import _sweep_run_group
         with _open_file(file_path) as f:
             group = _sweep_run_group(file_path, f, run).name
+    # The backend's datasets carry their indexes already. xarray's default pass that creates them
+    # (map_over_datasets over each node's dataset with the inherited coordinates) replaced a
+    # group's own variable named as an inherited coordinate by that coordinate: /steps/t and
+    # /events/<name>/t of adaptive runs came back as the root's sample times, silently.
+    options.setdefault("create_default_indexes", False)
     return xr.open_datatree(os.fspath(file_path), engine=ElimfastBackend, group=group, **options)
 
 
