@@ -371,6 +371,14 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     labels = [r.label for r in runs]
     if len(set(labels)) != len(labels):
         _fail(source, "grid", "two runs get the same label; give the variants distinct labels")
+    from .io.sweepfile import sweep_group_name
+    groups: dict[str, str] = {}
+    for label in labels:   # a sweep file stores each run under this name: 'a/b' and 'a|b' would collide
+        other = groups.setdefault(sweep_group_name(label), label)
+        if other != label:
+            _fail(source, "grid", f"the runs {other!r} and {label!r} would be stored under the same name "
+                                  f"{sweep_group_name(label)!r} (a '/' in a label is written '|', and a label of "
+                                  "dots gets a leading '_'); give the variants distinct labels")
 
     error = data.get("error")
     error_mode, reference = None, None

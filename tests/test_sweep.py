@@ -387,6 +387,28 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
     assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
 
 
+def test_labels_stored_under_one_name_are_refused_and_a_dot_label_is_found(tmp_path):
+    """Labels 'a/b' and 'a|b' (a '/' is stored as '|') crashed the sweep after its runs were
+    computed ('internal error: ... name already exists'); now refused when the sweep loads. A
+    run labelled '.' (stored as '_.') was not found by its label: '.' named the runs group itself."""
+    import elimfast
+    from elimfast.sweep import run_to_file
+
+    def labelled(*labels, name):
+        return write_sweep(tmp_path, {"base": BASE, "set": {"integration": {"t_end": "2*pi", "h": "2*pi/20"}},
+                                      "grid": [{"name": "variant", "values": [{"label": label, "set": {}}
+                                                                              for label in labels]}]}, name=name)
+
+    with pytest.raises(SweepError, match=r"the runs 'a/b' and 'a\|b' would be stored under the same name 'a\|b'"):
+        load_sweep(labelled("a/b", "a|b", name="clash.yaml"))
+    with pytest.raises(SweepError, match="same name '_.'"):
+        load_sweep(labelled(".", "_.", name="dots.yaml"))
+    out = tmp_path / "dot.h5"
+    run_to_file(labelled(".", "x", name="dot.yaml"), out, workers=1)
+    assert elimfast.load(out, run=".").steps_done == 20
+    assert elimfast.load(f"{out}:/runs/.").steps_done == 20
+
+
 def test_inspect_of_a_sweep_file_summarises_its_runs(tmp_path):
     """`elimfast inspect SWEEP.h5` was an error ('a sweep file, not a single run'); it now
     summarises the sweep: every stored run's status, steps, iterations per step and largest

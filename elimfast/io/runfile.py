@@ -108,8 +108,9 @@ def _sweep_run_group(path: Path, f, label: str):
     if fmt != SWEEP_FORMAT or runs is None:
         raise NotAnElimfastFile(f"{path}: not an elimfast sweep file, so it has no run {label!r}; give the file "
                                 "alone for a run file")
-    for name in (label, sweep_group_name(label)):
-        if name in runs:
+    # its group name first: '.' itself names the runs group (the label '.' is stored as '_.')
+    for name in (sweep_group_name(label), label):
+        if name not in (".", "..") and name in runs:
             group = runs[name]
             missing = [member for member in ("t", "y", "invariants", "steps/iterations") if member not in group]
             if missing:
