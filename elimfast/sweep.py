@@ -576,8 +576,10 @@ def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:
 # What changes the solver settings of a sweep's runs: a sweep has no --set, and its --resume
 # refuses an edited sweep file (SweepWriter._reopen, ensemblefile.check_resumable) and reruns a
 # failed run as it was.
-SWEEP_RERUN_ADVICE = ("in a sweep, change the settings in the sweep file (e.g. set: {solver: {max_halvings: 8}}) "
-                      "and run it again with --overwrite (--resume refuses an edited sweep file)")
+# (No example setting here: it followed advice such as "no h cures this; impose other invariants"
+# with a solver setting that cannot help.)
+SWEEP_RERUN_ADVICE = ("in a sweep, make that change in the sweep file and run it again with --overwrite "
+                      "(--resume refuses an edited sweep file)")
 
 
 def for_sweep(message: str) -> str:
