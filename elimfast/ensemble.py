@@ -89,7 +89,8 @@ class EnsembleResult:
         # trimers) and made a LazyEnsembleResult read all of its file's columns.
         imposing = f" imposing {', '.join(self.conserve)}" if self.conserve else ""
         return (f"<{type(self).__name__} {self.method.name} on {self.problem.name}{imposing}, "
-                f"{self.n_trajectories} trajectories of {self.n_steps} steps, h = {self.h:g}, "
+                f"{self.n_trajectories} {'trajectory' if self.n_trajectories == 1 else 'trajectories'} of "
+                f"{self.n_steps} steps, h = {self.h:g}, "
                 f"{self.n_failed} failed>")
 
     @property

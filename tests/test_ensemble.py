@@ -115,6 +115,8 @@ def test_singular_trajectory_is_reported_in_its_row(central_quartic, family):
     # ELIM's small system is Gamma (the paper's Assumption 1); LIM's the Gram matrix of the gradients.
     expected = "Assumption 1" if family.kind.kernel_map == "elim" else "linearly dependent"
     assert expected in ensemble.failure_message(1)
+    one = integrate_ensemble(central_quartic, family, 0.1, states[:1], n_steps=2, conserve=["angular_momentum"])
+    assert "1 trajectory of 2 steps" in repr(one) and "3 trajectories of 20 steps" in repr(ensemble)
 
 
 def test_non_finite_trajectory_matches_integrate(quartic):
