@@ -373,7 +373,7 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
 
     out = tmp_path / "sw.h5"
     run_to_file(small_sweep(tmp_path, ["2*pi/40", "2*pi/60"]), out, workers=1)
-    expected = (f"{out}: a sweep file, not a single run: give one of its runs as {out}:/runs/2*pi/40 (in Python: "
+    expected = (f"{out}: a sweep file, not a single run: give one of its runs as '{out}:/runs/2*pi/40' (in Python: "
                 f"elimfast.load('{out}', run='2*pi/40')); 2 of 2 runs stored (2*pi/40, 2*pi/60)")
     for read in (RunFile, elimfast.load):
         with pytest.raises(NotAnElimfastFile) as caught:

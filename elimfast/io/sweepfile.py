@@ -16,6 +16,7 @@ same tree, in time that grows with the square of the runs: io/xarray_tree.py);
 from __future__ import annotations
 
 import contextlib
+import shlex
 from pathlib import Path
 
 import h5py
@@ -60,7 +61,8 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
     listing = f"{count} runs stored" + (f" ({shown})" if shown else "")
     source = str(_plain(f.attrs.get("source", ""))) or "SWEEP.yaml"
     resume = f"complete it with elimfast sweep {source} -o {path} --resume"
-    example = f"{path}:/runs/{stored[0]}" if stored else f"{path}:/runs/<label>"
+    # quoted as a shell needs it: labels have spaces, parentheses and '*' (Table 1's 'EHBVM(12,3) L1,L2/pi/120')
+    example = shlex.quote(f"{path}:/runs/{stored[0]}" if stored else f"{path}:/runs/<label>")
     if killed:
         return (f"{path}: an interrupted sweep (its writer was killed, so HDF5 still sees it open): {listing}; "
                 f"{resume}, or run elimfast repair {path} to read the stored runs as they are (e.g. {example})")
