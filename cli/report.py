@@ -152,6 +152,8 @@ def adaptive_text(settings) -> str:
     how = (f"rtol {settings.get('rtol')!r}, atol {settings.get('atol')!r}"
            + (", step doubling" if settings.get("verify") else "")
            if control == "error" else f"epsilon {settings.get('epsilon')!r}")
+    if settings.get("h_max") is not None:   # it decides the steps as much as rtol or epsilon does
+        how += f", h_max {settings.get('h_max')!r}"
     return f"adaptive ({control}: {how}; docs/adaptive.md)"
 
 
@@ -197,7 +199,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
     samples = (f"samples at {a.get('output_times')} requested times" if "output_times" in a
                else f"a sample every {a.get('output_every')} steps")
     if run_file.adaptive:
-        row("steps", f"{adaptive_text(a)}, t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, {samples}")
+        h_max = (config_of(run_file).get("integration") or {}).get("h_max")   # in the stored config only
+        row("steps", f"{adaptive_text({**a, 'h_max': h_max})}, t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, "
+                     f"{samples}")
         sizes = run_file.step_sizes()
         if sizes is not None and sizes.size:
             row("h", f"min {sizes.min():.3e}, median {np.median(sizes):.3e}, max {sizes.max():.3e}")

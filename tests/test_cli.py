@@ -281,7 +281,7 @@ def test_check_prints_the_resolved_config_as_yaml():
     assert "EHBVM(12,4) imposing angular_momentum, lrl_y, 10000 steps" in result.stdout
 
 
-def test_check_describes_an_adaptive_run_by_its_step_control():
+def test_check_describes_an_adaptive_run_by_its_step_control(tmp_path):
     result = invoke("check", ROOT / "configs" / "kepler_adaptive.yaml")
     assert result.exit_code == 0, result.output
     line = result.stdout.splitlines()[1]
@@ -289,6 +289,13 @@ def test_check_describes_an_adaptive_run_by_its_step_control():
                     f"atol 1e-13; docs/adaptive.md) from t = 0.0 to {200 * np.pi!r}"), line
     first = invoke("check", ROOT / "configs" / "kepler_adaptive.yaml", "--set", "integration.h=0.01")
     assert first.stdout.splitlines()[1].endswith(", first step h = 0.01")
+    # h_max decides the steps as rtol does: check and inspect name it (inspect left it out)
+    capped = invoke("check", ROOT / "configs" / "kepler_adaptive.yaml", "--set", "integration.h_max=0.1")
+    assert "adaptive (error: rtol 1e-13, atol 1e-13, h_max 0.1; docs/adaptive.md)" in capped.stdout
+    out = tmp_path / "capped.h5"
+    assert invoke("run", ROOT / "configs" / "kepler_adaptive.yaml", "-o", out, "--set", "integration.h_max=0.1",
+                  "--set", "integration.t_end=4*pi", "--quiet").exit_code == 0
+    assert "adaptive (error: rtol 1e-13, atol 1e-13, h_max 0.1; docs/adaptive.md)" in invoke("inspect", out).stdout
 
 
 def test_a_loose_adaptive_run_is_told_which_invariants_its_steps_lose(tmp_path):

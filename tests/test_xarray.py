@@ -380,6 +380,20 @@ def test_open_datatree_takes_group_refuses_engine_and_runs_may_be_numbers(tmp_pa
         assert tree.attrs["label"] == "0.05"
 
 
+def test_open_datatree_of_groups_of_different_lengths_says_why(tmp_path, kepler_file):
+    """A run still being written grows between the reads of its groups: xarray's 'group
+    /invariants is not aligned with its parents' came through raw (a user trial). Simulated here
+    by one more value of every invariant than samples."""
+    import shutil
+    path = tmp_path / "growing.h5"
+    shutil.copy(kepler_file[1], path)
+    with h5py.File(path, "a") as f:
+        for dataset in f["invariants"].values():
+            dataset.resize((dataset.shape[0] + 1,))
+    with pytest.raises(elimfast.ElimfastError, match="its groups have different lengths .*elimfast.load"):
+        elimfast.open_datatree(path)
+
+
 def test_open_datatree_says_in_one_line_what_it_cannot_open(tmp_path, sweep_file, kepler):
     path, _ = sweep_file
     with pytest.raises(elimfast.ElimfastError, match=r"has no run 'nope'; its runs: GAUSS3/2"):

@@ -275,7 +275,17 @@ class ElimfastBackend(BackendEntrypoint):
                       decode_times=True, concat_characters=True, decode_coords=True, use_cftime=None,
                       decode_timedelta=None):
         groups = self._groups(filename_or_obj, group, drop_variables, _decoders(locals()), recursive=True)
-        tree = xr.DataTree.from_dict(groups)
+        try:
+            tree = xr.DataTree.from_dict(groups)
+        except ValueError as err:
+            groups["/"].close()
+            if "not aligned" not in str(err):
+                raise
+            # A run still being written: its groups grew between their reads (t of /invariants
+            # longer than the root's), which xarray reports as "group ... is not aligned".
+            raise OutputError(f"{filename_or_obj}: its groups have different lengths (a run still being written "
+                              "grows while it is read); read it when the run ends, or read the stored part "
+                              "consistently with elimfast.load") from None
         tree.set_close(groups["/"].close)   # every group's close closes the one file
         return tree
 
