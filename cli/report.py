@@ -445,7 +445,8 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool, str]]) -> str:
     lines.append("")
     header = ["run", "status", "steps", "iterations/step", "max relative invariant error", "wall time"]
     lines.append(format_table(header, table, "markdown").rstrip("\n"))
-    example = shlex.quote(f"{path}:/runs/{stored[0][0] if stored else '<label>'}")
+    complete = [label for label, status in stored if status.startswith("complete")] or [label for label, _ in stored]
+    example = shlex.quote(f"{path}:/runs/{complete[0] if complete else '<label>'}")
     lines.append("")
     lines.append(f"One run in full: elimfast inspect {example}; the sweep's table (errors, orders), from the "
                  f"stored runs: elimfast sweep {shlex.quote(source)} -o {shlex.quote(str(path))} --resume; "

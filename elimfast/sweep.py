@@ -1127,12 +1127,14 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                 say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}; "
                     f"running the other {len(spec.runs) - len(done_before)}")
 
+            run_index = {run.label: index for index, run in enumerate(spec.runs)}
+
             def stored(outcome, done, total):
                 if writer is not None and outcome.label != REFERENCE_LABEL:
                     writer.add_run(outcome.label, outcome.result, status=outcome.status,
                                    config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
                                    wall_time_s=outcome.wall_time, t_end=outcome.t_end,
-                                   file_attributes=outcome.file_attributes)
+                                   file_attributes=outcome.file_attributes, run_index=run_index.get(outcome.label))
                 if not keep_results:
                     outcome.result = None   # stored: the parent keeps only the summary of each run
                 if on_done is not None:

@@ -40,6 +40,7 @@ def sweep_group_name(label: str) -> str:
 
 
 RUNS_PLANNED = "runs_planned"   # root attribute: how many runs the sweep has (files of elimfast before: absent)
+RUN_INDEX = "run_index"         # a run's attribute: its place in the grid (files of elimfast before: absent)
 SHOWN_LABELS = 4                # run labels a message lists
 
 
@@ -74,7 +75,7 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
 
 
 def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
-    """(root attributes, [(label, stored, status)] in the file's order) of a grid sweep's file, or None
+    """(root attributes, [(label, stored, status)] in the grid's order) of a grid sweep's file, or None
     for anything else (a run file, an ensemble sweep's file, a file that cannot be opened:
     the caller's own reader says what). ``inspect`` summarises a sweep file from this."""
     from .safety import _open
@@ -84,8 +85,12 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
                 return None
             attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
             runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-            return attrs, [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
-                            str(_plain(runs[name].attrs.get("status", "?")))) for name in runs]
+            listed = [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
+                       str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
+                      for name in runs]
+        # the grid's order where the file records it, else HDF5's (by name)
+        listed.sort(key=lambda run: (run[3] < 0, run[3]))
+        return attrs, [run[:3] for run in listed]
     except Exception:   # noqa: BLE001 -- damaged, busy, not HDF5: RunFile reports it
         return None
 
@@ -262,18 +267,21 @@ class SweepWriter:
 
     def add_run(self, label: str, result=None, *, status: str, config_text: str, coordinates: dict,
                 wall_time_s: float = 0.0, group_name: str | None = None, t_end: float | None = None,
-                file_attributes: dict | None = None) -> None:
+                file_attributes: dict | None = None, run_index: int | None = None) -> None:
         """Store one finished (or failed) sweep run: ``result`` is the Result of the run (the one
         ``integrate`` returns; its arrays go into the group through ``layout.create_run_group``,
         as a run file's do), or None for a run that never started (a bad config). ``t_end``: the
         config's end, and ``file_attributes``: an adaptive-kernel run's step control settings
         (AdaptiveIntegration.file_attributes), as a run file stores them; without ``t_end``, a
-        fixed-step run's t0 + n_steps h."""
+        fixed-step run's t0 + n_steps h. ``run_index``: the run's place in the sweep's grid (readers
+        list the runs in that order; HDF5 lists them by name)."""
         arrays = () if result is None else (result.t, result.y, result.iterations, *result.invariants.values())
         self._reserve(arrays)
+        extra = dict(file_attributes or {})
+        if run_index is not None:
+            extra[RUN_INDEX] = int(run_index)
         with self._writing():
-            self._add_run(label, result, status, config_text, coordinates, wall_time_s, group_name, t_end,
-                          file_attributes or {})
+            self._add_run(label, result, status, config_text, coordinates, wall_time_s, group_name, t_end, extra)
 
     def _add_run(self, label, result, status, config_text, coordinates, wall_time_s, group_name, t_end,
                  file_attributes) -> None:
@@ -283,7 +291,7 @@ class SweepWriter:
         attributes = {"label": label, "status": status, "wall_time_s": float(wall_time_s), "config": config_text,
                       **{f"axis_{axis}": value for axis, value in coordinates.items()}}
         if result is None:
-            _set_attributes(group, {**attributes, "steps_done": 0, "stored": True})
+            _set_attributes(group, {**attributes, **file_attributes, "steps_done": 0, "stored": True})
             self._file.flush()
             return
         try:
