@@ -290,6 +290,11 @@ def summary(run_file, integrity: dict | None = None) -> str:
     if stats.get("count"):
         row("iterations", f"mean {stats['mean']:.2f}, median {stats['median']}, 99% <= {stats['p99']}, "
                           f"min {stats['min']}, max {stats['max']}, total {stats['total']:,}")
+        max_iter = (config_of(run_file).get("solver") or {}).get("max_iter")
+        if isinstance(max_iter, int) and stats["max"] > max_iter:
+            # max_iter bounds one solve; a step's count is every solve it took
+            row("", f"a step counts every solve it took (max_iter bounds one): a solve that fails is tried again "
+                    f"from another start or with a fresh Newton matrix before the step is split")
     else:
         row("iterations", "no steps yet")
     if "failed_step_iterations" in a:

@@ -109,6 +109,20 @@ def test_inspect_shows_every_solver_setting_that_decides_the_iteration(kepler_fi
         assert solver_line(path) == "solver       " + shown
 
 
+def test_inspect_says_why_a_step_took_more_iterations_than_max_iter(kepler_file, tmp_path):
+    """'max 68' beside 'max_iter 30' and no split step read as a contradiction (a user trial):
+    a step's count is every solve it took. Said only when the maximum exceeds max_iter."""
+    note = "a step counts every solve it took (max_iter bounds one)"
+    assert note not in invoke("inspect", kepler_file).stdout
+    path = tmp_path / "tight.h5"
+    assert invoke("run", KEPLER, "-o", path, "--set", "integration.t_end=10", "--set", "solver.max_iter=5",
+                  "--quiet").exit_code == 0
+    report = invoke("inspect", path).stdout
+    maximum = int(next(line for line in report.splitlines() if line.startswith("iterations ")).split("max ")[1]
+                  .split(",")[0])
+    assert maximum > 5 and note in report
+
+
 def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file, tmp_path):
     """A substep that cannot be solved imposing the invariants even at the deepest halving is taken
     without them when that keeps them to round-off; its step's alpha is NaN (docs/solver.md#a-substep-
