@@ -451,7 +451,7 @@ def test_inspect_of_a_sweep_file_summarises_its_runs(tmp_path):
     with h5py.File(out, "a") as f:        # as if the sweep had stopped before storing this run
         f["runs/2|0"].attrs["stored"] = False
     stopped = CliRunner().invoke(cli, ["inspect", str(out)]).stdout.splitlines()
-    assert stopped[2] == "runs         1 of 2 stored, all complete"
+    assert stopped[2] == "runs         1 of 2 stored, none failed"
     assert stopped[3].startswith("status       incomplete: complete it with elimfast sweep ") and "--resume" in stopped[3]
 
 
