@@ -409,7 +409,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 break
         else:
             h = control_state[CS_H_NEXT]
-        # A time-scale step cut by h_max advances the fictive time by h rho, not epsilon (below).
+        # A time-scale step cut by h_max is not the controller's: it starts afresh after it (below).
         capped = control == CONTROL_TIME_SCALE and h > h_max
         h = min(h, h_max)
         last = False
