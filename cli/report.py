@@ -88,18 +88,28 @@ def config_of(run_file) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-def energy_note(run_file) -> str | None:
-    """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
-    invariant lost more than round-off (relative 1e-12) in a run file."""
-    from elimfast.integrate import energy_note as note, relative_error
+def relative_drift(run_file, names=None) -> dict[str, float]:
+    """{name: max |I(t) - I(t0)| relative (integrate.relative_error)} over a run file's samples,
+    for ``names`` (default: H and every invariant); names without a finite figure (no step
+    done yet) are left out."""
+    from elimfast.integrate import relative_error
 
-    attrs, drift, initial, scales = (run_file.attrs, run_file.invariant_drift(), run_file.initial_invariants(),
-                                     run_file.invariant_scales())
+    drift, initial, scales = run_file.invariant_drift(), run_file.initial_invariants(), run_file.invariant_scales()
     relative = {}
-    for name in ("H", *list(attrs.get("conserve") or [])):
+    for name in (drift if names is None else names):
         error, first = drift.get(name, math.nan), initial.get(name, math.nan)
         if math.isfinite(error) and math.isfinite(first):
             relative[name] = relative_error(error, first, scales.get(name, 0.0))
+    return relative
+
+
+def energy_note(run_file) -> str | None:
+    """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
+    invariant lost more than round-off (relative 1e-12) in a run file."""
+    from elimfast.integrate import energy_note as note
+
+    attrs = run_file.attrs
+    relative = relative_drift(run_file, ("H", *list(attrs.get("conserve") or [])))
     return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive)
 
 
@@ -286,11 +296,12 @@ def summary(run_file, integrity: dict | None = None) -> str:
                         "absolute": "(absolute: I(t0) = 0)"}[kind]
         rows.append(f"  {name:<{width}}  {value:.3e}  {relative}{tag}".rstrip())
 
+    solver = (config_of(run_file).get("solver") or {})
     stats = run_file.iteration_stats()
     if stats.get("count"):
         row("iterations", f"mean {stats['mean']:.2f}, median {stats['median']}, 99% <= {stats['p99']}, "
                           f"min {stats['min']}, max {stats['max']}, total {stats['total']:,}")
-        max_iter = (config_of(run_file).get("solver") or {}).get("max_iter")
+        max_iter = solver.get("max_iter")
         if isinstance(max_iter, int) and stats["max"] > max_iter:
             # max_iter bounds one solve; a step's count is every solve it took
             row("", f"a step counts every solve it took (max_iter bounds one): a solve that fails is tried again "
@@ -299,7 +310,6 @@ def summary(run_file, integrity: dict | None = None) -> str:
         row("iterations", "no steps yet")
     if "failed_step_iterations" in a:
         row("", f"the failed step used {a['failed_step_iterations']} iterations")
-    solver = (config_of(run_file).get("solver") or {})
     if solver:
         # A file written before a setting existed ran without it (no predictor, no acceleration).
         row("solver", f"{solver.get('method', 'fixed_point')}, max_iter {solver.get('max_iter')}, "
@@ -400,9 +410,8 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool, str]]) -> str:
     runs): what it holds, whether it is complete (else how to complete it), and a row per
     stored run: status, steps, iterations per step, the largest relative invariant error (H's
     and every invariant's, as inspect of one run computes them) and the wall time."""
-    from elimfast.integrate import relative_error
-    from elimfast.io.hdf5 import RunFile
     from elimfast.errors import ElimfastError
+    from elimfast.io.hdf5 import RunFile
     from elimfast.sweep import format_table
 
     lines = []
@@ -427,11 +436,8 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool, str]]) -> str:
         with run_file:
             a = run_file.attrs
             status = str(a.get("status", "?"))
-            drift, initial, scales = (run_file.invariant_drift(), run_file.initial_invariants(),
-                                      run_file.invariant_scales())
             worst, worst_name = -1.0, ""
-            for name, error in drift.items():
-                value = relative_error(error, initial.get(name, math.nan), scales.get(name, 0.0))
+            for name, value in relative_drift(run_file).items():
                 if math.isfinite(value) and value > worst:
                     worst, worst_name = value, name
             stats = run_file.iteration_stats()

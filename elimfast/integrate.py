@@ -708,18 +708,18 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if depth > 0:
         where += f", in its substep from t = {d[stepper.DIAG_TIME]:.17g} of h = {d[stepper.DIAG_STEP]:.6g} " \
                  f"after {depth} halving{'s' if depth > 1 else ''}"
+    lim = method.kind.kernel_map == "lim"   # its small system is the Gram matrix, not Gamma
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
     if status == codes.STATUS_SINGULAR and d[stepper.DIAG_INCREMENT] == math.inf:
         seen = ["before any increment"]   # the solve's d before its first one: the first map failed
     if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot
         seen = [f"sigma(y) = {d[stepper.DIAG_INCREMENT]:.3g} there, next step h = {d[stepper.DIAG_STEP]:.3g}"]
-    elif d[stepper.DIAG_CONDITION] != 0.0 and method.kind.kernel_map == "lim":
+    elif d[stepper.DIAG_CONDITION] != 0.0 and lim:
         seen.append("Gram matrix not positive definite")
     elif d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
-    dependent_gradients = status == codes.STATUS_SINGULAR and method.kind.kernel_map == "lim"
-    if dependent_gradients:   # no step size or s makes dependent gradients independent
+    if status == codes.STATUS_SINGULAR and lim:   # no step size or s makes dependent gradients independent
         advice = _LIM_SINGULAR_ADVICE
     elif (adaptive and status not in (codes.STATUS_NONFINITE, codes.STATUS_TIME_SCALE)
             and method.s > ADAPTIVE_MEASURED_S):

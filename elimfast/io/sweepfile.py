@@ -44,6 +44,15 @@ RUN_INDEX = "run_index"         # a run's attribute: its place in the grid (file
 SHOWN_LABELS = 4                # run labels a message lists
 
 
+def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
+    """(label, stored, status, run_index or -1) of every run group of an open sweep file, in
+    HDF5's order (by name)."""
+    runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
+    return [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
+             str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
+            for name in runs]
+
+
 def describe_sweep_file(path, f, *, killed: bool = False) -> str:
     """One line for a reader given a sweep file where it wants one run (``inspect``,
     ``load``, ``plot``), or given a run of a sweep file whose writer was killed (``killed``:
@@ -53,9 +62,7 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
     if ensemblefile.GROUP in f:
         return (f"{path}: the file of an ensemble sweep (no single runs); read it with elimfast inspect {path} or "
                 f"elimfast.load('{path}')")
-    runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-    stored = [str(_plain(runs[name].attrs.get("label", name))) for name in runs
-              if runs[name].attrs.get("stored", False)]
+    stored = [label for label, done, _, _ in _listed_runs(f) if done]
     planned = int(f.attrs.get(RUNS_PLANNED, 0))
     count = f"{len(stored)} of {planned}" if planned else f"{len(stored)}"
     shown = ", ".join(stored[:SHOWN_LABELS]) + (", ..." if len(stored) > SHOWN_LABELS else "")
@@ -84,10 +91,7 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
             if str(_plain(f.attrs.get("format", ""))) != SWEEP_FORMAT or ensemblefile.GROUP in f:
                 return None
             attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
-            runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-            listed = [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
-                       str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
-                      for name in runs]
+            listed = _listed_runs(f)
         # the grid's order where the file records it, else HDF5's (by name)
         listed.sort(key=lambda run: (run[3] < 0, run[3]))
         return attrs, [run[:3] for run in listed]
