@@ -743,7 +743,9 @@ def _format_tableau(method, A, b, c, eta) -> str:
               show_default=True, help="Format of the printed table.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT.h5 if it exists.")
 @click.option("--resume", is_flag=True, help="OUT.h5 holds part of this sweep: run only the runs (or an ensemble's "
-                                              "trajectories) not complete in it.")
+                                              "trajectories) not complete in it. The sweep file may have been edited "
+                                              "where the edit keeps the stored runs' configs outside solver.* (more "
+                                              "halvings for a failed run, say, or added runs).")
 @click.option("--scheduler", metavar="ADDRESS", default=None,
               help="Run on a Dask cluster: its scheduler (tcp://host:8786), or 'local' for a LocalCluster of "
                    "--workers processes (docs/dask.md; pip install 'elimfast[dask]').")
@@ -768,7 +770,7 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
       elimfast sweep configs/paper/table1.yaml
       elimfast sweep configs/sweeps/henon_heiles_ensemble.yaml -o out/ensemble.h5
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --workers 2 --format csv
-      elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --resume   # after a kill: the rest
+      elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --resume   # after a kill, or an edit: the rest
       elimfast sweep configs/paper/table1.yaml -o out/table1.h5 --scheduler tcp://node1:8786
     """
     with start_up():   # what every sweep loads (the config machinery, the kernels), with the GC paused

@@ -52,7 +52,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ConvergenceError, ElimfastError
-from .io.safety import _size   # the one size formatter of the disk and memory messages
+from .io.safety import OutputError, _size   # _size: the one size formatter of the disk and memory messages
 
 
 REFERENCE_LABEL = "\0reference"  # the reference run's label: no grid label can hold a NUL, so none collides
@@ -573,19 +573,64 @@ def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:
 
 # --- running ----------------------------------------------------------------------
 
-# What changes the solver settings of a sweep's runs: a sweep has no --set, and its --resume
-# refuses an edited sweep file (SweepWriter._reopen, ensemblefile.check_resumable) and reruns a
-# failed run as it was.
+# What changes the solver settings of a sweep's runs: a sweep has no --set. A grid sweep's
+# --resume takes an edited sweep file whose runs stored complete keep their configs outside
+# solver.* (solver_only_edit) and runs the failed ones with the new settings; an ensemble's
+# refuses any edit (ensemblefile.check_resumable).
 # (No example setting here: it followed advice such as "no h cures this; impose other invariants"
 # with a solver setting that cannot help.)
-SWEEP_RERUN_ADVICE = ("in a sweep, make that change in the sweep file and run it again with --overwrite "
-                      "(--resume refuses an edited sweep file)")
+SWEEP_RERUN_ADVICE = ("in a sweep, make that change in the sweep file and continue it with --resume (it keeps "
+                      "the runs stored complete if their configs change only in solver.*)")
+ENSEMBLE_RERUN_ADVICE = ("in an ensemble sweep, make that change in the sweep file and run it again with "
+                         "--overwrite (--resume refuses an edited ensemble)")
 
 
-def for_sweep(message: str) -> str:
+def for_sweep(message: str, ensemble: bool = False) -> str:
     """A run's failure message (integrate.failure_message, which leaves --resume to run files)
-    with what works in a sweep added."""
-    return f"{message}; {SWEEP_RERUN_ADVICE}"
+    with what works in a sweep, or in an ensemble sweep, added."""
+    return f"{message}; {ENSEMBLE_RERUN_ADVICE if ensemble else SWEEP_RERUN_ADVICE}"
+
+
+def _resolved_text(spec: SweepSpec, run: SweepRun) -> str:
+    """The resolved config a run of ``spec`` stores (_execute's), as YAML text; raises
+    ElimfastError for a config that does not load."""
+    from .config import load_run_from_dict
+    loaded = load_run_from_dict(copy.deepcopy(run.config), source=f"{spec.source} [{run.label}]",
+                                base_dir=Path(spec.source).parent)
+    return _config_text(loaded.resolved)
+
+
+def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[str, int]]:
+    """The rule by which ``--resume`` continues a grid sweep's file written by an earlier text
+    of the sweep file (SweepWriter's accept_edit): every run stored complete must still be a
+    run of ``spec`` (by its label), with the same resolved config outside solver.* and
+    problem.check (the keys a run file's --resume may change too, streaming.SOLVER_SECTIONS):
+    those runs are kept as they are; failed, missing and new runs run with the edited file.
+    So a failed run can be run again with more halvings or another solver, and values can be
+    added to an axis, without recomputing the rest. Raises OutputError naming the first run
+    and key that would change; returns {label: place in the edited grid}."""
+    from .streaming import LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_difference
+
+    def accept(stored: dict[str, str]) -> dict[str, int]:
+        runs = {run.label: run for run in spec.runs}
+        for label, config_text in stored.items():
+            if label not in runs:
+                raise OutputError(f"{path}: the sweep file was edited, and the run {label!r}, stored complete, is no "
+                                  "longer in it: --resume keeps every stored run; pass --overwrite to start again, "
+                                  "or write the edited sweep to another file")
+            try:
+                current = _resolved_text(spec, runs[label])
+            except ElimfastError as error:
+                raise OutputError(f"{path}: the sweep file was edited, and the stored run {label!r} no longer loads: "
+                                  f"{error}") from None
+            key = config_difference(config_text, current, ignore=SOLVER_SECTIONS, ignore_keys=LOAD_ONLY_KEYS)
+            if key is not None:
+                raise OutputError(f"{path}: the sweep file was edited: {key} of the run {label!r}, stored complete, "
+                                  f"changed, and --resume may change only solver.* of stored runs (their steps are "
+                                  f"kept); pass --overwrite to start again, or write the edited sweep to another file")
+        return {run.label: index for index, run in enumerate(spec.runs)}
+
+    return accept
 
 
 def _execute(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool) -> RunOutcome:
@@ -1021,7 +1066,7 @@ class SweepOutcome:
             if not result.n_failed:
                 return []
             return [f"{result.n_failed} of {result.n_trajectories} trajectories failed: "
-                    f"{for_sweep(result.failure_message(int(result.ok.argmin())))}"]
+                    f"{for_sweep(result.failure_message(int(result.ok.argmin())), ensemble=True)}"]
         lines = []
         if self.reference is not None and not self.reference.ok:
             lines.append(f"the reference run failed, so there are no errors: {self.reference.status}")
@@ -1089,7 +1134,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
             writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
                                  attributes={"source": spec.source, "axes": list(spec.axes) or [""],
                                              RUNS_PLANNED: len(spec.runs)},
-                                 overwrite=overwrite or resume, resume=resume, ensemble=ensemble)
+                                 overwrite=overwrite or resume, resume=resume, ensemble=ensemble,
+                                 accept_edit=solver_only_edit(spec, path) if ensemble is None else None)
 
     with contextlib.ExitStack() as stack:
         if scheduler is not None:
@@ -1124,7 +1170,9 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                                                                     keep_result=keep_results)
                         except ElimfastError:   # cannot be read back (its python: file moved): run it again
                             writer.forget(run.label)
-                say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}; "
+                edit = (" (the sweep file was edited: the runs stored complete keep the settings they were solved "
+                        "with, the others run with the edited file's)") if writer.edited else ""
+                say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}{edit}; "
                     f"running the other {len(spec.runs) - len(done_before)}")
 
             run_index = {run.label: index for index, run in enumerate(spec.runs)}

@@ -20,7 +20,7 @@ from elimfast import distributed as on_dask  # noqa: E402
 from elimfast import sweep as sweeps  # noqa: E402
 from elimfast.sweep import SweepError  # noqa: E402
 from elimfast_cli.main import cli  # noqa: E402
-from runfiles import assert_same_files, stopped_after_blocks  # noqa: E402
+from runfiles import assert_same_files, contents, stopped_after_blocks  # noqa: E402
 
 ELIMFAST = Path(sys.executable).with_name("elimfast")
 DASK = Path(sys.executable).with_name("dask")
@@ -219,13 +219,20 @@ def test_resume_reruns_a_run_whose_data_were_not_all_stored(tmp_path):
 
 
 def test_resume_refuses_a_file_of_another_sweep(tmp_path):
+    """Another sweep's file holds runs the sweep does not have: --resume would keep them (an
+    edited sweep is continued only where it keeps every stored run, sweep.solver_only_edit)."""
     out = tmp_path / "out.h5"
     sweeps.run_to_file(grid_sweep(tmp_path, steps=["2*pi/40"]), out, workers=1)
+    before = contents(out)
     other = grid_sweep(tmp_path, steps=["2*pi/80"], name="other.yaml")
     result = CliRunner().invoke(cli, ["sweep", str(other), "-o", str(out), "--resume"])
     assert result.exit_code == 2
-    assert result.output.strip() == (f"error: {out}: was written by a different sweep file (the stored sweep text "
-                                      "differs); pass --overwrite to start again, or choose another output file")
+    assert result.output.strip() == (f"error: {out}: the sweep file was edited, and the run 'EHBVM/2*pi/40', stored "
+                                      "complete, is no longer in it: --resume keeps every stored run; pass --overwrite "
+                                      "to start again, or write the edited sweep to another file")
+    after = contents(out)
+    assert sorted(after) == sorted(before) and all(np.array_equal(np.asarray(after[key]), np.asarray(value))
+                                                   for key, value in before.items())
 
 
 def free_port() -> int:

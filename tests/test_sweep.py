@@ -2,6 +2,7 @@
 import math
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import yaml
@@ -330,8 +331,8 @@ def test_sweep_files_are_read_like_configs_no_aliases(tmp_path):
 
 
 def test_a_failed_run_of_a_sweep_advises_what_works_in_a_sweep(tmp_path):
-    """A run file continues with --resume --set solver.*=...; a sweep has no --set and its
-    --resume refuses an edited sweep file, so its failed runs say to edit and --overwrite."""
+    """A run file continues with --resume --set solver.*=...; a sweep has no --set, so its failed
+    runs say to edit the sweep file and --resume (solver_only_edit, below)."""
     from elimfast.sweep import SWEEP_RERUN_ADVICE
 
     path = write_sweep(tmp_path, {"base": {**BASE, "solver": {"max_iter": 3, "max_halvings": 1}},
@@ -340,7 +341,106 @@ def test_a_failed_run_of_a_sweep_advises_what_works_in_a_sweep(tmp_path):
     assert outcome.status.startswith("failed: EHBVM(12,3): the simplified Newton did not converge")
     assert "allow more step halvings (solver.max_halvings = 1 now)" in outcome.status
     assert "continued with --resume" not in outcome.status
-    assert outcome.status.endswith(f"; {SWEEP_RERUN_ADVICE}") and "--overwrite" in SWEEP_RERUN_ADVICE
+    assert outcome.status.endswith(f"; {SWEEP_RERUN_ADVICE}") and "--resume" in SWEEP_RERUN_ADVICE
+
+
+def _group(path, label):
+    """Every dataset and attribute of one run of a sweep file (tests/runfiles.contents)."""
+    from runfiles import contents
+    from elimfast.io.sweepfile import sweep_group_name
+    prefix = f"runs/{sweep_group_name(label)}"
+    return {key: value for key, value in contents(path).items() if key.startswith(prefix)}
+
+
+def _same(a: dict, b: dict, leave_out=()) -> bool:
+    keys = sorted(key for key in a if not key.endswith(tuple(leave_out)))
+    return keys == sorted(key for key in b if not key.endswith(tuple(leave_out))) and all(
+        np.array_equal(np.asarray(a[key]), np.asarray(b[key])) for key in keys)
+
+
+EDIT_BASE = {**BASE, "solver": {"max_halvings": 0}}
+EDIT_GRID = [{"name": "h", "key": "integration.h", "values": ["2*pi/4", "pi/30"]}]
+
+
+def test_resume_runs_the_failed_runs_of_a_sweep_again_with_an_edited_solver_section(tmp_path):
+    """A sweep whose run failed: the user raises solver.max_halvings in the sweep file and
+    --resumes. The failed run runs again with it; the complete run is kept as stored (not
+    recomputed), and the table is the one the edited sweep gives from scratch. Before, --resume
+    refused any edit, and the advice was to recompute the whole sweep with --overwrite."""
+    from elimfast import sweep as sweeps
+    from elimfast.io.sweepfile import RUN_INDEX
+
+    path = write_sweep(tmp_path, {"base": EDIT_BASE, "grid": EDIT_GRID, "error": {"exact": "initial"}})
+    out = tmp_path / "out.h5"
+    first = sweeps.run_to_file(path, out, workers=1)
+    assert [o.status.split(":")[0] for o in first.outcomes] == ["failed", "complete"]
+    kept = _group(out, "pi/30")
+    edited = write_sweep(tmp_path, {"base": {**EDIT_BASE, "solver": {"max_halvings": 8}}, "grid": EDIT_GRID,
+                                    "error": {"exact": "initial"}})
+    messages = []
+    resumed = sweeps.run_to_file(edited, out, resume=True, workers=1, on_message=messages.append)
+    assert [o.status for o in resumed.outcomes] == ["complete", "complete"]
+    assert messages == [f"resume: 1 of 2 runs are complete in {out} (the sweep file was edited: the runs stored "
+                        "complete keep the settings they were solved with, the others run with the edited file's); "
+                        "running the other 1"]
+    assert _same(_group(out, "pi/30"), kept)   # not recomputed: its config still says max_halvings 0
+    with h5py.File(out, "r") as f:
+        assert f.attrs["sweep"] == edited.read_text()
+        assert "max_halvings: 8" in f["runs/2*pi|4"].attrs["config"]
+        assert "max_halvings: 0" in f["runs/pi|30"].attrs["config"]
+        assert [int(f["runs"][name].attrs[RUN_INDEX]) for name in ("2*pi|4", "pi|30")] == [0, 1]
+    fresh = sweeps.run_to_file(edited, tmp_path / "fresh.h5", workers=1)
+    assert resumed.table() == fresh.table()   # (no step of the kept run was split: max_halvings did not matter)
+
+
+def test_resume_refuses_an_edit_that_would_change_a_stored_run_and_leaves_the_file_as_it_was(tmp_path):
+    from elimfast import sweep as sweeps
+    from elimfast.io.safety import OutputError
+    from runfiles import contents
+
+    path = write_sweep(tmp_path, {"base": EDIT_BASE, "grid": EDIT_GRID})
+    out = tmp_path / "out.h5"
+    sweeps.run_to_file(path, out, workers=1)
+    before = contents(out)
+    for change, message in [
+            ({"base": {**EDIT_BASE, "conserve": ["lrl_y"]}, "grid": EDIT_GRID},
+             f"{out}: the sweep file was edited: conserve of the run 'pi/30', stored complete, changed, and --resume "
+             "may change only solver.* of stored runs (their steps are kept); pass --overwrite to start again, or "
+             "write the edited sweep to another file"),
+            ({"base": EDIT_BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/4"]}]},
+             f"{out}: the sweep file was edited, and the run 'pi/30', stored complete, is no longer in it: --resume "
+             "keeps every stored run; pass --overwrite to start again, or write the edited sweep to another file"),
+            ({"base": {**EDIT_BASE, "method": {"name": "ehbvm", "k": 12, "s": 3, "r": 2}}, "grid": EDIT_GRID},
+             f"{out}: the sweep file was edited, and the stored run 'pi/30' no longer loads: ")]:
+        with pytest.raises(OutputError) as caught:
+            sweeps.run_to_file(write_sweep(tmp_path, change), out, resume=True, workers=1)
+        assert str(caught.value).startswith(message), str(caught.value)
+        after = contents(out)   # the failed run is still there too: nothing was removed
+        assert sorted(after) == sorted(before) and all(np.array_equal(np.asarray(after[key]), np.asarray(value))
+                                                       for key, value in before.items())
+
+
+def test_resume_of_a_sweep_with_a_value_added_to_an_axis_runs_only_the_new_runs(tmp_path):
+    """An edit that adds runs keeps the stored ones and renumbers them in the edited grid
+    (inspect lists the runs by run_index)."""
+    from elimfast import sweep as sweeps
+    from elimfast.io.sweepfile import RUN_INDEX, RUNS_PLANNED
+
+    grid = [{"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60"]}]
+    out = tmp_path / "out.h5"
+    sweeps.run_to_file(write_sweep(tmp_path, {"base": BASE, "grid": grid}), out, workers=1)
+    stored = {label: _group(out, label) for label in ("pi/30", "pi/60")}
+    wider = [{"name": "h", "key": "integration.h", "values": ["pi/15", "pi/30", "pi/60"]}]
+    messages = []
+    resumed = sweeps.run_to_file(write_sweep(tmp_path, {"base": BASE, "grid": wider}), out, resume=True, workers=1,
+                                 on_message=messages.append)
+    assert [o.status for o in resumed.outcomes] == ["complete"] * 3
+    assert " 2 of 3 runs are complete" in messages[0] and messages[0].endswith("running the other 1")
+    for label, group in stored.items():
+        assert _same(_group(out, label), group, leave_out=(f"@{RUN_INDEX}",))
+    with h5py.File(out, "r") as f:
+        assert int(f.attrs[RUNS_PLANNED]) == 3
+        assert [int(f["runs"][name].attrs[RUN_INDEX]) for name in ("pi|15", "pi|30", "pi|60")] == [0, 1, 2]
 
 
 def test_duplicate_keys_in_a_sweep_file_are_refused(tmp_path):

@@ -99,6 +99,14 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
         return None
 
 
+def _replace_attributes(obj, values: dict) -> None:
+    """_set_attributes for attributes that may exist already."""
+    for name in values:
+        if name in obj.attrs:
+            del obj.attrs[name]
+    _set_attributes(obj, values)
+
+
 class SweepWriter:
     """One HDF5 file for a whole sweep: /runs/<label>/ per run, in the layout of a run file.
 
@@ -119,15 +127,16 @@ class SweepWriter:
     """
 
     def __init__(self, path, *, sweep_text: str, attributes: dict | None = None, overwrite: bool = True,
-                 resume: bool = False, ensemble: tuple | None = None):
+                 resume: bool = False, ensemble: tuple | None = None, accept_edit=None):
         self.path = Path(path)
         self.complete: dict[str, str] = {}   # label -> group name of the runs a resumed file already holds
         self.ensemble_todo: list[tuple[int, int]] | None = None
+        self.edited = False                  # a resumed grid sweep whose sweep file was edited (accept_edit)
         self._ensemble = None
         self._kept = "the runs stored before this one are in the file" if ensemble is None else \
             "the trajectories marked stored before it are in the file (--resume runs the rest)"
         if resume and self.path.exists():
-            self._reopen(sweep_text, ensemble)
+            self._reopen(sweep_text, ensemble, accept_edit, attributes or {})
             return
         create_parent_directories(self.path)
         ensure_not_busy(self.path)
@@ -163,12 +172,18 @@ class SweepWriter:
             _close_quietly(self._file, self._guard, temporary)
             raise
 
-    def _reopen(self, sweep_text: str, ensemble: tuple | None) -> None:
+    def _reopen(self, sweep_text: str, ensemble: tuple | None, accept_edit, attributes: dict) -> None:
         """Open an existing sweep file to add the runs it lacks (``--resume``): the file must
         hold the same sweep (its stored text), and every run that is not marked stored and
         complete (failed, or cut off by a kill) is removed so that it runs again. An
         ensemble's file must hold the same ensemble (``ensemblefile.check_resumable``); its
-        trajectories not marked stored are the ones to run."""
+        trajectories not marked stored are the ones to run.
+
+        A grid sweep's file written by another text is continued when ``accept_edit``, given
+        {label: stored config text} of its complete runs, returns {label: place in the edited grid}
+        (it raises OutputError for an edit that would change those runs: the rule is the sweep's,
+        elimfast.sweep.solver_only_edit); the file then takes the new text, ``attributes`` (the
+        grid's size, its axes) and the kept runs' new places, and ``edited`` is set."""
         ensure_not_busy(self.path)
         if consistency_flags(self.path):   # a writer killed before closing it (HDF5 refuses such a file)
             try:
@@ -190,17 +205,27 @@ class SweepWriter:
             if str(_plain(self._file.attrs.get("format", ""))) != SWEEP_FORMAT or RUNS_GROUP not in self._file:
                 raise OutputError(f"{self.path}: not an elimfast sweep file, so --resume cannot continue it; "
                                   "choose another output file or pass --overwrite")
-            if str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text:
+            edited = str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text
+            if edited and (accept_edit is None or ensemble is not None):
                 raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
                                   "differs); pass --overwrite to start again, or choose another output file")
             self._runs = self._file[RUNS_GROUP]
+            complete = {}
+            for name in self._runs:
+                run = self._runs[name].attrs
+                label = str(_plain(run.get("label", "")))
+                if label and run.get("stored", False) and str(_plain(run.get("status"))) == "complete":
+                    complete[label] = (name, str(_plain(run.get("config", ""))))
+            if edited:   # before anything is removed: a refused edit leaves the file as it was
+                run_index = accept_edit({label: config for label, (_, config) in complete.items()})
+                _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
+                for label, (name, _) in complete.items():   # the kept runs' places in the edited grid
+                    _replace_attributes(self._runs[name], {RUN_INDEX: int(run_index[label])})
+                self.edited = True
             for name in list(self._runs):
-                attributes = self._runs[name].attrs
-                label = str(_plain(attributes.get("label", "")))
-                if label and attributes.get("stored", False) and str(_plain(attributes.get("status"))) == "complete":
-                    self.complete[label] = name
-                else:
+                if name not in {group for group, _ in complete.values()}:
                     del self._runs[name]
+            self.complete = {label: name for label, (name, _) in complete.items()}
             if ensemble is not None:
                 self._resume_ensemble(ensemble)
             self._file.flush()
