@@ -110,7 +110,8 @@ def energy_note(run_file) -> str | None:
 
     attrs = run_file.attrs
     relative = relative_drift(run_file, ("H", *list(attrs.get("conserve") or [])))
-    return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive)
+    return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive,
+                s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"))
 
 
 def run_notes(run_file) -> list[str]:

@@ -21,6 +21,8 @@ from elimfast.problems import kepler
 sys.path.insert(0, str(Path(__file__).parent))
 import reference  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[1]
+
 L1, AX, AY = "angular_momentum", "lrl_x", "lrl_y"
 
 
@@ -385,6 +387,76 @@ def test_energy_warning_of_an_adaptive_run_speaks_of_rtol_not_of_its_first_step(
     assert "lrl_y" in warning and "r = 8" in warning and "angular_momentum" not in warning, warning
     tight = elimfast.integrate(p, ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-13, conserve=("angular_momentum", "lrl_y"))
     assert tight.energy_warning() is None
+
+
+def test_energy_note_blames_round_off_where_the_quadrature_of_a_polynomial_H_is_exact():
+    """configs/fpu_beta.yaml run 100x longer lost H to 3e-11 (its ring drifts: the positions
+    grow while H depends on their differences) and the note said to raise k, which cannot help:
+    HBVM(6,3) integrates that quartic H exactly (4 <= 2k/s)."""
+    from elimfast.integrate import energy_note
+    exact = energy_note("HBVM(6,3)", 6, 6, 0.05, {"H": 3.4e-11}, False, s=3, degree=4)
+    assert "integrates this H (a polynomial of degree 4 <= 2k/s) exactly" in exact and "raise k" not in exact
+    for degree in (5, None, -1):   # above 2k/s, or not a polynomial / not known: the quadrature's
+        assert "raise k or reduce h" in energy_note("HBVM(6,3)", 6, 6, 0.05, {"H": 3.4e-11}, False, s=3,
+                                                    degree=degree)
+    assert energy_note("HBVM(6,3)", 6, 6, 0.05, {"H": 1e-13}, False, s=3, degree=4) is None
+
+
+def _finite_difference(values: np.ndarray, order: int) -> float:
+    return float(np.diff(values, n=order)[0])
+
+
+@pytest.mark.parametrize("name", ["harmonic_oscillator", "quartic_oscillator", "central_quartic", "henon_heiles",
+                                  "fpu_beta", "kepler", "pendulum", "toda", "perturbed_kepler", "nbody"])
+def test_the_built_ins_degree_of_H_is_the_degree_of_their_H(name):
+    """Problem.hamiltonian_degree, checked against H itself: along random lines y0 + t v the
+    (d+1)-th finite difference of H vanishes to round-off and the d-th does not. None (not a
+    polynomial, or not known) claims nothing; the built-ins with none are not polynomials."""
+    import importlib
+    from elimfast.problems.catalogue import BUILTINS
+    module, constructor = BUILTINS[name].split(":")
+    problem = getattr(importlib.import_module(f"elimfast.problems.{module}"), constructor)()
+    rng = np.random.default_rng(3)
+    degree = problem.hamiltonian_degree
+    assert (degree is None) == (name in ("kepler", "pendulum", "toda", "perturbed_kepler", "nbody"))
+    for _ in range(3):
+        direction = rng.normal(size=problem.y0.shape)
+        values = np.array([problem.hamiltonian(problem.y0 + 0.3 * t * direction) for t in range(10)])
+        size = np.max(np.abs(values))
+        if degree is not None:
+            assert abs(_finite_difference(values, degree + 1)) <= 1e-10 * size * 2 ** degree, name
+            assert abs(_finite_difference(values, degree)) > 1e-6 * size, name
+
+
+def test_the_degree_of_H_from_expressions_bounds_sympys_and_is_stored_in_run_files(tmp_path):
+    import sympy
+    from click.testing import CliRunner
+    import h5py
+    from elimfast.problems.expressions import parse, polynomial_degree, to_sympy
+    from elimfast_cli.main import cli
+
+    names = ["q1", "q2", "p1", "p2"]
+    symbols = {n: sympy.Symbol(n, real=True) for n in names + ["a"]}
+    for text, expected in [("(p1**2 + p2**2)/2 - 1/sqrt(q1**2 + q2**2)", None), ("p1**2/2 + q1**4/4", 4),
+                           ("q1*p2 - q2*p1 + a**3", 2), ("a*q1**2*q2 + cos(a) - q2**3/3", 3), ("q1**a", None),
+                           ("q1/q2", None), ("exp(q1) + p1", None), ("(q1 + p1)**3/a/2", 3), ("2**3*q1 - p1**+2", 2),
+                           ("q1**0.5", None), ("q1**-1", None)]:
+        found = polynomial_degree(parse(text, names + ["a"]), names)
+        assert found == expected, text
+        expression = to_sympy(parse(text, names + ["a"]), symbols)
+        variables = [symbols[n] for n in names]
+        if found is not None:
+            assert sympy.Poly(expression, *variables).total_degree() <= found, text
+        else:
+            assert not expression.is_polynomial(*variables) or "**a" in text, text
+    assert polynomial_degree(parse("(q1 + 1)**2 - q1**2", names), names) == 2   # an upper bound (true: 1)
+    for config, degree in [("fpu_beta.yaml", 4), ("kepler_expressions.yaml", -1), ("henon_heiles.yaml", 3)]:
+        out = tmp_path / f"{config}.h5"
+        result = CliRunner().invoke(cli, ["run", str(ROOT / "configs" / config), "-o", str(out), "-q",
+                                          "--set", "integration.t_end=1", "--set", "integration.h=0.1"])
+        assert result.exit_code == 0, result.output
+        with h5py.File(out, "r") as f:
+            assert int(f.attrs["hamiltonian_degree"]) == degree, config
 
 
 def test_result_repr_is_a_short_summary():

@@ -455,7 +455,10 @@ def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end:
             "t_end": float(t_end) if t_end is not None else float(t0) + n_steps * float(h),
             # 0: not known in advance (adaptive steps, docs/adaptive.md)
             "n_steps": int(n_steps) if n_steps is not None else 0, "output_every": int(output_every),
-            "conserve": list(conserve)}
+            "conserve": list(conserve),
+            # -1: H is not a polynomial, or its degree is not known (Problem.hamiltonian_degree)
+            "hamiltonian_degree": -1 if getattr(problem, "hamiltonian_degree", None) is None
+            else int(problem.hamiltonian_degree)}
 
 
 # A sweep file: its root's format, and the group of its runs, each a run group (run files have theirs at the root).

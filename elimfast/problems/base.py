@@ -85,7 +85,10 @@ class Problem:
     control of docs/adaptive.md), or None when the problem defines none;
     initial_given: y0 was given in place of the problem's default state (a config's
     problem.initial, ``with_initial``) and differs from it, so the parameters that chose the
-    default (kepler's eccentricity) no longer describe the orbit (reports say so).
+    default (kepler's eccentricity) no longer describe the orbit (reports say so);
+    hamiltonian_degree: H is a polynomial in y of at most this total degree, or None (not one,
+    or not known): HBVM(k,s) and its relatives integrate it exactly when degree <= 2k/s, so an
+    H error above round-off is then not the quadrature's (integrate.energy_note).
     """
 
     name: str
@@ -106,6 +109,7 @@ class Problem:
     source_file: str | None = None
     time_scale: Any = field(repr=False, default=None)
     initial_given: bool = False
+    hamiltonian_degree: int | None = None
 
     def __post_init__(self):
         if len(self.q_names) != len(self.p_names):

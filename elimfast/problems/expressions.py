@@ -278,6 +278,52 @@ def _unchain(node):
     return node, rest
 
 
+def polynomial_degree(tree: ast.Expression, variables) -> int | None:
+    """An upper bound of the total degree of a validated tree as a polynomial in ``variables``
+    (names), or None when it is not visibly one (a function or a quotient of them, a power
+    other than a literal whole number): HBVM(k,s) integrates a polynomial H of degree
+    <= 2k/s exactly (docs/methods.md). Never below the true degree; above it only where
+    terms cancel ((q + 1)**2 - q**2 counts 2), which claims exactness less often, never wrongly."""
+    variables = frozenset(variables)
+
+    def literal_exponent(node) -> int | None:
+        if isinstance(node, ast.Constant) and isinstance(node.value, int) and not isinstance(node.value, bool):
+            return node.value if 0 <= node.value <= 64 else None
+        if isinstance(node, ast.Constant) and isinstance(node.value, float) and node.value.is_integer():
+            return int(node.value) if 0 <= node.value <= 64 else None
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.UAdd):
+            return literal_exponent(node.operand)
+        return None
+
+    def degree(node) -> int | None:
+        if isinstance(node, ast.Constant):
+            return 0
+        if isinstance(node, ast.Name):
+            return 1 if node.id in variables else 0
+        if isinstance(node, ast.UnaryOp):
+            return degree(node.operand)
+        if _chain_class(node) is not None:   # a whole chain at once: long sums nest deeply
+            first, rest = _unchain(node)
+            total = degree(first)
+            for op, operand in rest:
+                part = degree(operand)
+                if total is None or part is None or (op is ast.Div and part != 0):
+                    return None
+                total = max(total, part) if op in (ast.Add, ast.Sub) else total + part
+            return total
+        if isinstance(node, ast.BinOp):   # a power
+            base, exponent = degree(node.left), degree(node.right)
+            if base == 0 and exponent == 0:
+                return 0
+            power = literal_exponent(node.right)
+            return None if base is None or power is None else base * power
+        if isinstance(node, ast.Call):
+            return 0 if all(degree(argument) == 0 for argument in node.args) else None
+        return None
+
+    return degree(tree.body if isinstance(tree, ast.Expression) else tree)
+
+
 def node_count(tree: ast.Expression) -> int:
     """The number of expression nodes (``ast.expr``) of a tree: a problem's total is bounded by
     ``symbolic.MAX_TOTAL_NODES``."""

@@ -186,5 +186,6 @@ def fpu_beta(n: int = 8, beta: float = 1.0, boundary: str = "periodic") -> Probl
         invariant_names=invariant_names, y0=y0, params=np.array([beta]), hessian_source="analytic",
         parameters={"n": n, "beta": beta, "boundary": boundary},
         description=f"FPU-beta chain, {n} masses, {boundary} ends, V(r) = r^2/2 + beta r^4/4",
+        hamiltonian_degree=4 if beta != 0.0 else 2,
         **functions,
     )

@@ -61,5 +61,5 @@ def henon_heiles(energy: float = 0.125) -> Problem:
         H=H, grad_H=grad_H, hess_H=hess_H, hessian_source="analytic",
         invariants=no_invariants, grad_invariants=no_invariant_gradients,
         invariant_names=(), y0=y0, params=np.zeros(0), parameters={"energy": energy},
-        description="Henon-Heiles, H = |p|^2/2 + |q|^2/2 + q1^2 q2 - q2^3/3",
+        description="Henon-Heiles, H = |p|^2/2 + |q|^2/2 + q1^2 q2 - q2^3/3", hamiltonian_degree=3,
     )

@@ -41,7 +41,7 @@ def harmonic_oscillator(omega: float = 1.0) -> Problem:
         H=_harmonic_H, grad_H=_harmonic_grad_H, hess_H=_harmonic_hess_H, hessian_source="analytic",
         invariants=no_invariants, grad_invariants=no_invariant_gradients,
         invariant_names=(), y0=np.array([1.0, 0.0]), params=np.array([float(omega)]),
-        parameters={"omega": float(omega)}, description="H = p^2/2 + omega^2 q^2/2",
+        parameters={"omega": float(omega)}, description="H = p^2/2 + omega^2 q^2/2", hamiltonian_degree=2,
     )
 
 
@@ -68,7 +68,7 @@ def quartic_oscillator() -> Problem:
         name="quartic_oscillator", q_names=("q",), p_names=("p",),
         H=_quartic_H, grad_H=_quartic_grad_H, hess_H=_quartic_hess_H, hessian_source="analytic",
         invariants=no_invariants, grad_invariants=no_invariant_gradients,
-        invariant_names=(), y0=np.array([1.0, 0.5]), description="H = p^2/2 + q^4/4",
+        invariant_names=(), y0=np.array([1.0, 0.5]), description="H = p^2/2 + q^4/4", hamiltonian_degree=4,
     )
 
 
@@ -116,5 +116,5 @@ def central_quartic() -> Problem:
         name="central_quartic", q_names=("q1", "q2"), p_names=("p1", "p2"),
         H=_central_H, grad_H=_central_grad_H, hess_H=_central_hess_H, hessian_source="analytic",
         invariants=_central_invariants, grad_invariants=_central_grad_invariants, invariant_names=("angular_momentum",),
-        y0=np.array([1.0, 0.0, 0.2, 0.8]), description="H = |p|^2/2 + |q|^4/4 in the plane",
+        y0=np.array([1.0, 0.0, 0.2, 0.8]), description="H = |p|^2/2 + |q|^4/4 in the plane", hamiltonian_degree=4,
     )
