@@ -54,7 +54,8 @@ class EnsembleResult:
     y0 (n_traj, 2m) the initial states; y_final (n_traj, 2m) the state after the last
     completed step (for a 'non-finite' failure, the non-finite state, as integrate);
     t_final (n_traj,); invariant_errors: name -> (n_traj,), max over the steps of
-    |I(y_n) - I(y_0)| for 'H' and every invariant of the problem, imposed or not;
+    |I(y_n) - I(y_0)| for 'H' and every invariant of the problem, imposed or not (NaN
+    for a trajectory that failed before completing a step);
     iterations (n_traj,) fixed-point iterations summed over the steps (a failed step's
     included); max_multiplier (n_traj,) max |alpha| (ELIM) or |lambda| (LIM) over the
     completed steps, 0 for GAUSS/HBVM; status (n_traj,) stepper.STATUS_* codes or
@@ -262,6 +263,9 @@ class EnsembleRun:
                     rows["status"], rows["steps_done"], rows["split_steps"], rows["diagnostics"])
         finally:
             numba.set_num_threads(previous_threads)
+        # A trajectory that completed no step has no invariant error to report (NaN, as inspect
+        # reports none for such a run): the kernel's 0 read as 'kept exactly' beside its failure.
+        inv_error[rows["steps_done"] == 0] = np.nan
         rows["invariant_errors"] = {name: inv_error[:, i].copy() for i, name in enumerate(self.invariant_names)}
         return rows
 

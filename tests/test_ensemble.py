@@ -138,6 +138,9 @@ def test_division_by_zero_marks_one_trajectory_non_finite(kepler):
     ensemble = integrate_ensemble(kepler, gauss(2), 0.1, states, n_steps=30)
     assert ensemble.reasons == ["ok", "non-finite", "ok"]
     assert ensemble.steps_done[1] == 0
+    # no step done, no error to report (it read 0, 'kept exactly', beside the failure)
+    for name, errors in ensemble.invariant_errors.items():
+        assert np.isnan(errors[1]) and np.isfinite(errors[[0, 2]]).all(), name
     for i in (0, 2):
         alone = elimfast.integrate(kepler, gauss(2), 0.1, n_steps=30, y0=states[i])
         np.testing.assert_array_equal(ensemble.y_final[i], alone.y_final)

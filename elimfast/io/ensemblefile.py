@@ -12,7 +12,7 @@ An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
     t_final, max_multiplier   (n,)           end time; max |alpha| (ELIM) or |lambda| (LIM)
     iterations, status, steps_done, split_steps   (n,) int64   (status 0: complete)
     diagnostics               (n, 6)         of a failed step (kernels/stepper.py try_step)
-    invariant_errors/<name>   (n,)           max |I(t) - I(0)|: H, then every invariant
+    invariant_errors/<name>   (n,)           max |I(t) - I(0)|: H, then every invariant (NaN: no step done)
     stored                    (n,) uint8     the done record: 1 where the trajectory's row is written
     method/...                the method's tables (layout.write_method)
 
