@@ -26,7 +26,7 @@ from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failur
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
 from .kernels import stepper
-from .kernels.codes import STATUS_EXCEPTION
+from .kernels.codes import STATUS_EXCEPTION, STATUS_TIME_SCALE
 from .function_addresses import remembered_addresses
 from .kernels.ensemble import ensemble_loop
 from .methods import Method
@@ -43,8 +43,10 @@ from .problems.base import real_state
 TARGET_BLOCK_SECONDS = 5.0
 FIRST_BLOCK_ROWS_PER_THREAD = 8   # the first block measures the speed
 
-# integrate's status names, and the one only an ensemble reports.
-STATUS_NAMES = {**_RUN_STATUS_NAMES, STATUS_EXCEPTION: "exception"}
+# integrate's status names, and the one only an ensemble reports; not the time-scale failure
+# of adaptive steps (an ensemble takes fixed steps), which the files' flag_meanings listed.
+STATUS_NAMES = {**{code: name for code, name in _RUN_STATUS_NAMES.items() if code != STATUS_TIME_SCALE},
+                STATUS_EXCEPTION: "exception"}
 
 
 @dataclass

@@ -122,6 +122,7 @@ def test_an_ensemble_file_says_in_xarray_what_each_variable_is_its_status_codes_
         meanings = dict(zip(status["flag_values"].tolist(), status["flag_meanings"].split()))
         assert meanings[0] == "ok" and meanings[1] == "not_converged"
         assert {word.replace("_", " ") for word in meanings.values()} >= set(ensembles.STATUS_NAMES.values())
+        assert "time_scale" not in meanings.values()   # adaptive steps' failure: an ensemble takes fixed steps
         assert ensemble["t_final"].attrs["units"] == "day" and ensemble.attrs["time_unit"] == "day"
 
 
