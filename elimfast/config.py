@@ -538,6 +538,7 @@ class _Builder:
             raise ConfigError(f"{self.source}: a sweep file (it has base: and no problem:), not a run config; run it "
                               f"with elimfast sweep {self.source}", key="base", line=self.lines.get(("base",)))
         self.check_keys(data)
+        data = self.shorthands(data)
         config = self.validate(data)
 
         # Everything that needs no problem first: building the problem may compile code.
@@ -610,6 +611,46 @@ class _Builder:
                        t0=t0, t_end=t_end, solver=solver, output_path=config.output.path,
                        output_every=every, resolved=resolved, step_control=step_control, t_eval=t_eval,
                        events=resolved.get("events"))
+
+    def shorthands(self, data: dict) -> dict:
+        """The config with its short forms written out: ``method: EHBVM(12,3)`` (the paper's
+        notation, methods.from_notation; also as method.name) and ``problem: kepler`` (a built-in's
+        name) or ``problem: FILE.py``. The resolved config records the long forms."""
+        data = dict(data)
+        method = data.get("method")
+        name = method.get("name") if isinstance(method, dict) else method
+        if isinstance(name, str) and "(" in name:
+            if ")" not in name:   # YAML's flow mapping {name: EHBVM(12,3)} splits it at the comma
+                raise self.error(("method", "name"), f"{name!r} is cut off: inside {{...}} YAML splits an unquoted "
+                                 f"EHBVM(12,3) at its comma; quote it (name: \"EHBVM(12,3)\"), or write method: "
+                                 "EHBVM(12,3) on its own line")
+            try:
+                expanded = methods.from_notation(name)
+            except ParameterError as err:
+                raise self.error(("method", "name") if isinstance(method, dict) else ("method",), err.detail) from None
+            if expanded is not None:
+                if isinstance(method, dict) and set(method) - {"name"}:
+                    extra = sorted(set(method) - {"name"})[0]
+                    raise self.error(("method", extra), f"give the method either as {name} or by its name and "
+                                     "parameters, not both; remove it")
+                data["method"] = expanded
+        elif isinstance(method, str):
+            data["method"] = {"name": method}   # methods.get then says which parameters it needs
+        problem = data.get("problem")
+        if isinstance(problem, str):
+            from .problems.catalogue import BUILTINS
+            if problem in BUILTINS:
+                data["problem"] = {"builtin": problem}
+            elif problem.endswith(".py"):
+                data["problem"] = {"python": problem}
+            else:
+                import difflib
+                close = difflib.get_close_matches(problem, list(BUILTINS), n=1, cutoff=0.5)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise self.error(("problem",), f"{problem!r} is not a built-in problem{hint}; give a built-in's name "
+                                 "(problem: kepler, or {builtin: kepler, parameters: {...}}), a file (problem: "
+                                 "my_problem.py), or the expressions (coordinates:, hamiltonian:)")
+        return data
 
     def validate(self, data) -> Section:
         """The config's sections as config_schema.RunConfig validates them. With ``remember``,

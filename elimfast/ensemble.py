@@ -29,7 +29,7 @@ from .kernels import stepper
 from .kernels.codes import STATUS_EXCEPTION, STATUS_TIME_SCALE
 from .function_addresses import remembered_addresses
 from .kernels.ensemble import ensemble_loop
-from .methods import Method
+from .methods import Method, as_method
 from .problems import Problem
 from .problems.base import real_state
 
@@ -340,6 +340,7 @@ def integrate_ensemble(problem: Problem, method: Method, h: float, Y0, t_end: fl
     previous setting is restored afterwards. Failures do not raise: see
     ``EnsembleResult.status`` and ``failure_message``.
     """
+    method = as_method(method)   # "EHBVM(12,3)" too, as integrate
     resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)   # its errors first, as integrate's
     states = check_states(problem, Y0)
     run = EnsembleRun(problem, method, h, states[0], t_end=t_end, n_steps=n_steps, conserve=conserve, tol=tol,

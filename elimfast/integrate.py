@@ -17,6 +17,7 @@ from .errors import ConvergenceError, ParameterError
 from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
+from . import methods
 from .methods import Method
 from .problems import Problem
 from .problems.base import real_state
@@ -397,6 +398,8 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
         kept.append(f"{'and ' if kept else ''}the imposed invariants only up to "
                     f"{'that' if kept else 'the quadrature error'} of its r = {r} nodes")
     nodes = " and ".join((["k"] if "H" in above else []) + (["r"] if imposed else []))
+    if str(method_name).upper().startswith("GAUSS("):   # k = s is GAUSS's: more nodes is HBVM(k,s)
+        nodes = f"k (HBVM(k,{str(method_name)[6:-1]}) with k > {str(method_name)[6:-1]})"
     where = (f"at h = {h:g}; raise {nodes} or reduce h" if not adaptive
              else f"at the largest steps the step control allows; raise {nodes}, tighten rtol (or epsilon) or "
                   "set h_max")
@@ -791,9 +794,12 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     split into two half-steps, recursively to this depth (0: no splitting); rhs: 'stable'
     (docs/methods.md#stable-right-hand-side, default) or 'literal' (the paper's form).
 
+    ``method`` may be written as the paper writes it, e.g. "EHBVM(12,3)" (methods.as_method).
+
     Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
     every depth, Gamma is singular, or the solution stops being finite.
     """
+    method = methods.as_method(method)
     adaptive = rtol is not None or atol is not None or step_control is not None or epsilon is not None
     if adaptive or t_eval is not None or events:
         return _integrate_with_adaptive_kernel(

@@ -655,3 +655,67 @@ def test_an_event_may_be_given_by_its_expression_alone_as_in_python():
     short = load_run_from_dict({**base, "events": {"peri": "q1*p1 + q2*p2"}}, source="run.yaml")
     full = load_run_from_dict({**base, "events": {"peri": {"expression": "q1*p1 + q2*p2"}}}, source="run.yaml")
     assert short.events == full.events == {"peri": {"expression": "q1*p1 + q2*p2", "direction": 0, "terminal": False}}
+
+
+# --- short forms: the paper's notation for methods, a built-in's name for problems ---------
+
+@pytest.mark.parametrize("text,expected", [
+    ("EHBVM(12,3)", {"name": "ehbvm", "k": 12, "s": 3}), ("gauss(4)", {"name": "gauss", "s": 4}),
+    (" ELIM( 8, 12 , 3 ) ", {"name": "elim", "r": 8, "k": 12, "s": 3}), ("GHBVM(24,3)", {"name": "ghbvm", "k": 24, "s": 3}),
+    ("ehbvm", None), ("EHBVM 12 3", None)])
+def test_methods_are_read_in_the_papers_notation(text, expected):
+    from elimfast.methods import from_notation
+    assert from_notation(text) == expected
+
+
+@pytest.mark.parametrize("text,message", [
+    ("EHBVM(12)", "'EHBVM(12)': ehbvm(k, s) takes 2 whole numbers (k, s), e.g. EHBVM(12,3)"),
+    ("HBVM(12,3.5)", "'HBVM(12,3.5)': hbvm(k, s) takes 2 whole numbers (k, s), e.g. HBVM(12,3)"),
+    ("FOO(3)", "is not a known method: 'FOO'")])
+def test_the_papers_notation_with_wrong_numbers_is_refused_by_name(text, message):
+    from elimfast.errors import ParameterError
+    from elimfast.methods import from_notation
+    with pytest.raises(ParameterError) as caught:
+        from_notation(text)
+    assert caught.value.parameter == "name" and caught.value.detail.startswith(message), caught.value.detail
+
+
+def test_a_config_may_name_its_method_as_the_paper_does_and_its_problem_by_name(tmp_path):
+    """`method: EHBVM(12,3)` was refused ('must be a mapping'), and `method: {name: EHBVM(12,3)}`
+    unquoted said 'method.3): unknown key' (YAML splits it at the comma inside {...})."""
+    long = write(tmp_path, "problem: {builtin: kepler}\nmethod: {name: ehbvm, k: 12, s: 3}\n"
+                           "conserve: [angular_momentum]\nintegration: {h: 0.1, t_end: 1}\n", "long.yaml")
+    for short in ("problem: kepler\nmethod: EHBVM(12,3)\n", "problem: kepler\nmethod: {name: \"ehbvm(12, 3)\"}\n"):
+        path = write(tmp_path, short + "conserve: [angular_momentum]\nintegration: {h: 0.1, t_end: 1}\n", "short.yaml")
+        assert load_run(path).resolved == load_run(long).resolved
+    assert load_run(long, overrides=["method=GHBVM(12,3)"]).method.name == "GHBVM(12,3)"
+    for text, message in [
+            ("problem: kepler\nmethod: {name: EHBVM(12,3)}\n",
+             "short.yaml:2: method.name: 'EHBVM(12' is cut off: inside {...} YAML splits an unquoted EHBVM(12,3) at "
+             "its comma; quote it"),
+            ("problem: kepler\nmethod: {name: \"EHBVM(12,3)\", k: 12}\n",
+             "short.yaml:2: method.k: give the method either as EHBVM(12,3) or by its name and parameters, not both"),
+            ("problem: kepler\nmethod: EHBVM(12)\n", "short.yaml:2: method: 'EHBVM(12)': ehbvm(k, s) takes 2"),
+            ("problem: kepler\nmethod: ehbvm\n", "short.yaml:2: method.k: is missing, and so is s"),
+            ("problem: keplr\nmethod: EHBVM(12,3)\n",
+             "short.yaml:1: problem: 'keplr' is not a built-in problem (did you mean 'kepler'?); give a built-in's name")]:
+        path = write(tmp_path, text + "integration: {h: 0.1, t_end: 1}\n", "short.yaml")
+        with pytest.raises(ConfigError) as caught:
+            load_run(path)
+        assert str(caught.value).startswith(f"{path.parent}/{message}"), str(caught.value)
+
+
+def test_integrate_takes_a_method_in_the_papers_notation():
+    from elimfast.errors import ParameterError
+    from elimfast.methods import ehbvm
+    from elimfast.ensemble import integrate_ensemble
+    p = problems.kepler(0.6)
+    named = elimfast.integrate(p, "EHBVM(12,3)", 0.1, n_steps=20, conserve=("angular_momentum",))
+    built = elimfast.integrate(p, ehbvm(12, 3), 0.1, n_steps=20, conserve=("angular_momentum",))
+    np.testing.assert_array_equal(named.y, built.y)
+    ensemble = integrate_ensemble(p, "gauss(3)", 0.1, np.array([p.y0]), n_steps=5)
+    assert ensemble.method.name == "GAUSS(3)"
+    with pytest.raises(ParameterError, match=r"^method 'ehbvm' names the family, not a method: .* 'EHBVM\(12,3\)'"):
+        elimfast.integrate(p, "ehbvm", 0.1, n_steps=5)
+    with pytest.raises(ParameterError, match=r"^method 'EHBVM\(12\)': ehbvm\(k, s\) takes 2 whole numbers"):
+        elimfast.integrate(p, "EHBVM(12)", 0.1, n_steps=5)

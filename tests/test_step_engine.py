@@ -400,6 +400,8 @@ def test_energy_note_blames_round_off_where_the_quadrature_of_a_polynomial_H_is_
         assert "raise k or reduce h" in energy_note("HBVM(6,3)", 6, 6, 0.05, {"H": 3.4e-11}, False, s=3,
                                                     degree=degree)
     assert energy_note("HBVM(6,3)", 6, 6, 0.05, {"H": 1e-13}, False, s=3, degree=4) is None
+    # GAUSS has no k of its own to raise: more nodes is HBVM(k,s)
+    assert "raise k (HBVM(k,4) with k > 4) or reduce h" in energy_note("GAUSS(4)", 4, 4, 0.1, {"H": 9e-9}, False, s=4)
 
 
 def _finite_difference(values: np.ndarray, order: int) -> float:

@@ -3,6 +3,7 @@
 (``Family``), ``METHODS`` to its constructor. A new family is one module here that
 declares its ``Family`` (and its kernel map)."""
 import difflib
+import re
 
 from ..errors import ParameterError
 from .base import (FAMILIES, IMPOSES_ANY, IMPOSES_FEWER_THAN_S, IMPOSES_NONE, MAX_NODES, Family, Method,
@@ -46,3 +47,46 @@ def get(name: str, **parameters) -> Method:
 __all__ = ["FAMILIES", "METHODS", "MAX_NODES", "Family", "Method", "family", "get", "gauss", "hbvm", "elim",
            "ehbvm", "lim", "ghbvm", "quadrature", "legendre_tables", "IMPOSES_NONE", "IMPOSES_FEWER_THAN_S",
            "IMPOSES_ANY"]
+
+
+_NOTATION = re.compile(r"\s*([A-Za-z]+)\s*\(([^()]*)\)\s*")
+
+
+def from_notation(text: str) -> dict | None:
+    """A method written as the paper writes it, ``EHBVM(12,3)``, ``GAUSS(4)``, ``ELIM(8,12,3)``
+    (any case, spaces allowed), as ``{"name": family, parameter: value, ...}`` in the order of
+    the family's parameters (Family.parameters); None when ``text`` is not in that form.
+    ParameterError('name', ...) for an unknown family or numbers that do not fit its parameters."""
+    match = _NOTATION.fullmatch(text) if isinstance(text, str) else None
+    if match is None:
+        return None
+    kind = family(match.group(1))
+    numbers = [part.strip() for part in match.group(2).split(",")]
+    if len(numbers) != len(kind.parameters) or not all(part.isdigit() for part in numbers):
+        example = f"{match.group(1)}({','.join(str(n) for n in (8, 12, 3)[-len(kind.parameters):])})"
+        raise ParameterError("name", f"{text.strip()!r}: {kind.signature()} takes {len(kind.parameters)} whole "
+                                     f"number{'s' if len(kind.parameters) > 1 else ''} ({', '.join(kind.parameters)}), "
+                                     f"e.g. {example}")
+    return {"name": match.group(1).strip().lower(), **{name: int(part) for name, part in zip(kind.parameters, numbers)}}
+
+
+def as_method(value) -> Method:
+    """``value`` if it is a Method, else the method a string names in the paper's notation
+    (``"EHBVM(12,3)"``, from_notation): what integrate and integrate_ensemble take. Other values
+    are returned as they are (the caller's type check names them)."""
+    if isinstance(value, str):
+        try:
+            parameters = from_notation(value)
+        except ParameterError as err:   # named as the caller's argument
+            raise ParameterError("method", err.detail) from None
+        if parameters is None:
+            if value.strip().lower() not in FAMILIES:
+                raise ParameterError("method", f"{value!r} is not a method: give an elimfast Method (e.g. "
+                                               "elimfast.methods.ehbvm(12, 3)) or one in the paper's notation, "
+                                               "e.g. 'EHBVM(12,3)'")
+            kind = family(value)   # a bare family name: say what it needs
+            raise ParameterError("method", f"{value!r} names the family, not a method: write its parameters as the "
+                                           f"paper does, e.g. {kind.signature()} as "
+                                           f"'{value.strip().upper()}({','.join(str(n) for n in (8, 12, 3)[-len(kind.parameters):])})'")
+        return get(**parameters)
+    return value
