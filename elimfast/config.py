@@ -481,6 +481,48 @@ def _clip(text: str, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def write_out_shorthands(data: dict, error) -> dict:
+    """A run config (or a sweep's base or set) with its short forms written out: ``method:
+    EHBVM(12,3)`` (the paper's notation, methods.from_notation; also as method.name) and
+    ``problem: kepler`` (a built-in's name) or ``problem: FILE.py``; the resolved config records
+    the long forms. ``error(path, text)`` makes the exception raised for a bad short form."""
+    data = dict(data)
+    method = data.get("method")
+    name = method.get("name") if isinstance(method, dict) else method
+    if isinstance(name, str) and "(" in name:
+        if ")" not in name:   # YAML's flow mapping {name: EHBVM(12,3)} splits it at the comma
+            raise error(("method", "name"), f"{name!r} is cut off: inside {{...}} YAML splits an unquoted "
+                        f"EHBVM(12,3) at its comma; quote it (name: \"EHBVM(12,3)\"), or write method: "
+                        "EHBVM(12,3) on its own line")
+        try:
+            expanded = methods.from_notation(name)
+        except ParameterError as err:
+            raise error(("method", "name") if isinstance(method, dict) else ("method",), err.detail) from None
+        if expanded is not None:
+            if isinstance(method, dict) and set(method) - {"name"}:
+                extra = sorted(set(method) - {"name"})[0]
+                raise error(("method", extra), f"give the method either as {name} or by its name and parameters, "
+                            "not both; remove it")
+            data["method"] = expanded
+    elif isinstance(method, str):
+        data["method"] = {"name": method}   # methods.get then says which parameters it needs
+    problem = data.get("problem")
+    if isinstance(problem, str):
+        from .problems.catalogue import BUILTINS
+        if problem in BUILTINS:
+            data["problem"] = {"builtin": problem}
+        elif problem.endswith(".py"):
+            data["problem"] = {"python": problem}
+        else:
+            import difflib
+            close = difflib.get_close_matches(problem, list(BUILTINS), n=1, cutoff=0.5)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise error(("problem",), f"{problem!r} is not a built-in problem{hint}; give a built-in's name "
+                        "(problem: kepler, or {builtin: kepler, parameters: {...}}), a file (problem: "
+                        "my_problem.py), or the expressions (coordinates:, hamiltonian:)")
+    return data
+
+
 class _Builder:
     def __init__(self, source: str, overridden: dict, base_dir: Path, remember: bool = False,
                  lines: dict | None = None):
@@ -613,44 +655,8 @@ class _Builder:
                        events=resolved.get("events"))
 
     def shorthands(self, data: dict) -> dict:
-        """The config with its short forms written out: ``method: EHBVM(12,3)`` (the paper's
-        notation, methods.from_notation; also as method.name) and ``problem: kepler`` (a built-in's
-        name) or ``problem: FILE.py``. The resolved config records the long forms."""
-        data = dict(data)
-        method = data.get("method")
-        name = method.get("name") if isinstance(method, dict) else method
-        if isinstance(name, str) and "(" in name:
-            if ")" not in name:   # YAML's flow mapping {name: EHBVM(12,3)} splits it at the comma
-                raise self.error(("method", "name"), f"{name!r} is cut off: inside {{...}} YAML splits an unquoted "
-                                 f"EHBVM(12,3) at its comma; quote it (name: \"EHBVM(12,3)\"), or write method: "
-                                 "EHBVM(12,3) on its own line")
-            try:
-                expanded = methods.from_notation(name)
-            except ParameterError as err:
-                raise self.error(("method", "name") if isinstance(method, dict) else ("method",), err.detail) from None
-            if expanded is not None:
-                if isinstance(method, dict) and set(method) - {"name"}:
-                    extra = sorted(set(method) - {"name"})[0]
-                    raise self.error(("method", extra), f"give the method either as {name} or by its name and "
-                                     "parameters, not both; remove it")
-                data["method"] = expanded
-        elif isinstance(method, str):
-            data["method"] = {"name": method}   # methods.get then says which parameters it needs
-        problem = data.get("problem")
-        if isinstance(problem, str):
-            from .problems.catalogue import BUILTINS
-            if problem in BUILTINS:
-                data["problem"] = {"builtin": problem}
-            elif problem.endswith(".py"):
-                data["problem"] = {"python": problem}
-            else:
-                import difflib
-                close = difflib.get_close_matches(problem, list(BUILTINS), n=1, cutoff=0.5)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise self.error(("problem",), f"{problem!r} is not a built-in problem{hint}; give a built-in's name "
-                                 "(problem: kepler, or {builtin: kepler, parameters: {...}}), a file (problem: "
-                                 "my_problem.py), or the expressions (coordinates:, hamiltonian:)")
-        return data
+        """The config with its short forms written out (write_out_shorthands)."""
+        return write_out_shorthands(data, self.error)
 
     def validate(self, data) -> Section:
         """The config's sections as config_schema.RunConfig validates them. With ``remember``,

@@ -299,14 +299,14 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         base = _read_yaml(base_path, "base config")
         if not isinstance(base, dict):
             _fail(source, "base", f"{base_path} does not hold a config mapping")
-        base = _rebase_paths(base, base_path.parent, path.parent)
+        base = _rebase_paths(_written_out(str(base_path), "", base), base_path.parent, path.parent)
     elif not isinstance(base, dict):
         _fail(source, "base", "give a run config: a path to a YAML file or an inline mapping")
-    base = copy.deepcopy(base)
+    base = copy.deepcopy(_written_out(source, "base.", base))
     common = data.get("set") or {}
     if not isinstance(common, dict):
         _fail(source, "set", "must be a mapping of overrides, e.g. {integration: {t_end: 20*pi}}")
-    _deep_merge(base, common)
+    _deep_merge(base, _written_out(source, "set.", common))
 
     axes = data.get("grid") or []
     if not isinstance(axes, list):
@@ -340,7 +340,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                 if not isinstance(variant, dict) or "set" not in variant or not isinstance(variant["set"], dict):
                     _fail(source, f"{key}.values[{j}]", "a variant is {label: ..., set: {key: value, ...}}")
                 label = _check_label(source, f"{key}.values[{j}].label", str(variant.get("label", j)))
-                points.append((label, {"replace": variant["set"]}))
+                points.append((label, {"replace": _written_out(source, f"{key}.values[{j}].set.", variant["set"])}))
         axis_points.append(points)
         axis_names.append(name)
         if "key" in axis:
@@ -403,6 +403,14 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+def _written_out(source: str, where: str, config: dict) -> dict:
+    """A sweep's base, set or variant with a run config's short forms written out
+    (config.write_out_shorthands: method: EHBVM(12,3), problem: kepler), so that they merge
+    with the rest as the long forms do."""
+    from .config import _join, write_out_shorthands
+    return write_out_shorthands(config, lambda path, text: SweepError(f"{source}: {where}{_join(path)}: {text}"))
 
 
 def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:

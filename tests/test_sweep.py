@@ -733,3 +733,22 @@ def test_a_resumed_sweep_prints_the_table_of_the_uninterrupted_one(tmp_path):
     assert resumed.table() == fresh.table()
     for outcome in fresh.outcomes:
         assert elimfast.load(out, run=outcome.label).stats == outcome.result.stats, outcome.label
+
+
+def test_a_sweep_takes_the_short_forms_of_a_run_config(tmp_path):
+    """method: EHBVM(12,3) and problem: kepler in a base, a set and a variant are written out
+    before they merge: a key axis (method.k) then sets k of the paper-notation base method."""
+    path = write_sweep(tmp_path, {
+        "base": {"problem": "kepler", "method": "EHBVM(12,3)", "conserve": ["angular_momentum"],
+                 "integration": {"h": "pi/30", "t_end": "2*pi"}},
+        "grid": [{"name": "method", "values": [{"label": "G", "set": {"method": "GHBVM(12,3)"}},
+                                               {"label": "E", "set": {}}]},
+                 {"name": "k", "key": "method.k", "values": [12, 16]}]})
+    spec = load_sweep(path)
+    assert [run.config["method"] for run in spec.runs] == [
+        {"name": "ghbvm", "k": 12, "s": 3}, {"name": "ghbvm", "k": 16, "s": 3},
+        {"name": "ehbvm", "k": 12, "s": 3}, {"name": "ehbvm", "k": 16, "s": 3}]
+    assert all(run.config["problem"] == {"builtin": "kepler"} for run in spec.runs)
+    bad = write_sweep(tmp_path, {"base": {**BASE, "method": {"name": "EHBVM(12"}}}, "bad.yaml")
+    with pytest.raises(SweepError, match=r"bad.yaml: base.method.name: 'EHBVM\(12' is cut off"):
+        load_sweep(bad)
