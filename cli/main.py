@@ -692,6 +692,7 @@ def tableau(name, k, s, r, eta):
     Examples:
       elimfast tableau gauss --s 2
       elimfast tableau hbvm --k 4 --s 2
+      elimfast tableau 'HBVM(4,2)'
       elimfast tableau elim --r 3 --k 3 --s 2 --eta 0.999
     """
     from elimfast import methods
@@ -699,7 +700,10 @@ def tableau(name, k, s, r, eta):
 
     given = {key: value for key, value in (("r", r), ("k", k), ("s", s)) if value is not None}
     try:
-        method = methods.get(name, **given)
+        written = methods.from_notation(name)   # 'HBVM(4,2)' as the paper writes it
+        if written is not None and given:
+            raise ParameterError(sorted(given)[0], f"does not apply: {name} gives the parameters already; remove it")
+        method = methods.get(**written) if written is not None else methods.get(name, **given)
     except ParameterError as err:   # the library's rule and fix, with the option's name
         option = "NAME" if err.parameter == "name" else f"--{err.parameter}"
         raise click.UsageError(f"{option} {err.detail}") from None

@@ -357,6 +357,7 @@ def parse_tableau(text):
     (["hbvm", "--k", "5", "--s", "3"], methods.hbvm(5, 3), None),
     (["ehbvm", "--k", "4", "--s", "3", "--eta", "0.99", "--eta", "1.01"], methods.ehbvm(4, 3), [0.99, 1.01]),
     (["elim", "--r", "5", "--k", "4", "--s", "3", "--eta", "1,0.9,1.1"], methods.elim(5, 4, 3), [1, 0.9, 1.1]),
+    (["HBVM(5,3)"], methods.hbvm(5, 3), None),   # the paper's notation
 ])
 def test_tableau_is_printed_exactly(args, method, eta):
     result = invoke("tableau", *args)
@@ -367,6 +368,13 @@ def test_tableau_is_printed_exactly(args, method, eta):
     assert A.tobytes() == np.asarray(A_ref, dtype=float).tobytes()
     assert b.tobytes() == b_ref.tobytes() and c.tobytes() == c_ref.tobytes()
     assert method.name in result.stdout
+
+
+def test_tableau_in_the_papers_notation_takes_no_parameter_options():
+    result = invoke("tableau", "HBVM(4,2)", "--k", "3")
+    assert result.exit_code == 2 and "--k does not apply: HBVM(4,2) gives the parameters already" in result.output
+    result = invoke("tableau", "HBVM(4)")
+    assert result.exit_code == 2 and "NAME 'HBVM(4)': hbvm(k, s) takes 2 whole numbers" in result.output
 
 
 def test_version():
