@@ -463,6 +463,7 @@ def check(config, overrides):
     lines += [f"#   {report.name:<{width}}  {report.ratio:.1e}  {'ok' if report.ok else 'DOES NOT MATCH'}"
               for report in reports]
     lines.append(f"# hess_H: {problem.hessian_description}")
+    lines.append(f"# H: {_quadrature_of_H(problem, method)}")
     if residuals:
         lines.append(f"# invariant check (relative residual, tolerance {DEFAULT_TOLERANCE:.0e}):")
         width = max(len(name) for name in residuals)
@@ -671,6 +672,21 @@ def _parse_floats(values) -> list[float] | None:
             except ValueError:
                 raise click.BadParameter(f"{item!r} is not a number", param_hint="--eta") from None
     return out
+
+
+def _quadrature_of_H(problem, method) -> str:
+    """What ``check`` says of how the method keeps H (docs/solver.md#quadrature-of-h-when-k-is-too-small):
+    exactly where H is a polynomial of degree <= 2k/s (Problem.hamiltonian_degree), else up to
+    the quadrature error of the k nodes."""
+    k, s, degree = method.k, method.s, problem.hamiltonian_degree
+    if degree is not None and degree * s <= 2 * k:
+        return (f"a polynomial of degree {degree}, which the k = {k} nodes of {method.name} integrate exactly "
+                f"(degree <= 2k/s = {2 * k / s:.3g}): kept to round-off")
+    what = (f"a polynomial of degree {degree} > 2k/s = {2 * k / s:.3g}" if degree is not None
+            else {"analytic": "not a polynomial", "symbolic": "not a polynomial as written"}.get(
+                problem.hessian_source, "not known to be a polynomial (a python: problem)"))
+    return (f"{what}: {method.name} keeps it up to the quadrature error of its k = {k} nodes, O(h^{2 * k + 1}) "
+            "per step (inspect and the end-of-run line flag a loss above 1e-12)")
 
 
 @cli.command(context_settings=CONTEXT)

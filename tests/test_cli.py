@@ -295,6 +295,20 @@ def test_check_prints_the_resolved_config_as_yaml():
     assert "EHBVM(12,4) imposing angular_momentum, lrl_y, 10000 steps" in result.stdout
 
 
+@pytest.mark.parametrize("config,overrides,line", [
+    ("fpu_beta.yaml", [], "# H: a polynomial of degree 4, which the k = 6 nodes of HBVM(6,3) integrate exactly "
+                          "(degree <= 2k/s = 4): kept to round-off"),
+    ("fpu_beta.yaml", ["method.k=5"], "# H: a polynomial of degree 4 > 2k/s = 3.33: HBVM(5,3) keeps it up to the "
+                                      "quadrature error of its k = 5 nodes, O(h^11) per step"),
+    ("kepler.yaml", [], "# H: not a polynomial: EHBVM(12,3) keeps it up to the quadrature error of its k = 12 nodes"),
+    ("kepler_python.yaml", [], "# H: not known to be a polynomial (a python: problem): EHBVM(12,3) keeps it"),
+])
+def test_check_says_whether_the_method_keeps_H_exactly(config, overrides, line):
+    result = invoke("check", ROOT / "configs" / config, *[item for o in overrides for item in ("--set", o)])
+    assert result.exit_code == 0, result.output
+    assert any(text.startswith(line) for text in result.stdout.splitlines()), result.stdout
+
+
 def test_check_describes_an_adaptive_run_by_its_step_control(tmp_path):
     result = invoke("check", ROOT / "configs" / "kepler_adaptive.yaml")
     assert result.exit_code == 0, result.output
