@@ -279,6 +279,8 @@ KEPLER_FILE = (CONFIGS / "kepler_problem.py").read_text()
     (lambda s: s.replace("import math", "import fractions\nimport math").replace(
         "mu = params[0]\n    return", "mu = params[0] * float(fractions.Fraction(1, 1))\n    return"),
      r"Numba cannot compile H as H\(y, params\) -> float \(line 19\): Unknown attribute 'Fraction'"),
+    (lambda s: s.replace("Y0 = [0.4, 0.0, 0.0, 2.0]", "Y0 = [0.4, 0.0, 0.0, 2.0]\nHAMILTONIAN_DEGREE = 2.5"),
+     "HAMILTONIAN_DEGREE must be a whole number >= 0"),
     (lambda s: s.replace("Y0 = [0.4, 0.0, 0.0, 2.0]", "Y0 = [0.4, 0.0, 0.0]"), "Y0 has 3 entries"),
 ])
 def test_python_file_faults_are_reported_in_one_line(cache_root, tmp_path, change, match):
@@ -287,6 +289,16 @@ def test_python_file_faults_are_reported_in_one_line(cache_root, tmp_path, chang
     with pytest.raises(UserProblemError, match=match) as info:
         problem_from_file(path)
     assert "\n" not in str(info.value)
+
+
+def test_python_file_may_declare_the_degree_of_its_polynomial_H(cache_root, tmp_path):
+    path = tmp_path / "problem.py"
+    path.write_text(KEPLER_FILE)
+    assert problem_from_file(path).hamiltonian_degree is None
+    quartic = tmp_path / "quartic.py"
+    quartic.write_text("Y0 = [1.0, 0.5]\nHAMILTONIAN_DEGREE = 4\n\ndef H(y, params):\n    return 0.5 * y[1] ** 2 + "
+                       "0.25 * y[0] ** 4\n\ndef grad_H(y, params, out):\n    out[0] = y[0] ** 3\n    out[1] = y[1]\n")
+    assert problem_from_file(quartic).hamiltonian_degree == 4
 
 
 def test_python_file_at_a_singular_initial_state_says_so(cache_root, tmp_path):

@@ -19,6 +19,9 @@ Optional
     ``PARAMETERS``                       {name: default value}; the functions read them
                                          as params[0], params[1], ... in this order
     ``NAME``, ``DESCRIPTION``            for reports (default: the file name; the docstring)
+    ``HAMILTONIAN_DEGREE``               H is a polynomial in y of at most this total degree
+                                         (Problem.hamiltonian_degree: check and the end-of-run
+                                         note then know when the quadrature of H is exact)
 
 ``y``, ``params`` and ``out`` are C-contiguous float64 arrays; the functions must be
 Numba-compilable (``math`` and NumPy on scalars; helpers they call must be decorated
@@ -198,6 +201,10 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
         module.__dict__[FD_GRAD_H_GLOBAL] = compiled["grad_H"]   # resolved when the Hessian compiles
         compiled["hess_H"] = _compile(label, path, "hess_H", module.__dict__[FD_HESS_H_NAME])
     doc = (get("__doc__") or "").strip().splitlines()
+    degree = get("HAMILTONIAN_DEGREE")
+    if degree is not None and (isinstance(degree, bool) or not isinstance(degree, int) or degree < 0):
+        raise UserProblemError(f"{label}: HAMILTONIAN_DEGREE must be a whole number >= 0 (the total degree of H as a "
+                               f"polynomial in y), got {degree!r}; leave it out if H is not a polynomial", key="python")
     return Problem(
         name=name or str(get("NAME", path.stem)), q_names=q_names, p_names=p_names,
         H=compiled["H"], grad_H=compiled["grad_H"], hess_H=compiled["hess_H"], hessian_source=hessian_source,
@@ -206,6 +213,7 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
         grad_invariants=compiled.get("grad_invariants", signatures.no_invariant_gradients),
         invariant_names=invariant_names, y0=y0, params=params, parameters=param_values,
         description=str(get("DESCRIPTION", doc[0] if doc else f"python problem {path.name}")),
+        hamiltonian_degree=degree,
     )
 
 
