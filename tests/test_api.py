@@ -193,6 +193,16 @@ def test_an_initial_state_that_is_not_real_numbers_is_refused_naming_y0(kepler, 
         assert detail in message and "\n" not in message, (name, message)
 
 
+def test_an_initial_state_of_exact_numbers_is_taken(kepler):
+    """Fractions were taken and decimal.Decimal refused ('must be a list of real numbers'): it is
+    no numbers.Real, but a real number all the same."""
+    from decimal import Decimal
+    from fractions import Fraction
+    exact = [Decimal("0.4"), 0, Fraction(0), Decimal(2)]
+    run = elimfast.integrate(kepler, gauss(2), h=0.1, n_steps=3, y0=exact)
+    np.testing.assert_array_equal(run.y, elimfast.integrate(kepler, gauss(2), h=0.1, n_steps=3, y0=kepler.y0).y)
+
+
 def test_an_ensemble_and_a_python_problem_refuse_complex_initial_states(kepler, tmp_path):
     """The same check for an ensemble's Y0 and a python problem file's Y0 (numpy's conversion
     dropped the imaginary part there too)."""

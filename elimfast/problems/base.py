@@ -8,6 +8,7 @@ from expressions, or user files) never touch the kernels.
 """
 from __future__ import annotations
 
+import decimal
 import numbers
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -40,7 +41,8 @@ def real_state(value, parameter: str = "y0") -> np.ndarray:
         array = None
     if array is not None and array.dtype == object:   # Python objects: Fractions, or None, or ...
         items = list(array.flat)
-        if all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in items):
+        # decimal.Decimal is no numbers.Real (it refuses mixing with floats), but is a real number
+        if all((isinstance(v, (numbers.Real, decimal.Decimal))) and not isinstance(v, bool) for v in items):
             array = np.array(items, dtype=np.float64).reshape(array.shape)
         elif any(isinstance(v, numbers.Complex) and not isinstance(v, numbers.Real) for v in items):
             array = np.zeros(0, dtype=complex)   # refused as complex below
