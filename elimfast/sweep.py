@@ -32,6 +32,12 @@ Errors: ``exact: initial`` compares each run's final state with its initial stat
 paper's Table 1); ``reference`` runs the base with the given overrides once and
 compares every run's final state with it, so every run must have the reference's
 problem (parameters, initial state) and interval (a sweep that varies them is refused).
+
+Short forms of a run config work here too (``method: EHBVM(12,3)``, ``problem: kepler``;
+config.write_out_shorthands). ``--resume`` (run_to_file) keeps the runs a file holds complete
+and runs the rest; the sweep file may have been edited meanwhile where the edit leaves those
+runs' configs as they were outside solver.* (solver_only_edit): more halvings for a failed
+run, a failed run's h, added values.
 """
 from __future__ import annotations
 
