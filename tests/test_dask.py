@@ -366,3 +366,28 @@ def test_a_cluster_started_by_hand_runs_a_sweep(tmp_path):
             except subprocess.TimeoutExpired:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
+
+
+def test_inspect_of_a_sweep_file_being_written_says_how_far_the_sweep_got(tmp_path):
+    """HDF5 lets no other program open a grid sweep's file while the sweep writes it (outside SWMR
+    mode: each run adds groups); inspect and load said only 'open for writing in another
+    process'. They now list the runs stored so far (a snapshot of the last flush)."""
+    # the longest run starts first (on one worker) and outlasts the test; the short ones end on the other
+    path = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "pi/30", "t_end": "2*pi"}},
+                                  "grid": [{"name": "h", "key": "integration.h",
+                                            "values": ["2*pi/40", "2*pi/80", "2*pi/40000000"]}]})
+    out = tmp_path / "live.h5"
+    process = subprocess.Popen([str(ELIMFAST), "sweep", str(path), "-o", str(out), "--workers", "2"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in process.stderr:
+            if line.startswith("[2/"):   # both short runs stored
+                break
+        result = CliRunner().invoke(cli, ["inspect", str(out)])
+        assert process.poll() is None, "the sweep ended before it was inspected"
+        assert result.exit_code == 2
+        assert result.output.startswith(f"error: {out}: a sweep is writing it: 2 of 3 runs stored (2*pi/40, 2*pi/80) "
+                                        "so far; HDF5 lets other programs read it when the sweep ends"), result.output
+    finally:
+        process.kill()
+        process.wait(timeout=60)

@@ -666,10 +666,12 @@ _STATE_MEMBERS = ("y", "y_comp", "clock", "coef", "multipliers", "steps_done", "
 _LAYOUT = ("t", "y", "invariants", "steps", "steps/iterations", "method", "state",
            *(f"state/{name}" for name in _STATE_MEMBERS))
 
-def _killed_sweep(path: Path) -> str | None:
+def _killed_sweep(path: Path, writing: bool = False) -> str | None:
     """What a sweep file whose writer was killed holds (sweepfile.describe_sweep_file), or None
     for any other file HDF5 cannot open. A grid sweep writes outside SWMR mode, so HDF5 refuses
-    its file after a kill although every run flushed before is whole (--resume keeps them)."""
+    its file after a kill although every run flushed before is whole (--resume keeps them).
+    ``writing``: the same for a sweep that is writing the file now (a snapshot of its listing,
+    which the sweep flushes as each run is stored)."""
     from .sweepfile import describe_sweep_file
     if not consistency_flags(path) & 1:
         return None
@@ -677,7 +679,7 @@ def _killed_sweep(path: Path) -> str | None:
         with open_unflagged(path) as f:
             if _plain(f.attrs.get("format", "")) != SWEEP_FORMAT:
                 return None
-            return describe_sweep_file(path, f, killed=True)
+            return describe_sweep_file(path, f, killed=not writing, writing=writing)
     except Exception:   # noqa: BLE001 -- unreadable even so: the damage it was reported as
         return None
 
@@ -734,6 +736,11 @@ class RunFile:
             if message is None:
                 raise
             raise OutputError(message) from None
+        except FileBusyError:   # a sweep writing its file says how far it got
+            message = _killed_sweep(self.path, writing=True)
+            if message is None:
+                raise
+            raise FileBusyError(message) from None
         try:
             if run is None:
                 _require_ours(self.path, self._file)

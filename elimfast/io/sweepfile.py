@@ -53,12 +53,14 @@ def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
             for name in runs]
 
 
-def describe_sweep_file(path, f, *, killed: bool = False) -> str:
+def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False) -> str:
     """One line for a reader given a sweep file where it wants one run (``inspect``,
     ``load``, ``plot``), or given a run of a sweep file whose writer was killed (``killed``:
     HDF5 refuses the file until ``repair`` or ``--resume`` clears its flags; ``f`` is then
     read through ``safety.open_unflagged``). Says what the file holds, how to name one run,
-    and, for a sweep that did not end, how many runs are stored and that --resume completes it."""
+    and, for a sweep that did not end, how many runs are stored and that --resume completes it.
+    ``writing``: a sweep is writing the file now (read like a killed writer's: a snapshot of
+    what its last flush wrote); HDF5 lets no other program open it until the sweep ends."""
     if ensemblefile.GROUP in f:
         return (f"{path}: the file of an ensemble sweep (no single runs); read it with elimfast inspect {path} or "
                 f"elimfast.load('{path}')")
@@ -71,6 +73,9 @@ def describe_sweep_file(path, f, *, killed: bool = False) -> str:
     resume = f"complete it with elimfast sweep {source} -o {path} --resume"
     # quoted as a shell needs it: labels have spaces, parentheses and '*' (Table 1's 'EHBVM(12,3) L1,L2/pi/120')
     example = shlex.quote(f"{path}:/runs/{stored[0]}" if stored else f"{path}:/runs/<label>")
+    if writing:
+        return (f"{path}: a sweep is writing it: {listing} so far; HDF5 lets other programs read it when the "
+                "sweep ends (elimfast sweep prints a line as each run is stored)")
     if killed:
         return (f"{path}: an interrupted sweep (its writer was killed, so HDF5 still sees it open): {listing}; "
                 f"{resume}, or run elimfast repair {path} to read the stored runs as they are (e.g. {example})")
