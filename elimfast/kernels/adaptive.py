@@ -39,7 +39,8 @@ from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVAR
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
                       _sample, extrapolate, kahan_add, record_multipliers, restore_newton_matrix, try_step)
-from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
+from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
+                        make_workspace)
 
 warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
 warnings.filterwarnings("ignore", message="First-class function type feature is experimental")
@@ -334,18 +335,19 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, main_halvings)
     # Side steps start from their own step's polynomial (no predictor) and may split.
     side_settings = Settings(family, solver, stable_rhs, warm_start, 0, tol, max_iter, max_halvings)
-    tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
-                                  predictor_basis, newton_values, newton_vectors, newton_inverse,
-                                  newton_weights))
+    # Tables and workspaces are passed on by address (workspace.ByRef), as in stepper.time_loop.
+    tables = by_ref(borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat,
+                                         predictor_nodes, predictor_basis, newton_values, newton_vectors,
+                                         newton_inverse, newton_weights)))
     owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
                             newton_values.shape[0])
-    work = borrow_workspace(owners)
+    work = by_ref(borrow_workspace(owners))
     # Side steps (output times, events) have a workspace and a Newton matrix of their own: in
     # the main one they replaced the matrix a later main step would have reused, so a run with
     # output times or events took other solves than the same run without (round-off apart).
     side_owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
                                  newton_values.shape[0])
-    side_work = borrow_workspace(side_owners)
+    side_work = by_ref(borrow_workspace(side_owners))
     side_base = np.zeros(n + 3)
     n_mult = multipliers.shape[0]
     inv_values = np.zeros(n_inv)

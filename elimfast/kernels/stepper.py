@@ -29,7 +29,8 @@ from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
 from .solver import NEARLY_SINGULAR_GAMMA, accelerates, newton_factor, solve
-from .workspace import Settings, Tables, borrow_tables, borrow_workspace, borrowed, keep_alive, make_workspace
+from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
+                        make_workspace)
 
 # First-class function types are the documented way to pass functions to cached
 # kernels; Numba still labels them experimental on every compile.
@@ -557,12 +558,15 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
     s = coef.shape[0]
     n_inv = inv_out.shape[1] - 1
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings)
-    tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
-                                  predictor_basis, newton_values, newton_vectors, newton_inverse,
-                                  newton_weights))
+    # Tables and workspace are passed on by address (workspace.ByRef): by value, each call of
+    # try_step, _attempt, solve and newton_factor copied their ~530 words (README run: Newton
+    # 73.7 -> 60.8 ms, the fixed point 102.7 -> 88.7 ms, bit for bit the same steps).
+    tables = by_ref(borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat,
+                                         predictor_nodes, predictor_basis, newton_values, newton_vectors,
+                                         newton_inverse, newton_weights)))
     owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
                             newton_values.shape[0])
-    work = borrow_workspace(owners)   # owners stays alive in this frame until the loop is done
+    work = by_ref(borrow_workspace(owners))   # owners stays alive in this frame until the loop is done
     inv_values = np.zeros(n_inv)
 
     n_samples = 0

@@ -18,7 +18,9 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, types
 from numba.core import cgutils
-from numba.extending import intrinsic, overload
+from numba.core.imputils import impl_ret_borrowed, lower_getattr_generic
+from numba.core.typing.templates import AttributeTemplate, infer_getattr
+from numba.extending import intrinsic, models, overload, register_model
 
 from .codes import FAMILY_LIM
 
@@ -126,6 +128,70 @@ def borrowed(array):
 def _borrowed_overload(array):
     if isinstance(array, types.Array):
         return lambda array: _borrowed_view(array)
+
+
+class ByRef(types.Type):
+    """The address of a Tables or Workspace struct in the frame of the kernel that made it
+    (by_ref). Internal functions take it in place of the struct, and read its members
+    through it as they read the struct's (``work.delta``), one load each.
+
+    Why: Numba passes a struct argument member by member, and a Workspace is ~50 arrays of
+    5-9 words each: every call that took it copied ~530 words onto the stack (the call of
+    solve from _attempt was 531 push instructions), about 1 us per step in the calls of
+    try_step, _attempt, solve and newton_factor, for every solver (measured with perf on the
+    README's run)."""
+
+    def __init__(self, value_type):
+        self.value_type = value_type
+        super().__init__(name=f"ByRef({value_type})")
+
+
+register_model(ByRef)(models.OpaqueModel)
+
+
+@intrinsic
+def _by_ref(typingctx, value):
+    if not isinstance(value, types.BaseNamedTuple):
+        return None
+
+    def codegen(context, builder, signature, args):
+        slot = cgutils.alloca_once_value(builder, args[0])   # the kernel's entry block: lives as long as it
+        return builder.bitcast(slot, cgutils.voidptr_t)
+    return ByRef(value)(value), codegen
+
+
+def by_ref(value):
+    """``value`` (a Tables or Workspace) passed by its address in compiled code (ByRef); the
+    value itself in the interpreter (NUMBA_DISABLE_JIT=1). Valid while the calling kernel
+    runs: make it there, never return it."""
+    return value
+
+
+# inline="always": inlined in Numba's IR, so that the slot is the calling kernel's (a compiled
+# overload is a function of its own, whose frame would end with the call)
+@overload(by_ref, inline="always", jit_options={"cache": True})
+def _by_ref_overload(value):
+    if isinstance(value, types.BaseNamedTuple):
+        return lambda value: _by_ref(value)
+
+
+@infer_getattr
+class _ByRefAttributes(AttributeTemplate):
+    key = ByRef
+
+    def generic_resolve(self, ref, attr):
+        fields = ref.value_type.fields
+        if attr in fields:
+            return ref.value_type.types[fields.index(attr)]
+        return None
+
+
+@lower_getattr_generic(ByRef)
+def _by_ref_getattr(context, builder, typ, value, attr):
+    index = typ.value_type.fields.index(attr)
+    struct = builder.bitcast(value, context.get_value_type(typ.value_type).as_pointer())
+    member = builder.load(cgutils.gep_inbounds(builder, struct, 0, index))
+    return impl_ret_borrowed(context, builder, typ.value_type.types[index], member)
 
 
 @njit(cache=True)
