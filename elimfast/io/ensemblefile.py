@@ -39,8 +39,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .layout import (LONG_NAMES, _set_attributes, _small_dataset, _string_dataset, attach, dimension, label,
-                     unit_attributes, write_method)
+from .layout import (LONG_NAMES, _replace_attributes, _set_attributes, _small_dataset, _string_dataset, attach,
+                     dimension, label, unit_attributes, write_method)
 from .safety import OutputError, _damaged, _open, _plain, _writer_lock_held
 
 GROUP = "ensemble"
@@ -177,10 +177,7 @@ def finish(group, *, threads: int, status_names: dict[int, str], ok_status: int)
     values = {"threads": int(threads), "failed": int(np.count_nonzero(status != ok_status)),
               "reasons": [status_names.get(int(code), str(int(code))) for code in status] or [""],
               "status": STATUS_COMPLETE}
-    for name in values:
-        if name in group.attrs:
-            del group.attrs[name]
-    _set_attributes(group, values)
+    _replace_attributes(group, values)
 
 
 def check_resumable(path: Path, group, run, states: np.ndarray, config_text: str) -> None:

@@ -24,8 +24,9 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
-from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _set_attributes, append_rows,
-                     RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes, version_attributes)
+from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _replace_attributes,
+                     _set_attributes, append_rows, RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes,
+                     version_attributes)
 from .runfile import _now
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
@@ -102,14 +103,6 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
         return attrs, [run[:3] for run in listed]
     except Exception:   # noqa: BLE001 -- damaged, busy, not HDF5: RunFile reports it
         return None
-
-
-def _replace_attributes(obj, values: dict) -> None:
-    """_set_attributes for attributes that may exist already."""
-    for name in values:
-        if name in obj.attrs:
-            del obj.attrs[name]
-    _set_attributes(obj, values)
 
 
 class SweepWriter:
