@@ -678,8 +678,9 @@ def _quadrature_of_H(problem, method) -> str:
     """What ``check`` says of how the method keeps H (docs/solver.md#quadrature-of-h-when-k-is-too-small):
     exactly where H is a polynomial of degree <= 2k/s (Problem.hamiltonian_degree), else up to
     the quadrature error of the k nodes."""
+    from elimfast.methods import integrates_exactly
     k, s, degree = method.k, method.s, problem.hamiltonian_degree
-    if degree is not None and degree * s <= 2 * k:
+    if integrates_exactly(degree, k, s):
         return (f"a polynomial of degree {degree}, which the k = {k} nodes of {method.name} integrate exactly "
                 f"(degree <= 2k/s = {2 * k / s:.3g}): kept to round-off")
     what = (f"a polynomial of degree {degree} > 2k/s = {2 * k / s:.3g}" if degree is not None

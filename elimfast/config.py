@@ -580,7 +580,7 @@ class _Builder:
             raise ConfigError(f"{self.source}: a sweep file (it has base: and no problem:), not a run config; run it "
                               f"with elimfast sweep {self.source}", key="base", line=self.lines.get(("base",)))
         self.check_keys(data)
-        data = self.shorthands(data)
+        data = write_out_shorthands(data, self.error)
         config = self.validate(data)
 
         # Everything that needs no problem first: building the problem may compile code.
@@ -653,10 +653,6 @@ class _Builder:
                        t0=t0, t_end=t_end, solver=solver, output_path=config.output.path,
                        output_every=every, resolved=resolved, step_control=step_control, t_eval=t_eval,
                        events=resolved.get("events"))
-
-    def shorthands(self, data: dict) -> dict:
-        """The config with its short forms written out (write_out_shorthands)."""
-        return write_out_shorthands(data, self.error)
 
     def validate(self, data) -> Section:
         """The config's sections as config_schema.RunConfig validates them. With ``remember``,

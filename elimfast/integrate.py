@@ -381,9 +381,7 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
-    exact = (degree is not None and s is not None and k is not None and 0 <= int(degree)
-             and int(degree) * int(s) <= 2 * int(k))
-    if exact and set(above) == {"H"}:
+    if methods.integrates_exactly(degree, k, s) and set(above) == {"H"}:
         return (f"H error {above['H']:.1e} (relative) is above round-off, but {method_name} integrates this H (a "
                 f"polynomial of degree {int(degree)} <= 2k/s) exactly: it is round-off, which grows with the number "
                 "of steps and with the size of the state against the differences H depends on (a drifting "

@@ -605,13 +605,12 @@ def for_sweep(message: str, ensemble: bool = False) -> str:
     return f"{message}; {ENSEMBLE_RERUN_ADVICE if ensemble else SWEEP_RERUN_ADVICE}"
 
 
-def _resolved_text(spec: SweepSpec, run: SweepRun) -> str:
-    """The resolved config a run of ``spec`` stores (_execute's), as YAML text; raises
-    ElimfastError for a config that does not load."""
-    from .config import load_run_from_dict
-    loaded = load_run_from_dict(copy.deepcopy(run.config), source=f"{spec.source} [{run.label}]",
-                                base_dir=Path(spec.source).parent)
-    return _config_text(loaded.resolved)
+def _load_point(source: str, label: str, config: dict):
+    """The RunSpec of the grid point ``label`` of the sweep file ``source`` (its errors name both;
+    its python: paths were made relative to the sweep file's folder, _rebase_paths): how _execute
+    loads a run, and how --resume compares a stored run with the edited sweep's."""
+    from .config import load_run_from_dict  # in a worker: keeps the parent light
+    return load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]", base_dir=Path(source).parent)
 
 
 def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[str, int]]:
@@ -633,7 +632,7 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
                                   "longer in it: --resume keeps every stored run; pass --overwrite to start again, "
                                   "or write the edited sweep to another file")
             try:
-                current = _resolved_text(spec, runs[label])
+                current = _config_text(_load_point(spec.source, label, runs[label].config).resolved)
             except ElimfastError as error:
                 raise OutputError(f"{path}: the sweep file was edited, and the stored run {label!r} no longer loads: "
                                   f"{error}") from None
@@ -650,15 +649,12 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
 def _execute(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool) -> RunOutcome:
     """Worker: load one run's config, integrate it, summarise. Never raises for a run's
     own failure: a bad config or a failed integration becomes the outcome's status."""
-    from .config import load_run_from_dict  # in the worker: keeps the parent light
     from .integrate import Integration
     from .integrate import _collect as collect_result
 
     outcome = RunOutcome(label=label, coordinates=coordinates, status="complete")
     try:
-        # python: paths in a sweep were made relative to the sweep file's folder (_rebase_paths)
-        spec = load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]",
-                                  base_dir=Path(source).parent)
+        spec = _load_point(source, label, config)
     except ElimfastError as error:
         outcome.status = f"failed: {error}"
         return outcome

@@ -7,7 +7,7 @@ import re
 
 from ..errors import ParameterError
 from .base import (FAMILIES, IMPOSES_ANY, IMPOSES_FEWER_THAN_S, IMPOSES_NONE, MAX_NODES, Family, Method,
-                   legendre_tables, quadrature)
+                   integrates_exactly, legendre_tables, quadrature)
 # Imported in the order the registry lists the families (listings, `elimfast methods`).
 from .hbvm import gauss, hbvm  # noqa: I001
 from .elim import ehbvm, elim
@@ -46,10 +46,15 @@ def get(name: str, **parameters) -> Method:
 
 __all__ = ["FAMILIES", "METHODS", "MAX_NODES", "Family", "Method", "family", "get", "gauss", "hbvm", "elim",
            "ehbvm", "lim", "ghbvm", "quadrature", "legendre_tables", "IMPOSES_NONE", "IMPOSES_FEWER_THAN_S",
-           "IMPOSES_ANY"]
+           "IMPOSES_ANY", "integrates_exactly", "from_notation", "as_method"]
 
 
 _NOTATION = re.compile(r"\s*([A-Za-z]+)\s*\(([^()]*)\)\s*")
+
+
+def _notation_example(name: str, kind: Family) -> str:
+    """``name`` with example numbers for the family's parameters, e.g. EHBVM(12,3), ELIM(8,12,3)."""
+    return f"{name}({','.join(str(n) for n in (8, 12, 3)[-len(kind.parameters):])})"
 
 
 def from_notation(text: str) -> dict | None:
@@ -63,10 +68,9 @@ def from_notation(text: str) -> dict | None:
     kind = family(match.group(1))
     numbers = [part.strip() for part in match.group(2).split(",")]
     if len(numbers) != len(kind.parameters) or not all(part.isdigit() for part in numbers):
-        example = f"{match.group(1)}({','.join(str(n) for n in (8, 12, 3)[-len(kind.parameters):])})"
         raise ParameterError("name", f"{text.strip()!r}: {kind.signature()} takes {len(kind.parameters)} whole "
                                      f"number{'s' if len(kind.parameters) > 1 else ''} ({', '.join(kind.parameters)}), "
-                                     f"e.g. {example}")
+                                     f"e.g. {_notation_example(match.group(1), kind)}")
     return {"name": match.group(1).strip().lower(), **{name: int(part) for name, part in zip(kind.parameters, numbers)}}
 
 
@@ -87,6 +91,6 @@ def as_method(value) -> Method:
             kind = family(value)   # a bare family name: say what it needs
             raise ParameterError("method", f"{value!r} names the family, not a method: write its parameters as the "
                                            f"paper does, e.g. {kind.signature()} as "
-                                           f"'{value.strip().upper()}({','.join(str(n) for n in (8, 12, 3)[-len(kind.parameters):])})'")
+                                           f"'{_notation_example(value.strip().upper(), kind)}'")
         return get(**parameters)
     return value

@@ -46,6 +46,16 @@ def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple
     return values, integrals
 
 
+def integrates_exactly(degree, k, s) -> bool:
+    """Whether the k-node quadrature of HBVM(k,s) and its relatives integrates a Hamiltonian that
+    is a polynomial of this total degree exactly, so that the method keeps H to round-off:
+    degree <= 2k/s (docs/methods.md). None or a negative degree (not a polynomial, or not known),
+    or k or s unknown: False."""
+    if degree is None or k is None or s is None or int(degree) < 0:
+        return False
+    return int(degree) * int(s) <= 2 * int(k)
+
+
 def _positive_int(name: str, value) -> int:
     if isinstance(value, bool):
         raise ParameterError(name, f"must be a whole number (an integer), not {value!r}")
