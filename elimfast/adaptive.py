@@ -419,7 +419,7 @@ class AdaptiveIntegration:
         """The run a validated config describes (config.RunSpec with step control, output
         times or events)."""
         from .integrate import resolve_conserve
-        names, idx = resolve_conserve(spec.problem, spec.method, spec.conserve)
+        names, idx = resolve_conserve(spec.problem, spec.method, spec.conserve, spec.problem.y0)
         events = EventSpec.build(spec.problem, spec.events) if spec.events else None
         return cls(spec.problem, spec.method, idx, names, spec.solver, spec.step_control, t_end=spec.t_end,
                    t0=spec.t0, y0=spec.problem.y0, t_eval=spec.t_eval, events=events,

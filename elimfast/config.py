@@ -624,7 +624,7 @@ class _Builder:
 
         problem, resolved_problem = self.problem(config.problem)
         try:
-            conserve = resolve_conserve(problem, method, config.conserve)[0]
+            conserve = resolve_conserve(problem, method, config.conserve, problem.y0)[0]
             if step_control is not None:
                 step_control.check_problem(problem)
         except ParameterError as err:

@@ -405,8 +405,10 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
             f"{', '.join(kept)} {where}")
 
 
-def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) -> tuple[tuple[str, ...], np.ndarray]:
-    """Check the invariants to impose against the problem and the method; return (names, indices).
+def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str],
+                     y0=None) -> tuple[tuple[str, ...], np.ndarray]:
+    """Check the invariants to impose against the problem, the method and, when given, the
+    initial state y0 (require_independent_gradients); return (names, indices).
 
     Raises ParameterError naming the parameter (``conserve`` and the entry at fault, or the
     method's ``s`` when it is too small for the count) and the fix.
@@ -433,7 +435,56 @@ def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str]) 
                 raise ParameterError("conserve", f"names {name!r}, which is linear: "
                                      + method.kind.linear_refusal.format(method=method.name), index=index)
     indices = np.array([problem.invariant_names.index(n) for n in names], dtype=np.int64)
+    if names and y0 is not None:
+        require_independent_gradients(problem, names, indices, y0)
     return names, indices
+
+
+# The smallest singular value of the unit gradients of H and the imposed invariants at y0
+# below which they count as linearly dependent (a few hundred eps). Kepler's circular orbit,
+# imposing angular momentum: 7.9e-17; at eccentricity e it is 0.35 e. Measured (EHBVM(12,3),
+# h = 0.1, [0, 1000]): e = 1e-10 completes at 1024 iterations per step, e = 1e-8 at 104,
+# e = 1e-6 at 11 (e = 0.01: 4.7); e = 0 took ~2,100 per step for 2,849 steps and then failed
+# (cond(Gamma) inf). GHBVM fails at its first step from e = 1e-8 down (Gram matrix).
+DEPENDENT_GRADIENTS = 1e-12
+
+
+def require_independent_gradients(problem: Problem, names: tuple[str, ...], indices: np.ndarray, y0) -> None:
+    """Refuse to impose invariants whose gradients at y0 are linearly dependent on grad H and
+    on those of the invariants listed before them (ParameterError naming ``conserve[i]``).
+
+    There ELIM's Gamma and LIM's Gram matrix are singular (Assumption 1 of the paper,
+    docs/methods.md): each step fails imposed, and a run either stops at once (LIM) or
+    crawls for thousands of steps before it stops (ELIM). A gradient that is not finite at
+    y0 (a singularity, which the run reports itself) is not judged here.
+    """
+    y0 = np.asarray(y0, dtype=float)
+    rows = [problem.gradient(y0)]
+    gradients = problem.invariant_gradients(y0)[indices]
+    if not np.all(np.isfinite(rows[0])) or not np.all(np.isfinite(gradients)):
+        return
+    size_H = float(np.linalg.norm(rows[0]))
+    if size_H == 0.0:
+        raise ParameterError("conserve", f"names {', '.join(map(repr, names))}, but grad H vanishes at y0 (an "
+                             "equilibrium): no invariant can be imposed there (Gamma is singular, docs/methods.md); "
+                             "leave conserve empty or start from another state")
+    rows[0] = rows[0] / size_H
+    for index, (name, gradient) in enumerate(zip(names, gradients)):
+        size = float(np.linalg.norm(gradient))
+        if size == 0.0:
+            raise ParameterError("conserve", f"names {name!r}, whose gradient vanishes at y0: it cannot be imposed "
+                                 "there (Gamma is singular, docs/methods.md); leave it out or start from another "
+                                 "state", index=index)
+        rows.append(gradient / size)
+        smallest = float(np.linalg.svd(np.vstack(rows), compute_uv=False)[-1])
+        if smallest < DEPENDENT_GRADIENTS:
+            others = "grad H" + "".join(f" and grad {other}" for other in names[:index])
+            example = "; angular momentum on a circular orbit, say, is a function of H" if index == 0 else ""
+            raise ParameterError(
+                "conserve",
+                f"names {name!r}, whose gradient at y0 depends linearly on {others} (smallest singular value of the "
+                f"unit gradients {smallest:.1e}{example}): Gamma (LIM: the Gram matrix) is singular there, so it "
+                "cannot be imposed (docs/methods.md); leave it out, or start from another state", index=index)
 
 
 def suggest(word, options, label: str) -> str:
@@ -544,14 +595,17 @@ class Integration:
                  tol: float | None = None, max_iter: int | None = None, store_every: int = 1,
                  rhs: str = "stable", warm_start: bool = True, t0: float = 0.0, y0=None,
                  backward: bool = False, solver: str | SolverSettings = DEFAULT_SOLVER,
-                 predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS):
+                 predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS, check_y0: bool = True):
         if not isinstance(problem, Problem):
             raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
         if not isinstance(method, Method):
             raise TypeError(f"method must be an elimfast Method (e.g. elimfast.methods.ehbvm(12, 3)), "
                             f"got {type(method).__name__}")
         self.problem, self.method = problem, method
-        self.conserve, self.conserve_idx = resolve_conserve(problem, method, conserve)
+        self.y = resolve_initial_state(problem, y0)
+        # check_y0 False: the invariants' gradients at y0 are not judged (an ensemble's
+        # trajectories each fail alone, in their own status, where they cannot be imposed).
+        self.conserve, self.conserve_idx = resolve_conserve(problem, method, conserve, self.y if check_y0 else None)
         self.h, self.n_steps = resolve_steps(h, n_steps=n_steps)
         self.backward = bool(backward)
         solver = _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs)
@@ -559,7 +613,6 @@ class Integration:
         self.store_every = resolve_store_every(store_every)
 
         n = 2 * problem.degrees_of_freedom
-        self.y = resolve_initial_state(problem, y0)
         self.y0 = self.y.copy()   # the state at t0, the reference of the invariant errors (Result.y0)
         self.y_comp = np.zeros(n)
         self.clock = np.array([float(t0), 0.0])
@@ -879,7 +932,8 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
         raise TypeError(f"method must be an elimfast Method, got {type(method).__name__}")
     if backward:
         raise ValueError("backward runs take fixed steps without t_eval or events; integrate forwards with t_end")
-    names, conserve_idx = resolve_conserve(problem, method, conserve)
+    y_start = resolve_initial_state(problem, y0)
+    names, conserve_idx = resolve_conserve(problem, method, conserve, y_start)
     solver = solver.resolved_for(method, len(names))
     store_every = resolve_store_every(store_every)
     if control is not None:
@@ -888,7 +942,6 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     else:
         h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
         t_end = t0 + n_steps * h
-    y_start = resolve_initial_state(problem, y0)
     if control is not None:
         control.check_problem(problem, y_start)
     if t_eval is not None:

@@ -566,18 +566,44 @@ def test_an_event_on_the_state_compiles_once_for_a_parameter_scan():
 
 
 def test_a_stall_where_gamma_is_nearly_singular_is_not_blamed_on_h():
-    """EHBVM(12,3) imposing L and A_x on Kepler e = 0.6: their gradients become dependent at the
-    apsides, where Gamma is nearly singular (cond 6e8 at the failing substep) and the solve
-    stalls at every halving. The message used to say "reduce h, or allow more step halvings",
-    neither of which helps (a tester tried both). (Plain Newton stalls before t = 4; with the
-    secant acceleration the solves get through more of these steps, slowly, and the run stops
-    at t = 608.9.)"""
+    """EHBVM(12,3) imposing L and A_x on Kepler e = 0.6. Where A_y = 0 (this orbit, whose
+    LRL vector lies along q1) |A|^2 = 1 + 2 H L^2 makes grad A_x a combination of grad H and
+    grad L, so Gamma is nearly singular all along (cond ~2e6 at the failing substep) and the
+    solve stalls at every halving. The message used to say "reduce h, or allow more step
+    halvings", neither of which helps (a tester tried both). From the orbit's own y0 (A_y = 0
+    exactly) the run is refused before its first step (test below); 1e-10 off it (A_y ~ 1e-10)
+    the gradients pass that check and the run stalls at step 184."""
     from elimfast.errors import ConvergenceError
+    p = kepler(0.6)
     with pytest.raises(ConvergenceError) as failed:
-        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, t_end=1000.0, conserve=(L1, AX))
+        elimfast.integrate(p, ehbvm(12, 3), 0.1, t_end=1000.0, conserve=(L1, AX), y0=p.y0 + [0.0, 1e-10, 0.0, 0.0])
     message = str(failed.value)
     assert "nearly singular" in message and "cond(Gamma)" in message, message
     assert "reduce h" not in message and "halvings (" not in message, message
+
+
+@pytest.mark.parametrize("start, conserve, culprit", [
+    (0.0, (L1,), "conserve[0] names 'angular_momentum'"),           # circular: L is a function of H
+    (0.6, (L1, AX), "conserve[1] names 'lrl_x'"),                   # A_y = 0: A_x is a function of H and L
+    (0.9, (L1, AX, AY), "conserve[1] names 'lrl_x'")])             # |A|^2 = 1 + 2 H L^2 everywhere
+@pytest.mark.parametrize("make", [lambda: ehbvm(8, 4), lambda: ghbvm(8, 4)], ids=["ELIM", "LIM"])
+def test_invariants_whose_gradients_are_dependent_at_y0_are_refused_before_the_first_step(start, conserve,
+                                                                                         culprit, make):
+    """Imposing L on a circular orbit took ~2,100 iterations per step for 2,849 steps and then
+    stopped (cond(Gamma) inf); L with A_x on Kepler e = 0.6 stalled at t = 608.9. Both are known
+    at y0, where the unit gradients of H and the imposed invariants have a zero singular value:
+    every entry point refuses before computing anything, naming the entry, for fixed and adaptive
+    steps and for both families. Near-dependent starts are left to run: EHBVM imposing L on
+    e = 1e-8 (smallest singular value 3.5e-9) completes."""
+    from elimfast.errors import ParameterError
+    p = kepler(start)
+    for options in ({"h": 0.1, "n_steps": 10}, {"t_end": 1.0, "rtol": 1e-10}):
+        with pytest.raises(ParameterError) as refused:
+            elimfast.integrate(p, make(), conserve=conserve, **options)
+        message = str(refused.value)
+        assert message.startswith(culprit) and "depends linearly on grad H" in message, message
+        assert "leave it out, or start from another state" in message, message
+    assert elimfast.integrate(kepler(1e-8), ehbvm(8, 4), 0.1, n_steps=10, conserve=(L1,)).status == "complete"
 
 
 def test_time_scale_steps_capped_by_h_max_keep_following_the_time_scale():
@@ -611,7 +637,7 @@ def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
     """An adaptive run that fails must not tell the user to change an h the run chooses
     itself; beyond the measured s (docs/adaptive.md: s <= 6) it suggests a lower s; a
     fixed-step failure still says to change h. The real failing run is GHBVM(16,8) imposing
-    L on a circular orbit, where grad L is parallel to grad H: LIM's Gram matrix is singular
+    L on a nearly circular orbit, where grad L is nearly parallel to grad H: LIM's Gram matrix is singular
     at the first step whatever the step control tries, and neither h nor s is the advice.
     ELIM's advice is checked on the message itself: its adaptive failures beyond s = 6 are
     knife edges of rounding (EHBVM(20,10) imposing L and A_y at e = 0.99 with plain Newton,
@@ -619,8 +645,8 @@ def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
     from elimfast.errors import ConvergenceError
     from elimfast.integrate import SolverSettings, failure_message
     from elimfast.kernels import codes, stepper
-    with pytest.raises(ConvergenceError) as failed:
-        elimfast.integrate(kepler(0.0), ghbvm(16, 8), t_end=1.0, rtol=1e-12, conserve=(L1,))
+    with pytest.raises(ConvergenceError) as failed:   # e = 1e-9: past the check at y0 (3.5e-10), singular in the step
+        elimfast.integrate(kepler(1e-9), ghbvm(16, 8), t_end=1.0, rtol=1e-12, conserve=(L1,))
     message = str(failed.value)
     assert "linearly dependent" in message and "change h" not in message and "lower s" not in message, message
     assert failed.value.result.status.startswith("failed: ")
@@ -650,14 +676,15 @@ def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
 
 
 def test_a_failed_adaptive_run_within_the_measured_s_is_not_told_to_lower_s():
-    """H, L, A_x and A_y are dependent (|A|^2 = 1 + 2 H L^2): LIM(6,6,3) imposing all three
-    fails at its first step with a singular Gamma. The advice is to impose other invariants;
-    'or use a lower s (docs/adaptive.md measures s <= 6)' was added for s = 3 as well, where
-    no lower s helps."""
+    """LIM(6,6,3) imposing L on a nearly circular orbit (grad L nearly parallel to grad H, past
+    the check at y0) fails at its first step with a singular Gram matrix. The advice is to
+    impose other invariants; 'or use a lower s (docs/adaptive.md measures s <= 6)' was added
+    for s = 3 as well, where no lower s helps. (This test imposed L, A_x and A_y at e = 0.9,
+    which are dependent, |A|^2 = 1 + 2 H L^2: that is now refused before the first step.)"""
     from elimfast.errors import ConvergenceError
     from elimfast.methods import lim
     with pytest.raises(ConvergenceError) as failed:
-        elimfast.integrate(kepler(0.9), lim(6, 6, 3), t_end=1.0, rtol=1e-12, conserve=(L1, AX, AY))
+        elimfast.integrate(kepler(1e-9), lim(6, 6, 3), t_end=1.0, rtol=1e-12, conserve=(L1,))
     message = str(failed.value)
     assert message.endswith("impose fewer or other invariants"), message
     assert "lower s" not in message, message

@@ -119,11 +119,18 @@ def test_the_step_engine_completes_the_run_the_fixed_point_could_not(kepler):
 
 
 def test_singular_gamma_is_reported_not_nan(central_quartic):
-    # At the origin with zero momentum nothing moves: phi_j^T gamma_j = 0, Gamma singular.
+    # Radial motion (q2 = p2 = 0): L = 0 all along, so phi_j^T gamma_j = 0 and Gamma is singular,
+    # though grad L and grad H are independent at y0.
     with pytest.raises(elimfast.ConvergenceError) as caught:
         elimfast.integrate(central_quartic, ehbvm(6, 3), 0.1, n_steps=5, conserve=["angular_momentum"],
-                           y0=[0.0, 0.0, 0.0, 0.0])
+                           y0=[0.5, 0.0, 0.0, 0.0])
     assert caught.value.reason == "singular" and "Gamma" in str(caught.value)
+    # At the origin at rest nothing moves and grad H = 0: refused before the first step
+    from elimfast.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"^conserve names 'angular_momentum', but grad H "
+                                                            r"vanishes at y0 \(an equilibrium\)"):
+        elimfast.integrate(central_quartic, ehbvm(6, 3), 0.1, n_steps=5, conserve=["angular_momentum"],
+                           y0=[0.0, 0.0, 0.0, 0.0])
 
 
 def test_elim_with_r_different_from_k_conserves_polynomial_invariant(central_quartic):
