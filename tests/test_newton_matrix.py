@@ -9,17 +9,26 @@ from numba import njit
 from elimfast.kernels import codes
 from elimfast.kernels.solver import newton_factor, newton_solve
 from elimfast.kernels.workspace import INVERSE_MAX_N, Tables, make_workspace
-from elimfast.methods import ehbvm, hbvm
+import elimfast
+from elimfast.methods import ehbvm, gauss, hbvm
 from elimfast.problems import fpu_beta, kepler, nbody
 
 
 @njit(cache=False)
 def _apply_inverse(grad_H, hess_H, params, y, h, tables, k, s, n_eigenvalues, rhs):
+    """rhs <- M^-1 rhs as the solver does it: in the workspace's own delta, whose first s n entries
+    are the increment and the rest (the secant history) must be left alone; returns (status,
+    form, the rest untouched)."""
     work = make_workspace(y.shape[0], k, k, s, 0, codes.FAMILY_ELIM, 1, 0, n_eigenvalues)
     status = newton_factor(grad_H, hess_H, params, y, h, tables, work)
-    newton_solve(tables, work, rhs)
+    size = rhs.shape[0]
+    work.delta[:size] = rhs
+    work.delta[size:] = 12345.0
+    newton_solve(tables, work, work.delta)
+    rhs[:] = work.delta[:size]
+    rest_untouched = work.delta.shape[0] > size and np.all(work.delta[size:] == 12345.0)
     form = 0 if work.newton_blocks.shape[0] == 0 else (1 if work.newton_block_scratch.shape[0] > 0 else 2)
-    return status, form
+    return status, form, rest_untouched
 
 
 def _tables(m):
@@ -51,9 +60,10 @@ def test_each_form_applies_the_inverse_of_the_newton_matrix(problem, method, h, 
     rhs = (rng.normal(size=(s, n)) * np.maximum(np.abs(y), 1e-3 * np.abs(y).max())).ravel()
     expected = np.linalg.solve(M, rhs)
     out = rhs.copy()
-    status, used = _apply_inverse(problem.grad_H, problem.hess_H, problem.params, y, h, _tables(method), method.k,
-                                  s, method.newton_values.shape[0] if blocks else 0, out)
-    assert status == codes.STATUS_OK and used == form
+    status, used, rest_untouched = _apply_inverse(problem.grad_H, problem.hess_H, problem.params, y, h,
+                                                  _tables(method), method.k, s,
+                                                  method.newton_values.shape[0] if blocks else 0, out)
+    assert status == codes.STATUS_OK and used == form and rest_untouched
     # Both are backward stable: in units of the state, where M is well conditioned (the solar
     # system's M is not, unscaled: cond 1e19), they differ by about eps cond, times cond(V)
     # for the block forms (methods/base.py: MAX_EIGENBASIS_CONDITION).
@@ -65,3 +75,22 @@ def test_each_form_applies_the_inverse_of_the_newton_matrix(problem, method, h, 
         bound *= np.linalg.cond(np.linalg.eig(method.X)[1])
     assert bound < 1e-9
     assert np.max(np.abs(out - expected) / units) <= bound * np.max(np.abs(expected) / units)
+
+
+@pytest.mark.parametrize("method", [gauss(11), hbvm(24, 12)], ids=lambda m: m.name)
+def test_methods_without_an_eigenbasis_run_with_newton_and_agree_with_the_fixed_point(method):
+    """From s = 11 on X has no well-conditioned eigenbasis and simplified Newton factorises the
+    whole (s n)^2 matrix. Its solve ran over the whole 3 s n of the workspace's delta, past the
+    pivots, and every such method crashed the interpreter (a user trial: GAUSS(11) to GAUSS(40),
+    HBVM(24,12), in integrate and in elimfast run). Fixed and adaptive steps now run, and take
+    the fixed point's steps to round-off."""
+    assert method.newton_values.shape[0] == 0
+    p = kepler(0.6)
+    newton = elimfast.integrate(p, method, 0.1, n_steps=50)
+    fixed = elimfast.integrate(p, method, 0.1, n_steps=50, solver="fixed_point")
+    assert newton.status == fixed.status == "complete"
+    assert np.max(np.abs(newton.y_final - fixed.y_final)) < 1e-13
+    assert max(newton.invariant_errors().values()) < 1e-12 or method.k == method.s   # GAUSS keeps only L
+    assert newton.iterations.mean() < fixed.iterations.mean()
+    adaptive = elimfast.integrate(p, method, t_end=2.0, rtol=1e-12)
+    assert adaptive.status == "complete" and abs(adaptive.t_final - 2.0) < 1e-15

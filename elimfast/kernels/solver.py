@@ -202,7 +202,10 @@ def newton_solve(tables, work, delta):
     for j in range(s):
         for p in range(n):
             delta[j * n + p] /= unit[p]
-    lu_solve_factored(work.newton_matrix, work.newton_pivots, delta)
+    # delta holds 3 s n numbers (the secant history behind the first s n): solve on the first
+    # s n only (lu_solve_factored takes its size from x; the whole array ran past the pivots
+    # and crashed every method without an eigenbasis of X, s >= 11)
+    lu_solve_factored(work.newton_matrix, work.newton_pivots, delta[:s * n])
     for j in range(s):
         for p in range(n):
             delta[j * n + p] *= unit[p]
