@@ -194,6 +194,8 @@ MAX_OUTPUT_TIMES = 10_000_000   # samples at requested times (t_eval, output.tim
 
 def resolve_span(t0: float, t_end, n_steps=None) -> float:
     """An adaptive run's t_end: given, finite and after t0 (n_steps does not apply)."""
+    from .integrate import resolve_t0
+    t0 = resolve_t0(t0)
     if t_end is None or n_steps is not None:
         raise ParameterError("t_end", "is needed for adaptive steps (and n_steps does not apply: the number of "
                                       "steps is what the controller decides)")
@@ -209,12 +211,17 @@ def resolve_t_eval(times, t0: float, t_end: float, store_every: int = 1) -> np.n
     if store_every != 1:
         raise ParameterError("store_every", f"does not apply with output times (t_eval, output.times), which "
                                             f"are the samples; remove one of the two, or make it 1 (got {store_every})")
-    values = np.asarray(times, dtype=np.float64).ravel()
+    values = np.asarray(times, dtype=np.float64)
+    if values.ndim > 1:
+        raise ParameterError("t_eval", f"must be a list of times (1-d), got an array of shape {values.shape}")
+    values = values.ravel()
     if values.size == 0 or values.size > MAX_OUTPUT_TIMES:
         raise ParameterError("t_eval", f"must list 1 to {MAX_OUTPUT_TIMES} times")
     if not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
         raise ParameterError("t_eval", "must be finite and strictly increasing")
-    if values[0] < t0 or values[-1] > t_end * (1 + 1e-15) + 1e-300:
+    # t_end's own rounding (t0 + n h) may put the last requested time an ulp past it; the margin is
+    # relative to |t_end| (t_end * (1 + 1e-15) fell below t_end for t_end < 0 and refused t_end itself)
+    if values[0] < t0 or values[-1] > t_end + 1e-15 * abs(t_end) + 1e-300:
         raise ParameterError("t_eval", f"must lie within the run, [{t0:.17g}, {t_end:.17g}], "
                                        f"got [{values[0]:.17g}, {values[-1]:.17g}]")
     return values

@@ -503,11 +503,24 @@ STEPS_REASON = ("that many steps take hours to days even at a microsecond each, 
                 "alone 40 GB; raise h or shorten the run")
 
 
+def resolve_t0(t0) -> float:
+    """The initial time as a finite float, else a ParameterError naming t0 (a NaN t0 was
+    reported as a bad t_end)."""
+    try:
+        value = float(t0)
+    except (TypeError, ValueError):
+        raise ParameterError("t0", f"must be a number, got {t0!r}") from None
+    if isinstance(t0, bool) or not math.isfinite(value):
+        raise ParameterError("t0", f"must be a finite number, got {t0!r}")
+    return value
+
+
 def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, int]:
     """Validate h and t_end or n_steps (both: they must agree); return (h, n_steps).
 
-    Raises ParameterError naming h, t_end or n_steps and the fix.
+    Raises ParameterError naming h, t0, t_end or n_steps and the fix.
     """
+    t0 = resolve_t0(t0)
     if isinstance(h, bool):
         raise ParameterError("h", f"must be a number, got {h!r}")
     try:
@@ -852,6 +865,10 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     """
     method = methods.as_method(method)
     adaptive = rtol is not None or atol is not None or step_control is not None or epsilon is not None
+    if not adaptive and (verify is not None or h_max is not None):
+        # as the config refuses integration.verify and h_max without rtol: they were silently ignored
+        raise ParameterError("verify" if verify is not None else "h_max",
+                             "applies to adaptive steps only; give rtol (or step_control='time_scale')")
     if adaptive or t_eval is not None or events:
         return _integrate_with_adaptive_kernel(
             problem, method, h=h, t_end=t_end, n_steps=n_steps, conserve=conserve, store_every=store_every, t0=t0,
@@ -860,7 +877,7 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
             control=(_step_control(step_control, rtol, atol, epsilon, verify, h, h_max) if adaptive else None),
             t_eval=t_eval, events=events)
     if h is None:
-        raise ValueError("give h (fixed steps), or rtol for adaptive steps (docs/adaptive.md)")
+        raise ParameterError("h", "is missing: give h (fixed steps), or rtol for adaptive steps (docs/adaptive.md)")
     if t_end is not None and backward:
         raise ValueError("with backward=True give n_steps, not t_end")
     h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
@@ -917,6 +934,9 @@ def _step_control(step_control, rtol, atol, epsilon, verify, h, h_max):
     from .adaptive import StepControl
     if isinstance(step_control, StepControl):
         return step_control
+    if step_control is None and epsilon is not None and rtol is None and atol is None:
+        raise ParameterError("epsilon", "applies to time-reversible steps: add step_control='time_scale' (or give "
+                                        "rtol for error-controlled steps instead)")
     return StepControl(controller=step_control or "error", rtol=rtol, atol=atol, epsilon=epsilon, verify=verify,
                        h=h, h_max=h_max)
 
@@ -938,7 +958,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     store_every = resolve_store_every(store_every)
     if control is not None:
         control = control.for_method(method, len(names))
-        t_end = resolve_span(float(t0), t_end, n_steps)
+        t_end = resolve_span(t0, t_end, n_steps)
     else:
         h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
         t_end = t0 + n_steps * h

@@ -688,3 +688,25 @@ def test_a_failed_adaptive_run_within_the_measured_s_is_not_told_to_lower_s():
     message = str(failed.value)
     assert message.endswith("impose fewer or other invariants"), message
     assert "lower s" not in message, message
+
+
+def test_output_times_before_zero_and_the_api_s_argument_checks():
+    """A user trial: t_eval ending at a negative t_end was refused ("must lie within the run,
+    [-10, -1], got [-9, -1]": the margin t_end (1 + 1e-15) lies below t_end < 0); a 2-d t_eval
+    was flattened; h_max and verify were silently ignored with fixed steps; epsilon without
+    step_control was told rtol was needed; a NaN t0 was blamed on t_end; a missing h was a
+    bare ValueError."""
+    p, method = kepler(0.6), hbvm(8, 4)
+    for options in ({"rtol": 1e-10}, {"h": 0.1}):
+        r = elimfast.integrate(p, method, t0=-10.0, t_end=-1.0, t_eval=[-9.0, -1.0], **options)
+        assert r.status == "complete" and list(r.t) == [-9.0, -1.0], options
+    cases = [({"t_eval": [[0.1, 0.2], [0.3, 0.4]], "rtol": 1e-10}, r"^t_eval must be a list of times \(1-d\)"),
+             ({"h": 0.1, "h_max": 0.05}, r"^h_max applies to adaptive steps only"),
+             ({"h": 0.1, "verify": True}, r"^verify applies to adaptive steps only"),
+             ({"epsilon": 0.05}, r"^epsilon applies to time-reversible steps: add step_control='time_scale'"),
+             ({"h": 0.1, "t0": float("nan")}, r"^t0 must be a finite number"),
+             ({"rtol": 1e-10, "t0": float("nan")}, r"^t0 must be a finite number"),
+             ({}, r"^h is missing")]
+    for options, message in cases:
+        with pytest.raises(ParameterError, match=message):
+            elimfast.integrate(p, method, t_end=1.0, **options)

@@ -61,9 +61,11 @@ def open_datatree(path, run: str | None = None, **options):
     ``run``: the label of one run of a sweep file (or ``path`` given as
     ``"sweep.h5:/runs/<label>"``): the tree of that run's group alone, as a run file's.
     ``options``: those of ``xr.open_datatree`` (``group``, ``chunks``, ``cache``, ``decode_times``, ...).
-    With ``chunks``, xarray's own rebuild of the tree replaces a group's variable named as an
-    inherited coordinate (the ``t`` of /steps and /events/<name> of adaptive runs) by the
-    root's ``t``, as with h5netcdf: read those with ``elimfast.load(path).to_xarray()``.
+    One difference from h5netcdf's tree: a group's own variable named as a coordinate its
+    ancestors pass down is renamed ``<group>_<name>``: the step times /steps/t of adaptive
+    runs are ``tree["steps"]["step_t"]``, an event's times ``tree["events/<name>"]["<name>_t"]``
+    (Result.to_xarray's names). The inherited ``t`` hid them: ``tree["steps"]["t"]`` gave the
+    root's sample times, silently (with h5netcdf it still does).
     The data are read when used; ``tree.close()`` closes the file. Raises OutputError (an
     ElimfastError) for a file or run that cannot be read.
     """
@@ -154,19 +156,23 @@ class _Walk:
                 groups.append(name)
         return datasets, groups
 
-    def groups(self, location: str, relative: str, scales: dict, recursive: bool, out: dict) -> dict:
+    def groups(self, location: str, relative: str, scales: dict, recursive: bool, out: dict,
+               inherited: frozenset = frozenset()) -> dict:
+        """``inherited``: the coordinates the tree's ancestors of this group pass down to it."""
         scales = dict(scales)
         try:
             datasets, groups = self._members(self.f[location], scales)
             raw = self.dataset(location, datasets, scales)
         except READ_ERRORS as err:   # HDF5 failing to read the group's metadata (a checksum, a bad reference)
             raise _damaged(self.path, location, err) from None
+        raw = _rename_shadowed(raw, inherited, location.rstrip("/").rsplit("/", 1)[-1])
         dataset = xr.decode_cf(raw, **self.decoders)
         dataset.set_close(self.manager.close)
         out[relative or "/"] = dataset
         if recursive:
+            inherited = inherited | {name for name, variable in raw.variables.items() if variable.dims == (name,)}
             for name in groups:
-                self.groups(f"{location.rstrip('/')}/{name}", f"{relative}/{name}", scales, True, out)
+                self.groups(f"{location.rstrip('/')}/{name}", f"{relative}/{name}", scales, True, out, inherited)
         return out
 
     def dataset(self, location: str, datasets: dict, scales: dict):
@@ -217,6 +223,23 @@ class _Walk:
         if h5py.check_string_dtype(member.dtype) is not None:
             return np.asarray(member.asstr()[()], dtype=object)
         return indexing.LazilyIndexedArray(_LazyDataset(self.manager, path, member.shape, member.dtype))
+
+
+def _rename_shadowed(dataset, inherited: frozenset, group_name: str):
+    """The group's own variables named as a coordinate its ancestors pass down, renamed
+    <group>_<name> (``steps`` -> step_t, ``events/pericentre`` -> pericentre_t: the names of
+    Result.to_xarray). In a DataTree the inherited coordinate hides such a variable:
+    ``tree["steps"]["t"]`` gave the root's sample times, not the step times, and with
+    ``chunks`` xarray replaced the variable itself. The attribute ``stored_as`` keeps the
+    file's name."""
+    shadowed = [name for name in dataset.variables if name in inherited and dataset[name].dims != (name,)]
+    if not shadowed:
+        return dataset
+    prefix = "step" if group_name == "steps" else group_name
+    renamed = dataset.rename_vars({name: f"{prefix}_{name}" for name in shadowed})
+    for name in shadowed:
+        renamed[f"{prefix}_{name}"].attrs["stored_as"] = name
+    return renamed
 
 
 class _LazyDataset(BackendArray):
