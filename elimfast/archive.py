@@ -45,10 +45,10 @@ def load(path, run: str | None = None):
         t, y = stored.t(), stored.y()
         invariants = {name: stored.invariant(name) for name in stored.invariant_names}
         multipliers = stored.multipliers()
-        iterations = stored.iterations()
+        iterations = stored.iterations().astype(np.int64)   # stored as i4; integrate's are int64
         if "failed_step_iterations" in stored.attrs:
             iterations = np.append(iterations, int(stored.attrs["failed_step_iterations"]))
-        substeps = stored.substeps()
+        substeps = stored.substeps().astype(np.int64)
         if run is None:
             saved = stored.saved_state()
             y_final, t_final = saved["y"].copy(), float(saved["clock"][0])

@@ -112,6 +112,7 @@ def test_load_gives_back_the_result_integrate_returns(kepler_file, kepler):
     assert loaded.problem.name == "kepler" and loaded.conserve == direct.conserve
     for name in ("t", "y", "iterations", "substeps", "alpha", "y_final"):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(direct, name), err_msg=name)
+        assert getattr(loaded, name).dtype == getattr(direct, name).dtype, name   # iterations came back int32
     assert loaded.lam is None and loaded.t_final == direct.t_final and loaded.status == "complete"
     for name, values in direct.invariants.items():
         np.testing.assert_array_equal(loaded.invariants[name], values)
