@@ -182,10 +182,12 @@ class StepControl:
             if problem.name in PROBLEMS and problem.hessian_source == "analytic":
                 # a built-in takes no time_scale key: only kepler, perturbed_kepler and nbody define one
                 raise ParameterError("step_control", f"the built-in problem {problem.name!r} defines no time scale: "
-                                                     "use step_control = 'error' with rtol, or write the problem as "
-                                                     "expressions with time_scale: \"<expression>\"")
+                                                     "use step_control = 'error' with rtol, or give it one: "
+                                                     "time_scale: \"<expression>\" in the config's problem "
+                                                     "(in Python: problem.with_time_scale(\"<expression>\"))")
             raise ParameterError("step_control", f"problem {problem.name!r} defines no time scale: declare "
-                                                 "time_scale: \"<expression>\" in the problem, or use "
+                                                 "time_scale: \"<expression>\" in the problem (in Python: "
+                                                 "problem.with_time_scale(\"<expression>\")), or use "
                                                  "step_control = 'error' with rtol")
 
 

@@ -821,12 +821,7 @@ class _Builder:
             else:
                 problem, resolved = self.expressions(section)
             if section.time_scale is not None:
-                import dataclasses
-
-                from .problems.symbolic import compile_state_functions
-                function = compile_state_functions(problem, {"time_scale": section.time_scale}, gradient=True,
-                                                   what="time scale", key_prefix="time_scale")
-                problem = dataclasses.replace(problem, time_scale=function)
+                problem = problem.with_time_scale(section.time_scale)
                 resolved["time_scale"] = section.time_scale
             if section.check:
                 from .problems.check import require_derivatives, require_invariants

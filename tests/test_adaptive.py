@@ -710,3 +710,27 @@ def test_output_times_before_zero_and_the_api_s_argument_checks():
     for options, message in cases:
         with pytest.raises(ParameterError, match=message):
             elimfast.integrate(p, method, t_end=1.0, **options)
+
+
+def test_any_problem_takes_a_time_scale_in_python_as_in_a_config():
+    """A config may give any problem a time scale (problem.time_scale); Python had no way to
+    (a user trial: a python: file's problem could not take one, and the refusal said to declare
+    a config key). Problem.with_time_scale is that way, and both take the same steps. Kepler's
+    own time scale is r^(3/2): given as an expression, its steps agree with the built-in's to
+    rounding."""
+    from elimfast.config import load_run_from_dict
+    with pytest.raises(ParameterError, match=r"problem\.with_time_scale\(\"<expression>\"\)"):
+        elimfast.integrate(henon_heiles(), hbvm(8, 4), t_end=1.0, step_control="time_scale")
+    problem = henon_heiles().with_time_scale("1/(1 + q1**2 + q2**2)")
+    ours = elimfast.integrate(problem, hbvm(8, 4), t_end=5.0, step_control="time_scale", epsilon=0.1)
+    spec = load_run_from_dict({"problem": {"builtin": "henon_heiles", "time_scale": "1/(1 + q1**2 + q2**2)"},
+                               "method": {"name": "hbvm", "k": 8, "s": 4},
+                               "integration": {"step_control": "time_scale", "epsilon": 0.1, "t_end": 5}},
+                              source="run.yaml")
+    theirs = elimfast.integrate(spec.problem, hbvm(8, 4), t_end=5.0, step_control="time_scale", epsilon=0.1)
+    np.testing.assert_array_equal(ours.step_h, theirs.step_h)
+    assert ours.status == "complete" and np.ptp(ours.step_h) > 0   # the steps follow sigma(y)
+    built_in = elimfast.integrate(kepler(0.6), hbvm(8, 4), t_end=5.0, step_control="time_scale", epsilon=0.1)
+    expressed = elimfast.integrate(kepler(0.6).with_time_scale("(q1**2 + q2**2)**0.75"), hbvm(8, 4), t_end=5.0,
+                                   step_control="time_scale", epsilon=0.1)
+    np.testing.assert_allclose(expressed.step_h, built_in.step_h, rtol=1e-12)

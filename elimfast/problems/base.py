@@ -159,6 +159,18 @@ class Problem:
         given = self.initial_given or y0.shape != self.y0.shape or not np.array_equal(y0, self.y0)
         return replace(self, y0=y0, initial_given=given)
 
+    def with_time_scale(self, expression: str) -> "Problem":
+        """The same problem with the time scale sigma(y) of time-reversible steps
+        (``step_control="time_scale"``, docs/adaptive.md) given as an expression in its
+        coordinates and numeric parameters, e.g. ``"(q1**2 + q2**2)**0.75"``: what the config
+        key ``problem.time_scale`` declares, for any problem (built-in, expressions or a
+        ``python:`` file). Compiled and cached like a problem's expressions; raises
+        ExpressionError naming ``time_scale``."""
+        from .symbolic import compile_state_functions
+        function = compile_state_functions(self, {"time_scale": expression}, gradient=True, what="time scale",
+                                           key_prefix="time_scale")
+        return replace(self, time_scale=function)
+
     # Convenience evaluations from Python (the kernels call the compiled functions directly).
     def hamiltonian(self, y) -> float:
         return float(self.H(_vector(y), self.params))
