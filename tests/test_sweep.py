@@ -420,6 +420,30 @@ def test_resume_refuses_an_edit_that_would_change_a_stored_run_and_leaves_the_fi
                                                        for key, value in before.items())
 
 
+def test_resume_refuses_a_grid_sweep_onto_an_ensemble_s_file_and_the_reverse(tmp_path):
+    """A user trial: `sweep table1.yaml -o ENSEMBLE.h5 --resume` ran the 30 grid runs into the
+    ensemble's file (it had no complete grid runs, so the grid took it for an edit of itself),
+    replacing its sweep text and axes. Either way round the file is now refused, untouched."""
+    from elimfast import sweep as sweeps
+    from elimfast.io.safety import OutputError
+    from runfiles import contents
+
+    ensemble = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "2*pi/60", "t_end": "2*pi"}},
+                                      "ensemble": {"n": 3, "seed": 3, "spread": 0.02}}, name="ensemble.yaml")
+    grid = write_sweep(tmp_path, {"base": EDIT_BASE, "grid": EDIT_GRID}, name="grid.yaml")
+    ensemble_out, grid_out = tmp_path / "ensemble.h5", tmp_path / "grid.h5"
+    sweeps.run_to_file(ensemble, ensemble_out, workers=1)
+    sweeps.run_to_file(grid, grid_out, workers=1)
+    for sweep, out, message in ((grid, ensemble_out, "holds an ensemble sweep, and this is a grid sweep"),
+                                (ensemble, grid_out, "holds a grid sweep, and this is an ensemble sweep")):
+        before = contents(out)
+        with pytest.raises(OutputError, match=f"^{out}: {message}: --resume continues the sweep that wrote the file"):
+            sweeps.run_to_file(sweep, out, resume=True, workers=1)
+        after = contents(out)
+        assert sorted(after) == sorted(before) and all(np.array_equal(np.asarray(after[key]), np.asarray(value))
+                                                       for key, value in before.items())
+
+
 def test_resume_of_a_sweep_with_a_value_added_to_an_axis_runs_only_the_new_runs(tmp_path):
     """An edit that adds runs keeps the stored ones and renumbers them in the edited grid
     (inspect lists the runs by run_index)."""

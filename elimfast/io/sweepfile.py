@@ -203,6 +203,14 @@ class SweepWriter:
             if str(_plain(self._file.attrs.get("format", ""))) != SWEEP_FORMAT or RUNS_GROUP not in self._file:
                 raise OutputError(f"{self.path}: not an elimfast sweep file, so --resume cannot continue it; "
                                   "choose another output file or pass --overwrite")
+            holds_ensemble = ensemblefile.GROUP in self._file
+            if holds_ensemble != (ensemble is not None):
+                # a grid sweep's runs written into an ensemble's file (or the reverse) mixed the two: the
+                # file had no complete grid runs, so a grid sweep took it for an edit of itself
+                raise OutputError(f"{self.path}: holds {'an ensemble sweep' if holds_ensemble else 'a grid sweep'}, "
+                                  f"and this is {'an ensemble' if ensemble is not None else 'a grid'} sweep: "
+                                  "--resume continues the sweep that wrote the file; choose another output file, "
+                                  "or pass --overwrite to replace it")
             edited = str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text
             if edited and (accept_edit is None or ensemble is not None):
                 raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
