@@ -278,6 +278,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
 
         if output is not None:   # before loading the config: compiling a problem can take a while
             output = str(Path(output).expanduser())
+            _refuse_writing_over(output, config, "config file")
             check_output_path(output, overwrite=overwrite, resume=resume)
         announce_compilation()
         from elimfast.integrate import Integration
@@ -290,6 +291,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         if path is None:
             raise click.UsageError(f"no output file: give -o OUT.h5 or set output.path in {config}")
         path = Path(path).expanduser()
+        _refuse_writing_over(path, config, "config file")   # output.path may name it too
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
             spec = _stored_spec(path, overrides, config, quiet)
@@ -301,6 +303,14 @@ def run(config, output, overrides, overwrite, resume, quiet):
         resume=resume, progress=streaming.progress_for(quiet), label=label,
         resume_command=_resume_command(config, path))
     return _report_run(outcome, config, path, overrides, quiet)
+
+
+def _refuse_writing_over(output, source, what: str) -> None:
+    """A usage error when the output file is the input file itself (``run CONFIG -o CONFIG
+    --overwrite`` replaced the YAML by HDF5, and the next run could not read its config)."""
+    if output is not None and Path(source).exists() and Path(output).expanduser().resolve() == Path(source).resolve():
+        raise click.UsageError(f"the output file {output} is the {what} itself, which writing would replace; give "
+                               "another output file, e.g. -o out/run.h5")
 
 
 def _stored_spec(path, overrides, config, quiet):
@@ -431,7 +441,7 @@ def check(config, overrides):
     \b
     Examples:
       elimfast check configs/kepler.yaml
-      elimfast check configs/kepler.yaml --set method.s=2
+      elimfast check configs/kepler.yaml --set method.s=4
     """
     from elimfast.problems.check import (DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_derivatives,
                                          require_invariants)
@@ -802,8 +812,12 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
 
     if output is not None:
         output = Path(output).expanduser()
+        _refuse_writing_over(output, sweep_file, "sweep file")
     if resume and output is None:
         fail("--resume continues the sweep file given with -o OUT.h5; add it", EXIT_USAGE)
+    if overwrite and output is None:
+        fail("--overwrite replaces the file given with -o OUT.h5, and there is none: add -o OUT.h5, or leave "
+             "out --overwrite", EXIT_USAGE)
     if resume and overwrite:
         fail("--resume and --overwrite exclude each other: --resume keeps the runs in OUT.h5, --overwrite "
              "replaces them", EXIT_USAGE)

@@ -93,6 +93,15 @@ def make_case(name, tmp: Path):
         "check a sweep file": (["check", write(tmp, "sw.yaml", "base: g.yaml\nset: {}\n")], "elimfast sweep"),
         "sweep a run config": (["sweep", write(tmp, "g.yaml", GOOD)], "a run config (it has problem: and no base:), "
                                                                        "not a sweep file; run it with elimfast run"),
+        # a user trial: -o CONFIG --overwrite replaced the YAML by HDF5 (also through output.path)
+        "output onto the config": (["run", write(tmp, "g.yaml", GOOD), "-o", tmp / "g.yaml", "--overwrite"],
+                                   "is the config file itself, which writing would replace"),
+        "output.path onto the config": (["run", write(tmp, "self.yaml", GOOD + f"output: {{path: {tmp}/self.yaml}}\n"),
+                                         "--overwrite"], "is the config file itself"),
+        "output onto the sweep file": (["sweep", write(tmp, "sw2.yaml", "base: g.yaml\ngrid: []\n"), "-o",
+                                        tmp / "sw2.yaml", "--overwrite"], "is the sweep file itself"),
+        "sweep --overwrite without -o": (["sweep", KEPLER.replace("kepler.yaml", "paper/table1.yaml"), "--overwrite"],
+                                         "--overwrite replaces the file given with -o OUT.h5, and there is none"),
     }
     return cases[name]
 
@@ -103,7 +112,9 @@ CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad
          "inspect a missing file", "plot a foreign file", "check a bad config", "unknown command", "unknown option",
          "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta", "tableau without r and k",
          "empty output path", "duplicate section", "duplicate key in a flow mapping", "misspelt section",
-         "misspelt event key", "run a sweep file", "check a sweep file", "sweep a run config"]
+         "misspelt event key", "run a sweep file", "check a sweep file", "sweep a run config",
+         "output onto the config", "output.path onto the config", "output onto the sweep file",
+         "sweep --overwrite without -o"]
 
 
 def assert_one_line_error(stderr: str, fragment: str):

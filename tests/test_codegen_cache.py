@@ -276,6 +276,9 @@ KEPLER_FILE = (CONFIGS / "kepler_problem.py").read_text()
     (lambda s: s.replace("import math", "import math\nraise RuntimeError('boom')"),
      r"running it raised RuntimeError at line \d+: boom"),
     (lambda s: s + "\ndef broken(:\n", r"SyntaxError at line \d+"),
+    # a sys.exit() in the file ended elimfast silently with its code (a user trial)
+    (lambda s: s.replace("import math", "import math\nimport sys\nsys.exit(0)"),
+     r"running it raised SystemExit at line \d+: 0; fix the file"),
     (lambda s: s.replace("import math", "import fractions\nimport math").replace(
         "mu = params[0]\n    return", "mu = params[0] * float(fractions.Fraction(1, 1))\n    return"),
      r"Numba cannot compile H as H\(y, params\) -> float \(line 19\): Unknown attribute 'Fraction'"),

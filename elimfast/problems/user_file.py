@@ -243,7 +243,9 @@ def _load_module(path: Path, text: str):
     sys.modules[module_name] = module
     try:
         spec.loader.exec_module(module)
-    except Exception as err:  # the user's file: report whatever it raised, in one line
+    except (Exception, SystemExit) as err:  # the user's file: report whatever it raised, in one line
+        # SystemExit too: a sys.exit() in the file ended elimfast silently with its code (0 or 3, no
+        # message, no file); KeyboardInterrupt is the user's Ctrl-C and stays one
         sys.modules.pop(module_name, None)
         where = ""
         tb = err.__traceback__
