@@ -107,11 +107,16 @@ def energy_note(run_file) -> str | None:
     """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
     invariant lost more than round-off (relative 1e-12) in a run file."""
     from elimfast.integrate import energy_note as note
+    from elimfast.integrate import roundoff_allowance
 
     attrs = run_file.attrs
     relative = relative_drift(run_file, ("H", *list(attrs.get("conserve") or [])))
+    steps = run_file.substep_stats()["total"]
+    initial, scales = run_file.initial_invariants(), run_file.invariant_scales()
+    roundoff = {name: roundoff_allowance(steps, initial.get(name, math.nan), scales.get(name, 0.0))
+                for name in relative}
     return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive,
-                s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"))
+                s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"), roundoff=roundoff, steps=steps)
 
 
 def run_notes(run_file) -> list[str]:
@@ -285,8 +290,12 @@ def summary(run_file, integrity: dict | None = None) -> str:
                         f"to it: the first sample, not t0 = {start_time(run_file)!r} (the file predates storing "
                         "I(t0))")
     width = max(len(n) for n in drift) if drift else 0
+    # GAUSS(s) = HBVM(s,s) keeps H only where its s nodes integrate it (a quadratic H): say so
+    # rather than claim it kept an H it lost to 3e-6
+    kept_H = ("  (H: GAUSS keeps only a quadratic H; HBVM(k,s) with k > s keeps others)"
+              if str(run_file.attrs.get("family", "")) == "gauss" else "  (H: kept by every HBVM/ELIM/LIM)")
     for name, value in drift.items():
-        tag = "  (imposed)" if name in conserve else ("  (H: kept by every HBVM/ELIM/LIM)" if name == "H" else "")
+        tag = "  (imposed)" if name in conserve else (kept_H if name == "H" else "")
         first = initial.get(name, math.nan)
         relative = ""
         if math.isfinite(first):

@@ -305,10 +305,15 @@ class Result:
         if self.steps_done < 1:
             return None
         errors = self.relative_invariant_errors()
+        names = [name for name in ("H", *self.conserve) if name in errors]
+        scales, initial = self.invariant_scales(), self.initial_invariants()
+        steps = int(self.substeps[:self.steps_done].sum()) if self.substeps is not None else self.steps_done
         return energy_note(self.method.name, self.method.k, self.method.r, self.h,
-                           {name: errors[name] for name in ("H", *self.conserve) if name in errors},
+                           {name: errors[name] for name in names},
                            adaptive=self.step_control is not None, s=self.method.s,
-                           degree=self.problem.hamiltonian_degree)
+                           degree=self.problem.hamiltonian_degree, steps=steps,
+                           roundoff={name: roundoff_allowance(steps, initial[name], scales.get(name, 0.0))
+                                     for name in names})
 
     def __repr__(self) -> str:
         errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
@@ -363,8 +368,30 @@ def relative_error(error: float, initial: float, scale: float = 0.0) -> float:
     return float(error) / relative_reference(initial, scale)[0]
 
 
+# Rounding alone moves an invariant by about this many eps times the size of its terms per
+# step at most (docs/solver.md: the stopping rule accepts an iterate within a few eps of the
+# solution, the stages' rounding is carried by h J, and an ill-conditioned Gamma amplifies the
+# rounding of alpha), in a random walk: after N steps up to ROUNDOFF_PER_STEP eps sqrt(N) S.
+# Measured over 4e5 steps: Kepler e = 0.9, h = 0.05, EHBVM(24,3) imposing L: H 1.3e-12 relative,
+# 2.1e-12 with k = 48 (S/|H| = 58 at the pericentre, so 0.16 eps sqrt(N) S); the Toda lattice of
+# configs/toda.yaml: imposed traces 1.4e-12 to 6.6e-12 whatever k (k = 24: 1.5e-12 to 5.0e-12),
+# 2.4 to 5.4 eps sqrt(N) S (Gamma 3 x 3, 69 split steps).
+ROUNDOFF_PER_STEP = 10.0
+
+
+def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
+    """The relative error (as relative_error measures it) that rounding alone may accumulate
+    over ``steps`` steps in an invariant whose value at t0 is ``initial`` and whose terms have
+    the size ``scale`` (Problem.invariant_scales): ROUNDOFF_PER_STEP eps sqrt(steps) scale,
+    relative. 0 where the scale is not known."""
+    scale = float(scale) if scale == scale else 0.0
+    if not steps or scale <= 0.0:
+        return 0.0
+    return ROUNDOFF_PER_STEP * np.finfo(float).eps * math.sqrt(steps) * scale / relative_reference(initial, scale)[0]
+
+
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
-                s=None, degree=None) -> str | None:
+                s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -377,7 +404,12 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     negative: not known). Where degree s <= 2k the quadrature is exact and H's error is round-off,
     which more nodes or smaller steps do not remove: the note says so instead. (The FPU chain of
     configs/fpu_beta.yaml drifts at 0.1 per unit of time: after 10^6 steps its positions are
-    ~5000 while H depends on their differences, and H had lost 3e-11; the note said to raise k.)"""
+    ~5000 while H depends on their differences, and H had lost 3e-11; the note said to raise k.)
+
+    ``roundoff``: {name: roundoff_allowance} over the run's ``steps``. Errors within it are
+    what rounding accumulates over that many steps, and the note says so instead of naming k or
+    h (Kepler e = 0.9 over 4e5 steps lost H to 1.3e-12 with k = 24 and 2.1e-12 with k = 48,
+    and the note said to raise k). Where r = k (EHBVM, GHBVM) the advice names k only."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
@@ -386,16 +418,28 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
                 f"polynomial of degree {int(degree)} <= 2k/s) exactly: it is round-off, which grows with the number "
                 "of steps and with the size of the state against the differences H depends on (a drifting "
                 "system's positions, say); more nodes or smaller steps do not reduce it")
+    roundoff = roundoff or {}
+    if all(value <= roundoff.get(name, 0.0) for name, value in above.items()):
+        listed = ", ".join(f"{name} {value:.1e}" if len(above) > 1 else f"{name} error {value:.1e}"
+                           for name, value in above.items())
+        bound = max(roundoff[name] for name in above)
+        return (f"{listed} (relative) {'are' if len(above) > 1 else 'is'} above 1e-12 but within what rounding "
+                f"can accumulate over {steps:,} steps (up to {bound:.0e} here: {ROUNDOFF_PER_STEP:g} eps "
+                "sqrt(steps) times the size of the terms at t0, a random walk): if it is rounding, more nodes or "
+                "smaller steps do not reduce it; a run with a larger k tells")
+    above = {name: value for name, value in above.items() if value > roundoff.get(name, 0.0)}
     listed = ", ".join(f"{name} {value:.1e}" if len(above) > 1 else f"{name} error {value:.1e}"
                        for name, value in above.items())
     imposed = [name for name in above if name != "H"]
+    same_nodes = r is not None and k is not None and int(r) == int(k)   # EHBVM, GHBVM: r = k
     kept = []
     if "H" in above:
         kept.append(f"H only up to the quadrature error of its k = {k} nodes")
     if imposed:
         kept.append(f"{'and ' if kept else ''}the imposed invariants only up to "
-                    f"{'that' if kept else 'the quadrature error'} of its r = {r} nodes")
-    nodes = " and ".join((["k"] if "H" in above else []) + (["r"] if imposed else []))
+                    f"{'that' if kept else 'the quadrature error'} of its r = {r} nodes"
+                    + (" (the same)" if same_nodes and kept else ""))
+    nodes = " and ".join((["k"] if "H" in above or same_nodes else []) + (["r"] if imposed and not same_nodes else []))
     if str(method_name).upper().startswith("GAUSS("):   # k = s is GAUSS's: more nodes is HBVM(k,s)
         nodes = f"k (HBVM(k,{str(method_name)[6:-1]}) with k > {str(method_name)[6:-1]})"
     where = (f"at h = {h:g}; raise {nodes} or reduce h" if not adaptive
@@ -568,6 +612,50 @@ def resolve_initial_state(problem: Problem, y0=None) -> np.ndarray:
     return y
 
 
+def available_memory() -> int | None:
+    """Bytes of memory the system can give a new allocation (Linux: MemAvailable), or None."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def dense_matrix_bytes(n: int, method: Method, solver: "SolverSettings", adaptive: bool) -> int:
+    """The bytes of a run's n x n arrays (kernels/workspace.py make_workspace): simplified
+    Newton's Hessian, Jacobian and factorised blocks (or its whole (s n)^2 matrix), twice in an
+    adaptive run (its side steps have a workspace of their own), and the adaptive error
+    estimate's Hessian; the fixed point has none but that last one."""
+    total = 8 * n * n if adaptive else 0
+    if solver.method != "fixed_point":
+        blocks = method.newton_values.shape[0]
+        newton = 16 * n * n + (16 * blocks * n * n if blocks > 0 else 8 * (method.s * n) ** 2)
+        total += newton * (2 if adaptive else 1)
+    return total
+
+
+def require_memory(problem: Problem, method: Method, solver: "SolverSettings", adaptive: bool) -> None:
+    """Refuse (ParameterError naming solver) a run whose dense n x n arrays do not fit in the
+    memory available, before any is allocated: fpu_beta with 10^5 masses died of a MemoryError
+    that was blamed on the problem's functions."""
+    n = 2 * problem.degrees_of_freedom
+    needed, available = dense_matrix_bytes(n, method, solver, adaptive), available_memory()
+    if available is None or needed <= available:
+        return
+    what = (f"simplified Newton stores dense n x n matrices, {needed / 2 ** 30:.1f} GB at n = {n:,}"
+            if solver.method != "fixed_point" else
+            f"adaptive steps, output times and events store a dense n x n Hessian, {needed / 2 ** 30:.1f} GB at "
+            f"n = {n:,}")
+    fix = ("use the fixed point (solver: {method: fixed_point}; in Python solver='fixed_point'), whose work and "
+           "memory grow like n" if solver.method != "fixed_point" else
+           "use fixed steps (h, without output times or events) with the fixed point")
+    raise ParameterError("solver", f"cannot run here: {what}, more than the {available / 2 ** 30:.1f} GB of memory "
+                                   f"available; {fix}")
+
+
 def resolve_store_every(store_every) -> int:
     """Validate the sampling interval (keep every n-th state): a whole number from 1 to MAX_STEPS."""
     return _whole_number("store_every", store_every, 1, MAX_STEPS,
@@ -623,6 +711,7 @@ class Integration:
         self.backward = bool(backward)
         solver = _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs)
         self.solver = solver.resolved_for(method, len(self.conserve))
+        require_memory(problem, method, self.solver, adaptive=False)
         self.store_every = resolve_store_every(store_every)
 
         n = 2 * problem.degrees_of_freedom

@@ -405,6 +405,32 @@ def test_energy_note_blames_round_off_where_the_quadrature_of_a_polynomial_H_is_
     assert "raise k (HBVM(k,4) with k > 4) or reduce h" in energy_note("GAUSS(4)", 4, 4, 0.1, {"H": 9e-9}, False, s=4)
 
 
+def test_energy_note_says_round_off_where_the_error_is_what_rounding_accumulates_over_the_steps():
+    """A user trial: Kepler e = 0.9, h = 0.05, EHBVM(24,3) over 4e5 steps lost H to 1.3e-12 and
+    the note said to raise k; with k = 48 it lost 2.1e-12. Over that many steps rounding alone
+    reaches that (10 eps sqrt(N) times the size of H's terms, 58 |H| at that pericentre: 8e-11),
+    and the note now says so. Errors above it still get the quadrature's advice, and where
+    r = k (EHBVM, GHBVM) that advice names k, not an r the config does not have."""
+    from elimfast.integrate import energy_note, roundoff_allowance
+    allowance = roundoff_allowance(400_000, -0.5, 29.0)
+    assert allowance == pytest.approx(10 * np.finfo(float).eps * math.sqrt(400_000) * 58)
+    assert roundoff_allowance(400_000, 0.0, 29.0) == pytest.approx(10 * np.finfo(float).eps * math.sqrt(400_000))
+    assert roundoff_allowance(0, -0.5, 29.0) == 0.0 and roundoff_allowance(10, -0.5, float("nan")) == 0.0
+    note = energy_note("EHBVM(24,3)", 24, 24, 0.05, {"H": 1.3e-12, "angular_momentum": 1e-14}, False, s=3,
+                       roundoff={"H": allowance, "angular_momentum": 1e-11}, steps=400_000)
+    assert "within what rounding can accumulate over 400,000 steps (up to 8e-11" in note and "raise" not in note, note
+    assert "if it is rounding, more nodes or smaller steps do not reduce it; a run with a larger k tells" in note
+    quadrature = energy_note("EHBVM(24,3)", 24, 24, 0.05, {"H": 1.4e-8}, False, s=3, roundoff={"H": allowance},
+                             steps=400_000)
+    assert "raise k or reduce h" in quadrature, quadrature
+    # only the errors above their allowance are named
+    mixed = energy_note("EHBVM(8,4)", 8, 8, 0.1, {"H": 5e-12, "lrl_y": 3e-9}, False, s=4,
+                        roundoff={"H": 1e-11, "lrl_y": 1e-11}, steps=1000)
+    assert "lrl_y error 3.0e-09" in mixed and "H " not in mixed and "raise k or reduce h" in mixed, mixed
+    assert "raise r" not in mixed and "r = 8" in mixed, mixed
+    assert "raise r or reduce h" in energy_note("ELIM(6,8,4)", 8, 6, 0.1, {"lrl_y": 3e-9}, False, s=4)
+
+
 def _finite_difference(values: np.ndarray, order: int) -> float:
     return float(np.diff(values, n=order)[0])
 

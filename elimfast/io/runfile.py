@@ -1089,20 +1089,22 @@ class RunFile:
     def substep_stats(self) -> dict:
         """{"split": steps split into substeps (docs/solver.md), "max": the most substeps of
         one step, "unimposed": steps with a substep taken without imposing the invariants (their
-        multipliers are NaN, docs/solver.md#a-substep-without-imposing)}; zeros for a file
-        written before the step engine (no /steps/substeps)."""
+        multipliers are NaN, docs/solver.md#a-substep-without-imposing), "total": the (sub)steps
+        taken in all}; zeros (and total = steps done) for a file written before the step engine
+        (no /steps/substeps)."""
         with self._reading("/steps"):
             present = "substeps" in self._root["steps"]
-        split, largest, unimposed = 0, 1 if self.steps_done else 0, 0
+        split, largest, unimposed, total = 0, 1 if self.steps_done else 0, 0, 0 if present else self.steps_done
         if present:
             for block in self._blocks("steps/substeps", self.steps_done):
                 if block.size:
                     split += int(np.count_nonzero(block > 1))
                     largest = max(largest, int(block.max()))
+                    total += int(block.sum())
         if self.multiplier_name is not None:
             for block in self._blocks(f"steps/{self.multiplier_name}", self.steps_done):
                 unimposed += int(np.count_nonzero(np.isnan(block).any(axis=1)))
-        return {"split": split, "max": largest, "unimposed": unimposed}
+        return {"split": split, "max": largest, "unimposed": unimposed, "total": total}
 
     def max_abs_multipliers(self) -> list[float]:
         if self.multiplier_name is None:
