@@ -232,3 +232,31 @@ def test_an_ensemble_and_a_python_problem_refuse_complex_initial_states(kepler, 
         with pytest.raises(UserProblemError, match=r": Y0 must be real numbers, got complex values") as info:
             problem_from_file(path)
     assert "\n" not in str(info.value)
+
+
+def test_a_run_whose_dense_matrices_do_not_fit_is_refused_and_the_fixed_point_has_none(monkeypatch):
+    """A user trial: fpu_beta with 10^5 masses (n = 2 10^5) died of a MemoryError blamed on the
+    problem's functions: simplified Newton's n x n matrices would take 1.8 TB, and the fixed
+    point's workspace allocated two n x n arrays it never used (640 GB). Runs whose dense
+    arrays do not fit in the memory available are refused up front naming the fix, and the
+    fixed point allocates none: that chain now takes its steps in a few hundred MB."""
+    import importlib
+
+    from elimfast.errors import ParameterError
+    driver = importlib.import_module("elimfast.integrate")   # the module: elimfast.integrate is the function
+    from elimfast.methods import hbvm
+    from elimfast.problems import fpu_beta
+    chain = fpu_beta(n=100_000)
+    result = elimfast.integrate(chain, hbvm(6, 3), 0.05, n_steps=2, solver="fixed_point")
+    assert result.status == "complete" and result.iterations.min() >= 1
+    small = fpu_beta(n=40)   # n = 80: Newton's arrays 307 kB, the adaptive kernel's Hessian 51 kB
+    monkeypatch.setattr(driver, "available_memory", lambda: 100_000)
+    with pytest.raises(ParameterError, match=r"^solver cannot run here: simplified Newton stores dense n x n "
+                                             r"matrices, 0.0 GB at n = 80, .*use the fixed point"):
+        elimfast.integrate(small, hbvm(6, 3), 0.05, n_steps=2)
+    assert elimfast.integrate(small, hbvm(6, 3), 0.05, n_steps=2, solver="fixed_point").status == "complete"
+    assert elimfast.integrate(small, hbvm(6, 3), t_end=0.1, rtol=1e-8, solver="fixed_point").status == "complete"
+    monkeypatch.setattr(driver, "available_memory", lambda: 10_000)
+    with pytest.raises(ParameterError, match=r"adaptive steps, output times and events store a dense n x n Hessian"):
+        elimfast.integrate(small, hbvm(6, 3), t_end=0.1, rtol=1e-8, solver="fixed_point")
+    assert driver.dense_matrix_bytes(200_000, hbvm(6, 3), driver.SolverSettings(), adaptive=False) > 1.5e12

@@ -161,6 +161,29 @@ def test_every_component_is_checked_at_the_initial_state_of_a_large_problem(comp
         require_derivatives(wrong)
 
 
+def test_the_check_of_a_very_large_problem_differences_a_seeded_sample_and_no_hessian(monkeypatch):
+    """A user trial: toda with n = 10^5 sat in the derivative check for over 10 minutes (every
+    component differenced at y0, each difference an O(n) evaluation), and hess_H's n x n array
+    is 320 GB at n = 2 10^5. Above Y0_COMPONENTS the check at y0 differences that many seeded
+    components, and hess_H is left out above HESSIAN_CHECK_MAX_N. A wrong component is still
+    caught when it is in the sample; smaller limits show both at test size."""
+    from elimfast.problems import check
+    monkeypatch.setattr(check, "Y0_COMPONENTS", 16)
+    monkeypatch.setattr(check, "HESSIAN_CHECK_MAX_N", 40)
+    chain = problems.fpu_beta(40)                      # n = 80
+    reports = check_derivatives(chain, n_points=0)
+    assert [report.function for report in reports] == ["grad_H", "grad_invariants"]   # no hess_H above 40
+    rng = np.random.default_rng(0)
+    sampled = np.sort(rng.choice(80, 16, False))       # the check's own seeded choice
+    for component, caught in ((int(sampled[3]), True), (int(np.setdiff1d(np.arange(80), sampled)[0]), False)):
+        wrong = replace(chain, grad_H=_scaled_fpu_grad_H, params=np.array([1.0, component, -1.0]))
+        if caught:
+            with pytest.raises(DerivativeCheckError):
+                require_derivatives(wrong, n_points=0)
+        else:
+            require_derivatives(wrong, n_points=0)
+
+
 @pytest.mark.parametrize("factor", [-1.0, 2.0])
 @pytest.mark.parametrize("entry", [(0, 0), (0, 1), (1, 1), (2, 2), (3, 3)])
 def test_a_wrong_sign_or_factor_in_the_hessian_fails(entry, factor):

@@ -38,7 +38,8 @@ from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
-                      _sample, extrapolate, kahan_add, record_multipliers, restore_newton_matrix, try_step)
+                      _sample, extrapolate, kahan_add, newton_eigenvalues, record_multipliers, restore_newton_matrix,
+                      try_step)
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -340,13 +341,13 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                                          predictor_nodes, predictor_basis, newton_values, newton_vectors,
                                          newton_inverse, newton_weights)))
     owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
-                            newton_values.shape[0])
+                            newton_eigenvalues(settings, newton_values))
     work = by_ref(borrow_workspace(owners))
     # Side steps (output times, events) have a workspace and a Newton matrix of their own: in
     # the main one they replaced the matrix a later main step would have reused, so a run with
     # output times or events took other solves than the same run without (round-off apart).
     side_owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
-                                 newton_values.shape[0])
+                                 newton_eigenvalues(settings, newton_values))
     side_work = by_ref(borrow_workspace(side_owners))
     side_base = np.zeros(n + 3)
     n_mult = multipliers.shape[0]

@@ -25,7 +25,7 @@ from numba.extending import intrinsic
 
 from .codes import STATUS_EXCEPTION, STATUS_OK, internal_allocating
 from .signatures import INT_VECTOR, MATRIX, VECTOR
-from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, predictor_extra_rows, try_step
+from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, newton_eigenvalues, predictor_extra_rows, try_step
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -50,7 +50,8 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     n = y0.shape[0]
     n_inv = errors.shape[0] - 1
     owners = make_workspace(n, tables.Is.shape[0], tables.Ihat.shape[0], tables.Is.shape[1],
-                            conserve_idx.shape[0], settings.family, n_inv, n_mult, tables.newton_values.shape[0])
+                            conserve_idx.shape[0], settings.family, n_inv, n_mult,
+                            newton_eigenvalues(settings, tables.newton_values))
     work = by_ref(borrow_workspace(owners))
     tables = by_ref(tables)   # passed on by address (workspace.ByRef), as time_loop's
     inv_values = np.zeros(n_inv)

@@ -313,6 +313,13 @@ def _newton_point(tables, work, y, h, coef, at_start):
         point[p] += 0.5 * h * acc
 
 
+@njit(cache=True, inline="always")
+def newton_eigenvalues(settings, newton_values):
+    """make_workspace's n_eigenvalues: the blocks of the Newton matrix, or -1 for the fixed
+    point (no Newton matrix, no n x n arrays)."""
+    return -1 if settings.solver == SOLVER_FIXED_POINT else newton_values.shape[0]
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, force):
     """Keep or refactorise the simplified Newton matrix for a solve from y with step h.
@@ -565,7 +572,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                                          predictor_nodes, predictor_basis, newton_values, newton_vectors,
                                          newton_inverse, newton_weights)))
     owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
-                            newton_values.shape[0])
+                            newton_eigenvalues(settings, newton_values))
     work = by_ref(borrow_workspace(owners))   # owners stays alive in this frame until the loop is done
     inv_values = np.zeros(n_inv)
 

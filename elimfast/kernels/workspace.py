@@ -243,12 +243,15 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
     """Allocate every array a step needs (sizes as in the Workspace comments). The Newton
     matrix is factorised in n_eigenvalues complex blocks (tables.newton_values.shape[0]),
     inverted when n <= INVERSE_MAX_N, when there are some, else whole (the workspace's array
-    shapes say which)."""
+    shapes say which). n_eigenvalues < 0: the fixed point, which has no Newton matrix, and
+    the n x n arrays are left empty (fpu_beta with 10^5 masses: 640 GB of them)."""
+    newton = n_eigenvalues >= 0
     n_tilde = nu + 1 if family == FAMILY_LIM else nu
-    n_blocks = n_eigenvalues
-    n_full = 0 if n_blocks > 0 else s * n
+    n_blocks = max(n_eigenvalues, 0)
+    n_full = s * n if newton and n_blocks == 0 else 0
     n_scratch = n if n_blocks > 0 and n <= INVERSE_MAX_N else 0
     n_real = n_scratch if s % 2 == 1 else 0     # an odd s has one real eigenvalue of X
+    n_jacobian = n if newton else 0
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
     e_max = min(k - s, 3)   # room for the predictor's extra terms (stepper.predictor_extra_rows)
@@ -263,7 +266,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
         np.zeros((n_real, n_real)),
-        np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n, n)), np.zeros((n, n)),
+        np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n_jacobian, n_jacobian)), np.zeros((n_jacobian, n_jacobian)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(6),
         np.zeros((e_max, n)))

@@ -31,9 +31,10 @@ the entry, so they pass by orders of magnitude; a sign error is a relative error
 a factor 2 one of 0.5 or 1, which fail in every entry that central differences resolve
 (|F'| above ~1e-9 of |F|/s_j). Where F is not smooth within 2h (abs at its kink),
 |D(2h) - D(h)| is as large as the difference itself, and no false alarm is raised.
-Every component is differenced at y0; at each nearby point, at most NEARBY_COMPONENTS
-of them, chosen by the seeded generator: fpu_beta with 1000 masses (n = 2000) is checked
-in 0.47 s instead of 2.3 s for every component at all 9 points.
+Every component is differenced at y0 (above Y0_COMPONENTS, that many chosen by the seeded
+generator); at each nearby point, at most NEARBY_COMPONENTS of them: fpu_beta with 1000
+masses (n = 2000) is checked in 0.47 s instead of 2.3 s for every component at all 9 points.
+hess_H is checked up to n = HESSIAN_CHECK_MAX_N (each evaluation fills an n x n array).
 
 **Invariants** (``check_invariants``, ``require_invariants``). For an invariant L of
 y' = J grad H(y), dL/dt = grad L(y)^T J grad H(y) = 0 everywhere (docs/methods.md#notation). The
@@ -72,7 +73,13 @@ STEP = EPS ** (1.0 / 3.0)   # h_j = STEP * s_j
 MARGIN = 10.0
 ROUNDING = 16.0
 RTOL = 1e-6
-NEARBY_COMPONENTS = 64      # differenced components per nearby point (all of them at y0)
+NEARBY_COMPONENTS = 64      # differenced components per nearby point (all of them at y0 up to Y0_COMPONENTS)
+# At y0 every component is differenced up to this many, else this many seeded ones: each
+# difference evaluates the function, whose cost grows with n, so all of them cost O(n^2)
+# (toda with n = 10^5 checked for over 10 minutes, silently; n = 1000 took 12 s).
+Y0_COMPONENTS = 512
+# hess_H is checked up to this n: each evaluation fills an n x n array (n = 2 10^5: 320 GB).
+HESSIAN_CHECK_MAX_N = 4000
 
 
 class InvariantCheckError(ProblemDefinitionError):
@@ -263,8 +270,9 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
     scales = _step_scales(points[0])
     n = 2 * problem.degrees_of_freedom
     rng = np.random.default_rng(seed)
-    columns = [range(n)] + [range(n) if n <= NEARBY_COMPONENTS else np.sort(rng.choice(n, NEARBY_COMPONENTS, False))
-                            for _ in points[1:]]
+    columns = ([range(n) if n <= Y0_COMPONENTS else np.sort(rng.choice(n, Y0_COMPONENTS, False))]
+               + [range(n) if n <= NEARBY_COMPONENTS else np.sort(rng.choice(n, NEARBY_COMPONENTS, False))
+                  for _ in points[1:]])
     names = problem.coordinate_names
     params = problem.params
     inv_names = problem.invariant_names
@@ -287,7 +295,7 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
                        [(f"grad {name}", f"the gradient of invariant {name!r} (grad_invariants row {row})")
                         for row, name in enumerate(inv_names)],
                        lambda i, j: f"d{inv_names[i]}/d{names[j]}", [f"invariants.{name}" for name in inv_names]))
-    if problem.hessian_source != "finite differences":
+    if problem.hessian_source != "finite differences" and n <= HESSIAN_CHECK_MAX_N:
         checks.append(("hess_H", "grad_H", grad_H, call(problem.hess_H, (n, n)), [("hess_H", "hess_H")],
                        lambda i, j: f"d2H/d{names[i]}d{names[j]}", ["hamiltonian"]))
 
