@@ -580,7 +580,7 @@ class AdaptiveIntegration:
             status = kernel.adaptive_loop(
                 p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
                 p.time_scale if p.time_scale is not None else no_invariants, self.events.function,
-                m.kernel_family, solver.code, int(solver.rhs == "stable"), int(solver.warm_start),
+                m.kernel_family, solver.code, solver.rhs_code, int(solver.warm_start),
                 int(solver.predictor),
                 solver.tol, solver.max_iter, solver.max_halvings,
                 self.h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,

@@ -128,6 +128,7 @@ class SolverSection(_Section):
     rhs: Literal["stable", "literal"] = "stable"
     warm_start: StrictBool = True
     accelerate: StrictBool = True
+    lim_metric: Literal["euclidean", "scaled"] = "euclidean"
 
 
 class OutputSection(_Section):

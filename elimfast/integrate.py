@@ -125,7 +125,10 @@ class SolverSettings:
     from the previous step at all (False: every step cold, from y_n); rhs: 'stable'
     (docs/methods.md#stable-right-hand-side, the default) or 'literal' (the paper's right-hand side);
     accelerate: simplified Newton's secant acceleration (docs/solver.md#secant-acceleration;
-    False: the plain iteration of the spec; the fixed point is never accelerated).
+    False: the plain iteration of the spec; the fixed point is never accelerated);
+    lim_metric: LIM's correction W phi_0 lambda, 'euclidean' (W = I, the spec's and the
+    2012 paper's) or 'scaled' (W = diag of each component's mean square over the step:
+    invariant under rescaling the components, docs/methods.md#lim).
     """
 
     method: str = DEFAULT_SOLVER
@@ -136,6 +139,7 @@ class SolverSettings:
     warm_start: bool = True
     rhs: str = "stable"
     accelerate: bool = True
+    lim_metric: str = "euclidean"
 
     def __post_init__(self):
         if self.method not in SOLVERS:
@@ -163,10 +167,18 @@ class SolverSettings:
             raise ParameterError("rhs", f"must be 'stable' (the default, docs/methods.md#stable-right-hand-side) or "
                                         "'literal' (the paper's), "
                                         f"got {self.rhs!r}")
+        if self.lim_metric not in ("euclidean", "scaled"):
+            raise ParameterError("lim_metric", "must be 'euclidean' (the spec's, the default) or 'scaled' "
+                                               f"(docs/methods.md#lim), got {self.lim_metric!r}")
         for name in ("predictor", "warm_start", "accelerate"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ParameterError(name, f"must be true or false, got {getattr(self, name)!r}")
             object.__setattr__(self, name, bool(getattr(self, name)))
+
+    @property
+    def rhs_code(self) -> int:
+        """The kernels' settings.stable_rhs: bit 0 the stable right-hand side, bit 1 LIM's scaled metric."""
+        return int(self.rhs == "stable") | (2 if self.lim_metric == "scaled" else 0)
 
     def resolved_for(self, method: Method, n_imposed: int) -> "SolverSettings":
         """These settings with max_iter chosen for the method when it was left out (see DEFAULT_MAX_ITER)."""
@@ -816,7 +828,7 @@ class Integration:
         of the kernels' signatures (stepper.time_loop and ensemble.ensemble_loop)."""
         p, m, solver = self.problem, self.method, self.solver
         return (p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
-                m.kernel_family, solver.code, int(solver.rhs == "stable"), int(solver.warm_start),
+                m.kernel_family, solver.code, solver.rhs_code, int(solver.warm_start),
                 int(solver.predictor), solver.tol, solver.max_iter, solver.max_halvings,
                 self.signed_h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
                 m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,

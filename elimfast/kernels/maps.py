@@ -198,33 +198,66 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
     return singular
 
 
+# Bits of settings.stable_rhs (the kernels' int for the solver's rhs and, for LIM, its metric).
+RHS_STABLE = 1
+LIM_SCALED_METRIC = 2
+# The scaled metric's floor, relative to its largest entry: a component that is zero over the
+# whole step (a planar problem's z) keeps a positive weight, so that the Gram matrix of an
+# invariant living there (linear_momentum_z) stays positive definite.
+METRIC_FLOOR = 1e-30
+
+
+@njit(cache=True, inline="always")
+def lim_rhs_terms(stable_rhs, k, r, s):
+    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up LIM's right-hand side,
+    and whether gamma_j comes from the r nodes: sum_{j<s} (the spec's, literal), or the stable tail
+    -sum_{j=s}^{k-1} (r = k; r != k: at the r nodes), docs/methods.md#stable-right-hand-side carried
+    over to LIM: sum_{j<k} phi_j^T gamma_j = sum_l b_l grad Ltilde(u_l)^T J grad H(u_l) = 0 exactly
+    (H's row too: phi^H_j = J^T gamma_j), so the tail equals the spec's sum in exact arithmetic."""
+    if (stable_rhs & RHS_STABLE) == 0:
+        return 0, s, False
+    if r == k:
+        return s, k, False
+    return s, r, True
+
+
 @njit(cache=True, inline="always", error_model="numpy")
-def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_idx, work):
+def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_idx, work, stable_rhs):
     """G(coef) of LIM(r,k,s), docs/methods.md#lim, into work.new_coef.
 
     Ltilde = (H, L_conserve...) has nu + 1 components:
         gamma_j = sum_l b_l Ps[l,j] J grad H(u_l)                 (k nodes)
         phi_j   = sum_i bhat_i P_j(chat_i) grad Ltilde(uhat_i)    (r nodes)
-        (phi_0^T phi_0) lambda = sum_{j<s} phi_j^T gamma_j        (SPD solve)
-        G_0 = gamma_0 - phi_0 lambda,  G_j = gamma_j
+        (phi_0^T W phi_0) lambda = sum_{j<s} phi_j^T gamma_j      (SPD solve)
+        G_0 = gamma_0 - W phi_0 lambda,  G_j = gamma_j
+    W = I (the spec's) unless stable_rhs has LIM_SCALED_METRIC: then W = diag(w),
+    w_p = sum_l b_l u_{l,p}^2 (the mean square of component p over the step), which makes the
+    correction invariant under a rescaling of the components (the solar system's momenta are
+    1e-11..1e-5 of its positions). Every invariant stays kept (L(y1) - L(y0) = h (sum_j phi_j^T
+    gamma_j - phi_0^T W phi_0 lambda) = 0 for any W) and lambda = O(h^(2s)). With RHS_STABLE the
+    right-hand side is the tail of lim_rhs_terms.
     lam (nu+1,) in/out. Leaves the Gram matrix in work.small_copy and its Cholesky factor
-    in work.small_matrix. Returns 0, or 1 when the Gram matrix is not positive definite.
+    in work.small_matrix, W in work.metric. Returns 0, or 1 when the Gram matrix is not positive definite.
     """
     projection, Is, projection_hat, Ihat = tables.projection, tables.Is, tables.projection_hat, tables.Ihat
     u, grads, proj, gamma, uhat = work.u, work.grads, work.proj, work.gamma, work.uhat
     grads_hat, phi, gram, rhs = work.grads_hat, work.phi, work.small_copy, work.small_vector
-    inv_grads, factor, new_coef = work.inv_grads, work.small_matrix, work.new_coef
+    inv_grads, factor, new_coef, gamma_hat, metric = (work.inv_grads, work.small_matrix, work.new_coef,
+                                                      work.gamma_hat, work.metric)
     n = y.shape[0]
     k = Is.shape[0]
     r = Ihat.shape[0]
     s = coef.shape[0]
     n_tilde = conserve_idx.shape[0] + 1
+    first_rhs, last_rhs, rhs_from_hat = lim_rhs_terms(stable_rhs, k, r, s)
+    n_gamma = last_rhs if not rhs_from_hat else s
+    n_phi = max(last_rhs, s)
 
     stages(y, h, Is, coef, s, u)
     for l in range(k):
         grad_H(u[l], params, grads[l])
-    project(projection, grads, s, proj)
-    apply_J(proj, s, gamma)
+    project(projection, grads, n_gamma, proj)
+    apply_J(proj, n_gamma, gamma)
 
     if r == k:
         stage_hat = u
@@ -243,19 +276,37 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
                 for p in range(n):
                     grads_hat[a, i, p] = inv_grads[conserve_idx[a - 1], p]
     for a in range(n_tilde):
-        project(projection_hat, grads_hat[a], s, phi[a])
+        project(projection_hat, grads_hat[a], n_phi, phi[a])
+    if rhs_from_hat:
+        # J grad H at the r nodes is phi of H (row 0): gamma_hat_j = J phi^H_j.
+        apply_J(phi[0], last_rhs, gamma_hat)
+        tail = gamma_hat
+    else:
+        tail = gamma
+    if (stable_rhs & LIM_SCALED_METRIC) != 0:
+        largest = 0.0
+        for p in range(n):
+            acc = 0.0
+            for l in range(k):
+                acc += projection[0, l] * u[l, p] * u[l, p]     # projection[0, l] = b_l P_0 = b_l
+            metric[p] = acc
+            largest = max(largest, acc)
+        floor = METRIC_FLOOR * largest if largest > 0.0 else 1.0
+        for p in range(n):
+            metric[p] = max(metric[p], floor)
+    sign = -1.0 if (stable_rhs & RHS_STABLE) != 0 else 1.0
     for a in range(n_tilde):
         for c in range(n_tilde):
             acc = 0.0
             for p in range(n):
-                acc += phi[a, 0, p] * phi[c, 0, p]
+                acc += phi[a, 0, p] * metric[p] * phi[c, 0, p]
             gram[a, c] = acc
             factor[a, c] = acc
         acc = 0.0
-        for j in range(s):
+        for j in range(first_rhs, last_rhs):
             for p in range(n):
-                acc += phi[a, j, p] * gamma[j, p]
-        rhs[a] = acc
+                acc += phi[a, j, p] * tail[j, p]
+        rhs[a] = sign * acc
     if cholesky_factor(factor) != 0:
         return 1
     cholesky_solve_factored(factor, rhs)
@@ -267,7 +318,7 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
             new_coef[j, p] = gamma[j, p]
     for a in range(n_tilde):
         for p in range(n):
-            new_coef[0, p] -= lam[a] * phi[a, 0, p]
+            new_coef[0, p] -= lam[a] * metric[p] * phi[a, 0, p]
     return 0
 
 
@@ -376,18 +427,20 @@ def _abs_times(matrix, vector, n, out):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def lim_rounding(tables, n_tilde, s, work):
+def lim_rounding(tables, n_tilde, s, stable_rhs, work):
     """Spec 8's rounding of the multipliers carried over to LIM: dlambda = |Gram^-1| db,
-    db_a the rounding of sum_{j<s} phi_j^a . gamma_j (a = 0 is H; see _dot_rounding).
+    db_a the rounding of LIM's right-hand side (the terms of lim_rhs_terms; a = 0 is H; see _dot_rounding).
     Writes dlambda into work.small_rounding[0]; returns cond(Gram). Needs work.sizes."""
     gamma, phi, rounding, inverse, sizes = work.gamma, work.phi, work.small_rounding, work.small_inverse, work.sizes
     S = tables.abs_projection_hat
+    first_rhs, last_rhs, rhs_from_hat = lim_rhs_terms(stable_rhs, tables.Is.shape[0], tables.Ihat.shape[0], s)
+    tail = work.gamma_hat if rhs_from_hat else gamma
     cond = condition_number(work, n_tilde, True)
     d_rhs = work.small_vector
     for a in range(n_tilde):
         acc = 0.0
-        for j in range(s):
-            acc += _dot_rounding(S, phi[a], gamma, j, sizes, a)
+        for j in range(first_rhs, last_rhs):
+            acc += _dot_rounding(S, phi[a], tail, j, sizes, a)
         d_rhs[a] = acc
     _abs_times(inverse, d_rhs, n_tilde, rounding[0])
     return cond

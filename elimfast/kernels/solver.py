@@ -19,7 +19,7 @@ from numba import njit
 from .codes import (internal, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON_ACCELERATED, STATUS_NONFINITE,
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
 from .linalg import invert, lu_factor, lu_solve_factored
-from .maps import EPS, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
+from .maps import EPS, RHS_STABLE, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
 
 # The stopping rule's constants (docs/solver.md; measured there, not tunables).
 BAND_FACTOR = 4.0          # the rounding band is B = 4 omega ...
@@ -293,14 +293,15 @@ def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
     for p in range(n):
         level[p] = 4.0 * EPS * h * sizes[0, p] / scale[p]
     if solved and is_lim:
-        lim_rounding(tables, n_rows, s, work)
+        lim_rounding(tables, n_rows, s, settings.stable_rhs, work)
+        metric = work.metric
         for p in range(n):
             acc = 0.0
             for a in range(n_rows):
-                acc += rounding[0, a] * abs(phi[a, 0, p])
+                acc += rounding[0, a] * metric[p] * abs(phi[a, 0, p])
             level[p] += h * acc / scale[p]
     elif solved and nu > 0:
-        elim_rounding(h, mult, settings.stable_rhs != 0, tables, nu, s, work)
+        elim_rounding(h, mult, (settings.stable_rhs & RHS_STABLE) != 0, tables, nu, s, work)
         for p in range(n):
             share = 0.0
             for c in range(nu):
@@ -382,7 +383,9 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     the rounding of lambda (eps times the largest momenta) reaches every momentum, and
     Pluto's, 1e-6 of Jupiter's, cannot settle below ~1e-11 relative; the iteration then
     cycles at that level (measured: a period-2 cycle, d = 9.1e-12) and only halving h
-    would get it under docs/solver.md's 1e-12 cap.
+    would get it under docs/solver.md's 1e-12 cap. That was the literal right-hand side's
+    rounding: the stable tail (maps.lim_rhs_terms, the default) removes it there (GHBVM(12,3),
+    h = 12.5: 3.1 iterations per step, was 4.1-4.6), but the rescue stays for rhs: literal.
     An accepted ELIM iterate is rejected as spurious when cond(Gamma) > 1e13 or some
     |w_c alpha_c| > 0.5, and as singular when its Gamma could not be solved.
 
@@ -416,13 +419,14 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     for iteration in range(1, max_iter + 1):
         plain_sweep = cold and iteration <= 2
         if is_lim:
-            singular = lim_map(grad_H, grad_invariants, params, y, h, coef, mult, tables, conserve_idx, work)
+            singular = lim_map(grad_H, grad_invariants, params, y, h, coef, mult, tables, conserve_idx, work,
+                               settings.stable_rhs)
             if singular != 0:
                 info[0], info[1], info[2], info[3] = d, np.inf, iteration, band
                 return STATUS_SINGULAR, iteration
         else:
             singular = elim_map(grad_H, grad_invariants, params, y, h, coef, mult, plain_sweep,
-                                settings.stable_rhs != 0, tables, conserve_idx, work)
+                                (settings.stable_rhs & RHS_STABLE) != 0, tables, conserve_idx, work)
 
         largest = 0.0
         for i in range(n):
@@ -504,7 +508,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 # form stalls near steps symmetric about a pericentre, where Gamma is nearly
                 # singular and an in-band test would accept unconverged iterates (docs/solver.md):
                 # those are split, and their halves are well-conditioned.
-                if d <= RESCUE_BAND_CAP and newton and (is_lim or settings.stable_rhs == 0):
+                if d <= RESCUE_BAND_CAP and newton and (is_lim or (settings.stable_rhs & RHS_STABLE) == 0):
                     accepted = _within_rounding(h, mult, singular == 0 and not plain_sweep, settings, tables,
                                                 nu, s, work)
                 break

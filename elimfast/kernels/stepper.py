@@ -250,7 +250,7 @@ def _attempt_unimposed(grad_H, hess_H, grad_invariants, params, settings, tables
     if status != STATUS_OK:
         return status, iterations
     # One map evaluation at the accepted coefficients, alpha = 0: b and the gradients of the invariants.
-    elim_map(grad_H, grad_invariants, params, y, h, coef, mult, True, settings.stable_rhs != 0, tables,
+    elim_map(grad_H, grad_invariants, params, y, h, coef, mult, True, (settings.stable_rhs & 1) != 0, tables,
              conserve_idx, work)
     nu = conserve_idx.shape[0]
     gradient_sizes(work, nu, tables.Ihat.shape[0])

@@ -101,6 +101,8 @@ Workspace = namedtuple("Workspace", [
     #                      then the count of Newton factorisations (Hessian evaluations) of the call, and
     #                      the substeps of the last step taken without imposing (stepper.try_step)
     "extra_start",       # (e_max, n) the predictor's extra terms before the step (restored on failure)
+    "metric",            # (n,) LIM's diagonal metric W of the correction (ones: the spec's Euclidean one;
+    #                      the scaled metric: the mean square of each component over the stages)
 ])
 
 
@@ -226,7 +228,7 @@ def borrow_workspace(w):
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
         borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info),
-        borrowed(w.extra_start))
+        borrowed(w.extra_start), borrowed(w.metric))
 
 
 # The Newton matrix is factorised in blocks whenever the method has an eigenbasis of X
@@ -269,4 +271,4 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n_jacobian, n_jacobian)), np.zeros((n_jacobian, n_jacobian)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(6),
-        np.zeros((e_max, n)))
+        np.zeros((e_max, n)), np.ones(n))
