@@ -324,7 +324,11 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         key = f"grid[{index}]"
         if not isinstance(axis, dict) or "values" not in axis:
             _fail(source, key, "an axis is a mapping with 'values' (and 'name', and 'key' for a plain axis)")
+        _known_keys(source, key, axis, AXIS_KEYS)   # a misspelt 'nme:' was dropped silently
         name = str(axis.get("name") or axis.get("key") or f"axis{index}")
+        if name in axis_names:   # the runs' coordinates would merge, and every label would repeat
+            _fail(source, f"{key}.name", f"repeats the axis name {name!r} of grid[{axis_names.index(name)}]; give "
+                                         "each axis its own name")
         values = axis["values"]
         if not isinstance(values, list) or not values:
             _fail(source, f"{key}.values", "must be a non-empty list")
@@ -345,6 +349,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             for j, variant in enumerate(values):
                 if not isinstance(variant, dict) or "set" not in variant or not isinstance(variant["set"], dict):
                     _fail(source, f"{key}.values[{j}]", "a variant is {label: ..., set: {key: value, ...}}")
+                _known_keys(source, f"{key}.values[{j}]", variant, VARIANT_KEYS)
                 label = _check_label(source, f"{key}.values[{j}].label", str(variant.get("label", j)))
                 points.append((label, {"replace": _written_out(source, f"{key}.values[{j}].set.", variant["set"])}))
         axis_points.append(points)
@@ -409,6 +414,20 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+AXIS_KEYS = ("name", "key", "values", "labels")
+VARIANT_KEYS = ("label", "set")
+
+
+def _known_keys(source: str, where: str, mapping: dict, known: tuple[str, ...]) -> None:
+    """Refuse a key of a grid axis or variant that sweeps do not read (with a suggestion)."""
+    import difflib
+    for name in mapping:
+        if name not in known:
+            close = difflib.get_close_matches(str(name), known, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            _fail(source, f"{where}.{name}", f"unknown key; {hint}(known: {', '.join(known)})")
 
 
 def _written_out(source: str, where: str, config: dict) -> dict:
@@ -622,7 +641,7 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
     So a failed run can be run again with more halvings or another solver, and values can be
     added to an axis, without recomputing the rest. Raises OutputError naming the first run
     and key that would change; returns {label: place in the edited grid}."""
-    from .streaming import LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_difference
+    from .streaming import LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_difference, step_solver_change
 
     def accept(stored: dict[str, str]) -> dict[str, int]:
         runs = {run.label: run for run in spec.runs}
@@ -636,11 +655,15 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
             except ElimfastError as error:
                 raise OutputError(f"{path}: the sweep file was edited, and the stored run {label!r} no longer loads: "
                                   f"{error}") from None
-            key = config_difference(config_text, current, ignore=SOLVER_SECTIONS, ignore_keys=LOAD_ONLY_KEYS)
+            key = (config_difference(config_text, current, ignore=SOLVER_SECTIONS, ignore_keys=LOAD_ONLY_KEYS)
+                   or step_solver_change(config_text, current))   # solver.lim_metric changes the steps too
             if key is not None:
+                why = ("which changes the steps themselves, and --resume keeps the stored runs' steps"
+                       if key.startswith("solver.") else
+                       "and --resume may change only solver.* of stored runs (their steps are kept)")
                 raise OutputError(f"{path}: the sweep file was edited: {key} of the run {label!r}, stored complete, "
-                                  f"changed, and --resume may change only solver.* of stored runs (their steps are "
-                                  f"kept); pass --overwrite to start again, or write the edited sweep to another file")
+                                  f"changed, {why}; pass --overwrite to start again, or write the edited sweep to "
+                                  "another file")
         return {run.label: index for index, run in enumerate(spec.runs)}
 
     return accept

@@ -57,6 +57,16 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
      r"grid\[0\]\.key: integration\.hh: unknown key; did you mean 'h'\?"),
     ({"base": BASE, "grid": [{"name": "s", "key": "methd.s", "values": [3]}]},
      r"grid\[0\]\.key: methd\.s: unknown key; did you mean 'method'\?"),
+    # a user trial: misspelt keys of an axis or a variant were dropped silently (the axis then
+    # named after its key, the variant labelled 0, 1, ...), and a repeated axis name was reported
+    # as 'two runs get the same label'
+    ({"base": BASE, "grid": [{"nme": "h", "key": "integration.h", "values": ["pi/30"]}]},
+     r"grid\[0\]\.nme: unknown key; did you mean 'name'\? \(known: name, key, values, labels\)"),
+    ({"base": BASE, "grid": [{"name": "m", "values": [{"lable": "a", "set": {}}]}]},
+     r"grid\[0\]\.values\[0\]\.lable: unknown key; did you mean 'label'\?"),
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30"]},
+                             {"name": "h", "key": "integration.t_end", "values": ["2*pi"]}]},
+     r"grid\[1\]\.name: repeats the axis name 'h' of grid\[0\]"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)
