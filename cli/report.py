@@ -326,7 +326,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
                       f"max_halvings {solver.get('max_halvings', 0)}, predictor {solver.get('predictor', False)}, "
                       f"accelerate {solver.get('accelerate', False)}"
                       + (" (simplified Newton's only)" if solver.get("method") == "fixed_point"
-                         and solver.get("accelerate") else ""))
+                         and solver.get("accelerate") else "")
+                      + (f", lim_metric {solver['lim_metric']}" if solver.get("lim_metric", "euclidean") != "euclidean"
+                         else ""))
     substeps = run_file.substep_stats()
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"

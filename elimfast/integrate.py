@@ -191,7 +191,7 @@ class SolverSettings:
         """The settings as plain data (the resolved config's solver section)."""
         return {"method": self.method, "tol": self.tol, "max_iter": self.max_iter, "max_halvings": self.max_halvings,
                 "predictor": self.predictor, "warm_start": self.warm_start, "rhs": self.rhs,
-                "accelerate": self.accelerate}
+                "accelerate": self.accelerate, "lim_metric": self.lim_metric}
 
     @property
     def code(self) -> int:

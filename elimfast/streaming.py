@@ -547,6 +547,30 @@ EXTENSION_KEYS = ("integration.t_end", "integration.n_steps", "output.times")
 LOAD_ONLY_KEYS = ("problem.check",)
 
 
+# solver.* keys that change the steps themselves, not only how each step's system is solved
+# (with their defaults, for configs stored before the key existed): --resume may not change them.
+STEP_SOLVER_KEYS = {"solver.lim_metric": "euclidean"}
+
+
+def step_solver_change(stored: str, current: str) -> str | None:
+    """The first STEP_SOLVER_KEYS key whose value differs between two resolved configs, or None."""
+    old, new = _parsed(stored, current)
+    for key, default in STEP_SOLVER_KEYS.items():
+        section, _, name = key.partition(".")
+        values = [tree.get(section, {}).get(name, default)
+                  if isinstance(tree, dict) and isinstance(tree.get(section, {}), dict) else default
+                  for tree in (old, new)]
+        if values[0] != values[1]:
+            return key
+    return None
+
+
+def step_solver_refusal(path, key: str, what: str = "--resume") -> OutputError:
+    return OutputError(f"{path}: {key} changes the steps themselves (LIM's correction, "
+                       f"docs/methods.md#the-metric-of-the-correction), not only how each is solved, so {what} may "
+                       "not change it: start a new run (-o NEW.h5), or replace this one with --overwrite")
+
+
 def resume_refusal(path, key: str, prefix: str = "", configs=()) -> OutputError:
     """The refusal of a --resume that would change ``key``, a key outside SOLVER_SECTIONS;
     ``configs``: the stored config and the new one, as far as known (parsed YAML), which tell
@@ -737,6 +761,9 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             if difference is not None:
                 raise resume_refusal(path, difference, prefix="was written from a different config; ",
                                      configs=_parsed(stored, config_text))
+            step_key = step_solver_change(stored, config_text)
+            if step_key is not None:
+                raise step_solver_refusal(path, step_key)
             extension = run_extension(path, attrs, status, clock, stored_t, integration, t_end)
             solver_changed = config_difference(stored, config_text,
                                                ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS) is not None

@@ -129,7 +129,8 @@ def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
     assert resolved["problem"]["initial"] == {"q1": 0.4, "q2": 0.0, "p1": 0.0, "p2": math.sqrt(1.6 / 0.4)}
     assert resolved["method"] == {"name": "ehbvm", "k": 12, "s": 3}
     assert resolved["solver"] == {"method": "newton", "tol": 2.0 ** -52, "max_iter": 30, "max_halvings": 4,
-                                  "predictor": True, "warm_start": True, "rhs": "stable", "accelerate": True}
+                                  "predictor": True, "warm_start": True, "rhs": "stable", "accelerate": True,
+                                  "lim_metric": "euclidean"}
     yaml.safe_dump(resolved)
 
 

@@ -24,7 +24,7 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
-from .maps import EPS, apply_J, elim_map, gradient_sizes, project
+from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
@@ -250,7 +250,7 @@ def _attempt_unimposed(grad_H, hess_H, grad_invariants, params, settings, tables
     if status != STATUS_OK:
         return status, iterations
     # One map evaluation at the accepted coefficients, alpha = 0: b and the gradients of the invariants.
-    elim_map(grad_H, grad_invariants, params, y, h, coef, mult, True, (settings.stable_rhs & 1) != 0, tables,
+    elim_map(grad_H, grad_invariants, params, y, h, coef, mult, True, (settings.stable_rhs & RHS_STABLE) != 0, tables,
              conserve_idx, work)
     nu = conserve_idx.shape[0]
     gradient_sizes(work, nu, tables.Ihat.shape[0])
