@@ -627,7 +627,11 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
 
     def first_difference(a, b, prefix=""):
         if isinstance(a, dict) and isinstance(b, dict):
-            for key in sorted(set(a) | set(b), key=str):
+            keys = sorted(set(a) | set(b), key=str)
+            if "t_end" in keys and "n_steps" in keys:   # n_steps follows from t_end: name the one users write
+                keys.remove("t_end")
+                keys.insert(0, "t_end")
+            for key in keys:
                 found = first_difference(a.get(key), b.get(key), f"{prefix}{key}.")
                 if found:
                     return found

@@ -421,7 +421,10 @@ def test_resume_refuses_an_edit_that_would_change_a_stored_run_and_leaves_the_fi
              f"{out}: the sweep file was edited, and the run 'pi/30', stored complete, is no longer in it: --resume "
              "keeps every stored run; pass --overwrite to start again, or write the edited sweep to another file"),
             ({"base": {**EDIT_BASE, "method": {"name": "ehbvm", "k": 12, "s": 3, "r": 2}}, "grid": EDIT_GRID},
-             f"{out}: the sweep file was edited, and the stored run 'pi/30' no longer loads: ")]:
+             f"{out}: the sweep file was edited, and the stored run 'pi/30' no longer loads: "),
+            # the user changed t_end; n_steps follows from it and was named instead (a user trial)
+            ({"base": {**EDIT_BASE, "integration": {"h": "pi/30", "t_end": "4*pi"}}, "grid": EDIT_GRID},
+             f"{out}: the sweep file was edited: integration.t_end of the run 'pi/30', stored complete, changed")]:
         with pytest.raises(OutputError) as caught:
             sweeps.run_to_file(write_sweep(tmp_path, change), out, resume=True, workers=1)
         assert str(caught.value).startswith(message), str(caught.value)
