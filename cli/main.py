@@ -403,8 +403,9 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
     note = f" ({outcome.note})" if outcome.note else ""
     if outcome.status == STATUS_COMPLETE:
         if not quiet:
-            rate = outcome.session_steps / outcome.session_wall_s if outcome.session_wall_s > 0 else float("nan")
-            rate_text = f", {rate:,.0f} steps/s" if outcome.session_steps else ""
+            from .report import _rate
+            rate_text = (f", {_rate(outcome.session_steps, outcome.session_wall_s)}"
+                         if outcome.session_steps and outcome.session_wall_s > 0 else "")
             click.echo(f"{path}: complete, {outcome.steps_done} steps, wall time {outcome.wall_time_s:.3g} s"
                        f"{rate_text}{note}", err=True)
             from elimfast.io.hdf5 import RunFile

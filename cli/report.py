@@ -103,6 +103,12 @@ def relative_drift(run_file, names=None) -> dict[str, float]:
     return relative
 
 
+def _rate(steps, seconds) -> str:
+    """Steps per second, or seconds per step when that is under one (a slow run read '0 steps/s')."""
+    rate = steps / seconds
+    return f"{rate:,.0f} steps/s" if rate >= 1 else f"{seconds / steps:.3g} s/step"
+
+
 def energy_note(run_file) -> str | None:
     """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
     invariant lost more than round-off (relative 1e-12) in a run file."""
@@ -213,6 +219,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     row("method", method + (f", imposing {', '.join(conserve)}" if conserve else ""))
     done = run_file.steps_done
     samples = (f"samples at {a.get('output_times')} requested times" if "output_times" in a
+               else "a sample every step" if str(a.get("output_every")) == "1"
                else f"a sample every {a.get('output_every')} steps")
     if run_file.adaptive:
         h_max = (config_of(run_file).get("integration") or {}).get("h_max")   # in the stored config only
@@ -262,8 +269,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
         for entry in np.atleast_1d(a.get(key) if a.get(key) is not None else []):
             row("resumed", f"{what} {_changed_settings(str(entry))}")
     wall, kernel = run_file.wall_time_s, run_file.kernel_time_s
-    rate = f", {done / wall:,.0f} steps/s" if wall > 0 and done else ""
-    kernel_text = f"; kernel {_fmt_time(kernel)}, {done / kernel:,.0f} steps/s" if kernel > 0 and done else ""
+    rate = f", {_rate(done, wall)}" if wall > 0 and done else ""
+    kernel_text = f"; kernel {_fmt_time(kernel)}, {_rate(done, kernel)}" if kernel > 0 and done else ""
     row("wall time", f"{_fmt_time(wall)}{rate}{kernel_text}")
     row("created", f"{a.get('created')} with elimfast {a.get('elimfast_version')}, numba {a.get('numba_version')}, "
                    f"numpy {a.get('numpy_version')}, h5py {a.get('h5py_version')}")

@@ -484,3 +484,10 @@ def test_cache_clear_kernels_removes_only_elimfasts_numba_files(tmp_path):
     cleared = invoke("cache", "clear", "--kernels", env=env)
     assert cleared.exit_code == 0 and "removed 2 Numba files" in cleared.stdout
     assert not ours.exists() and (other / "f-1.py311.nbi").exists()
+
+
+def test_a_slow_run_reports_seconds_per_step_not_zero_steps_per_second():
+    """A user trial: fpu_beta with 10^4 masses, 10 steps in 66.7 s, read '0 steps/s'."""
+    from elimfast_cli.report import _rate
+    assert _rate(10, 66.7) == "6.67 s/step"
+    assert _rate(200, 0.1) == "2,000 steps/s"
