@@ -497,7 +497,7 @@ def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str],
 
 
 # The smallest singular value of the unit gradients of H and the imposed invariants at y0
-# below which they count as linearly dependent (a few hundred eps). Kepler's circular orbit,
+# below which they count as linearly dependent (about 5000 eps). Kepler's circular orbit,
 # imposing angular momentum: 7.9e-17; at eccentricity e it is 0.35 e. Measured (EHBVM(12,3),
 # h = 0.1, [0, 1000]): e = 1e-10 completes at 1024 iterations per step, e = 1e-8 at 104,
 # e = 1e-6 at 11 (e = 0.01: 4.7); e = 0 took ~2,100 per step for 2,849 steps and then failed

@@ -565,9 +565,9 @@ def step_solver_change(stored: str, current: str) -> str | None:
     return None
 
 
-def step_solver_refusal(path, key: str, what: str = "--resume") -> OutputError:
+def step_solver_refusal(path, key: str) -> OutputError:
     return OutputError(f"{path}: {key} changes the steps themselves (LIM's correction, "
-                       f"docs/methods.md#the-metric-of-the-correction), not only how each is solved, so {what} may "
+                       "docs/methods.md#the-metric-of-the-correction), not only how each is solved, so --resume may "
                        "not change it: start a new run (-o NEW.h5), or replace this one with --overwrite")
 
 

@@ -467,15 +467,11 @@ def test_pendulum_energy_kept_by_hbvm_and_not_by_gauss():
 
 
 def _toda_trace_gradients(y, powers):
-    """NumPy: d tr(L^k)/dy of the periodic Toda Lax matrix (L_xx = -p_x/2, L_x,x+1 = L_x+1,x =
-    a_x = exp((q_x - q_x+1)/2)/2), from d tr(L^k) = k tr(L^(k-1) dL), built densely."""
+    """NumPy: d tr(L^k)/dy of the periodic Toda Lax matrix (lax_matrix: L_xx = -p_x/2,
+    L_x,x+1 = L_x+1,x = a_x = exp((q_x - q_x+1)/2)/2), from d tr(L^k) = k tr(L^(k-1) dL)."""
     n = y.size // 2
-    q, p = y[:n], y[n:]
-    a = 0.5 * np.exp(0.5 * (q - np.roll(q, -1)))
-    L = np.diag(-0.5 * p)
-    for x in range(n):
-        L[x, (x + 1) % n] += a[x]
-        L[(x + 1) % n, x] += a[x]
+    a = 0.5 * np.exp(0.5 * (y[:n] - np.roll(y[:n], -1)))
+    L = lax_matrix(y)
     rows = []
     for k in powers:
         M = np.linalg.matrix_power(L, k - 1)
