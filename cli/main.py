@@ -284,6 +284,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         from elimfast.integrate import Integration
 
         if resume and output is not None and Path(output).is_file():
+            _refuse_resuming_a_sweep(output)
             spec = _stored_spec(output, overrides, config, quiet)   # the run continues from its stored config
         else:
             spec = _load(config, overrides)
@@ -294,6 +295,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         _refuse_writing_over(path, config, "config file")   # output.path may name it too
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
+            _refuse_resuming_a_sweep(path)
             spec = _stored_spec(path, overrides, config, quiet)
         integration = Integration.from_spec(spec)
         from elimfast import streaming
@@ -303,6 +305,17 @@ def run(config, output, overrides, overwrite, resume, quiet):
         resume=resume, progress=streaming.progress_for(quiet), label=label,
         resume_command=_resume_command(config, path))
     return _report_run(outcome, config, path, overrides, quiet)
+
+
+def _refuse_resuming_a_sweep(path) -> None:
+    """run --resume on a sweep's file: say how the sweep is continued (the reader's message told
+    how to name one run for inspect, which run cannot write to)."""
+    from elimfast.io.sweepfile import sweep_file_source
+    source = sweep_file_source(path)
+    if source is not None:
+        import shlex
+        fail(f"{path}: a sweep's file, which elimfast run does not continue: continue the sweep with "
+             f"{shlex.join(['elimfast', 'sweep', source, '-o', str(path), '--resume'])}", EXIT_USAGE)
 
 
 def _refuse_writing_over(output, source, what: str) -> None:

@@ -176,3 +176,23 @@ def test_an_internal_error_is_one_line_with_a_hint(tmp_path, monkeypatch):
     assert "ELIMFAST_DEBUG=1" in result.stderr
     debug = CliRunner().invoke(cli, args, env={"ELIMFAST_DEBUG": "1"})
     assert isinstance(debug.exception, RuntimeError)     # the traceback is there for developers
+
+
+def test_run_refuses_to_resume_a_sweep_file_or_to_write_into_one(tmp_path):
+    """A user trial: `run ... -o SWEEP.h5 --resume` advised naming a run as SWEEP.h5:/runs/<label>,
+    and `run ... -o SWEEP.h5:/runs/<label> --resume` then made a folder 'SWEEP.h5:' and started a
+    new run in it. Both now say how a sweep is continued, exit 2, and write nothing."""
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text("base:\n" + "".join(f"  {line}\n" for line in GOOD.splitlines())
+                     + "grid: [{name: h, key: integration.h, values: [0.1, 0.05]}]\n"
+                     + "set: {integration: {t_end: 2.0, n_steps: null}}\n")
+    out = tmp_path / "sweep.h5"
+    assert CliRunner().invoke(cli, ["sweep", str(sweep), "-o", str(out), "--workers", "1", "-q"]).exit_code == 0
+    config = write(tmp_path, "g.yaml", GOOD)
+    for target, fragment in ((out, f"a sweep's file, which elimfast run does not continue: continue the sweep with "
+                                    f"elimfast sweep {sweep} -o {out} --resume"),
+                             (f"{out}:/runs/0.1", "names a group inside the file")):
+        result = CliRunner().invoke(cli, ["run", config, "-o", str(target), "--resume"])
+        assert result.exit_code == 2, result.output
+        assert_one_line_error(result.stderr, fragment)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.yaml", "sweep.h5", "sweep.yaml"]

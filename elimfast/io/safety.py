@@ -302,6 +302,14 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
     file for update, or creating and removing a probe file), since permission bits say
     nothing for root or on read-only file systems.
     """
+    text = str(path)
+    if ":/" in text and Path(text.split(":/", 1)[0]).is_file():
+        # FILE.h5:/runs/<label> names a run inside a sweep file for inspect, plot and load; as an
+        # output path it made a folder 'FILE.h5:' and a new run in it (a user trial)
+        container = text.split(":/", 1)[0]
+        raise OutputError(f"{path}: names a group inside the file {container}, as inspect, plot and load name a run "
+                          "of a sweep file; a run is written to a file of its own: give -o OUT.h5 (a sweep's runs "
+                          "are continued with elimfast sweep SWEEP.yaml -o SWEEP.h5 --resume)")
     path = Path(path)
     if path.is_dir():
         raise OutputError(f"{path}: is a directory; give a file name such as {path / 'run.h5'}")

@@ -87,6 +87,19 @@ def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False)
             f"elimfast.load('{path}', run='{label}')); {listing}")
 
 
+def sweep_file_source(path) -> str | None:
+    """The sweep file (its stored ``source``, or 'SWEEP.yaml') that wrote ``path``, when ``path``
+    is a sweep's file (grid or ensemble); None for anything else, or a file that cannot be read."""
+    from .safety import _open
+    try:
+        with _open(Path(path)) as f:
+            if str(_plain(f.attrs.get("format", ""))) != SWEEP_FORMAT:
+                return None
+            return str(_plain(f.attrs.get("source", ""))) or "SWEEP.yaml"
+    except Exception:   # noqa: BLE001 -- not readable as a sweep file: the caller's own reader says what it is
+        return None
+
+
 def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
     """(root attributes, [(label, stored, status)] in the grid's order) of a grid sweep's file, or None
     for anything else (a run file, an ensemble sweep's file, a file that cannot be opened:
