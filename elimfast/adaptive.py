@@ -224,8 +224,8 @@ def resolve_t_eval(times, t0: float, t_end: float, store_every: int = 1) -> np.n
     # t_end's own rounding (t0 + n h) may put the last requested time an ulp past it; the margin is
     # relative to |t_end| (t_end * (1 + 1e-15) fell below t_end for t_end < 0 and refused t_end itself)
     if values[0] < t0 or values[-1] > t_end + 1e-15 * abs(t_end) + 1e-300:
-        raise ParameterError("t_eval", f"must lie within the run, [{t0:.17g}, {t_end:.17g}], "
-                                       f"got [{values[0]:.17g}, {values[-1]:.17g}]")
+        raise ParameterError("t_eval", f"must lie within the run, [{float(t0)!r}, {float(t_end)!r}], "
+                                       f"got [{float(values[0])!r}, {float(values[-1])!r}]")
     return values
 
 

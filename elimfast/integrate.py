@@ -887,9 +887,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
     d = diagnostics
     depth = int(d[stepper.DIAG_DEPTH])
-    where = f"at step {step} (t = {t:.17g} -> {t + h:.17g})"
+    where = f"at step {step} (t = {float(t)!r} -> {float(t + h)!r})"
     if depth > 0:
-        where += f", in its substep from t = {d[stepper.DIAG_TIME]:.17g} of h = {d[stepper.DIAG_STEP]:.6g} " \
+        where += f", in its substep from t = {float(d[stepper.DIAG_TIME])!r} of h = {d[stepper.DIAG_STEP]:.6g} " \
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     lim = method.kind.kernel_map == "lim"   # its small system is the Gram matrix, not Gamma
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]

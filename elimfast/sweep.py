@@ -712,7 +712,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
         outcome.wall_time = time.perf_counter() - start
         outcome.steps_done = before
         outcome.status = (f"failed: {where}: a problem function raised {type(error).__name__}: {text[:200]} at step "
-                          f"{step} (t = {run.t:.17g})")
+                          f"{step} (t = {float(run.t)!r})")
         return outcome
     outcome.wall_time = time.perf_counter() - start
     outcome.steps_done = run.steps_done
