@@ -474,7 +474,7 @@ def check(config, overrides):
         steps = f"{adaptive_text(settings)} from t = {spec.t0!r} to {spec.t_end!r}{first}"
     else:
         steps = f"{spec.n_steps} steps of h = {spec.h!r} from t = {spec.t0!r} to {spec.t_end!r}"
-    lines = [f"# {config}: valid",
+    lines = [f"# {config}: the config is valid (the checks of the problem follow)",
              f"# problem {problem.name}, {method.name}"
              + (f" imposing {', '.join(spec.conserve)}" if spec.conserve else "") + f", {steps}"]
     try:
