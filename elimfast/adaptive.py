@@ -13,7 +13,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import ParameterError
+from .errors import ParameterError, exact_time
 from .function_addresses import remembered_addresses
 from .kernels import adaptive as kernel
 from .kernels import codes, stepper
@@ -224,8 +224,8 @@ def resolve_t_eval(times, t0: float, t_end: float, store_every: int = 1) -> np.n
     # t_end's own rounding (t0 + n h) may put the last requested time an ulp past it; the margin is
     # relative to |t_end| (t_end * (1 + 1e-15) fell below t_end for t_end < 0 and refused t_end itself)
     if values[0] < t0 or values[-1] > t_end + 1e-15 * abs(t_end) + 1e-300:
-        raise ParameterError("t_eval", f"must lie within the run, [{float(t0)!r}, {float(t_end)!r}], "
-                                       f"got [{float(values[0])!r}, {float(values[-1])!r}]")
+        raise ParameterError("t_eval", f"must lie within the run, [{exact_time(t0)}, {exact_time(t_end)}], "
+                                       f"got [{exact_time(values[0])}, {exact_time(values[-1])}]")
     return values
 
 

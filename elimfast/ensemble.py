@@ -22,6 +22,7 @@ from typing import Iterable, Iterator
 import numba
 import numpy as np
 
+from .errors import exact_time
 from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
@@ -125,7 +126,7 @@ class EnsembleResult:
         t_start = float(self.t_final[index])  # as integrate says it (after a non-finite step: its end)
         if code == STATUS_EXCEPTION:
             return (f"{self.method.name}: trajectory {index}: a problem function raised an exception (e.g. a "
-                    f"division by zero at a singularity) after step {step - 1} (t = {float(t_start)!r}); run "
+                    f"division by zero at a singularity) after step {step - 1} (t = {exact_time(t_start)}); run "
                     f"elimfast.integrate from this trajectory's y0 to see it")
         message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index])
         name = f"{self.method.name}: "

@@ -65,3 +65,11 @@ class ProblemFunctionError(ElimfastError, RuntimeError):
     """A problem function (H, grad_H, invariants, ...) raised during a run (exit code 1)."""
 
     exit_code = 1
+
+
+def exact_time(t) -> str:
+    """A time as messages write it: the shortest text that reads back as the same float, without
+    a trailing '.0' (t = 0 -> 0.1, t = 0.30000000000000004, t = 50), where 17 digits gave
+    0.20000000000000001."""
+    text = repr(float(t))
+    return text[:-2] if text.endswith(".0") else text

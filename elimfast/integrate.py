@@ -13,7 +13,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from .cache import kernel_folder_used
-from .errors import ConvergenceError, ParameterError
+from .errors import ConvergenceError, ParameterError, exact_time
 from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
@@ -887,9 +887,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
     d = diagnostics
     depth = int(d[stepper.DIAG_DEPTH])
-    where = f"at step {step} (t = {float(t)!r} -> {float(t + h)!r})"
+    where = f"at step {step} (t = {exact_time(t)} -> {exact_time(t + h)})"
     if depth > 0:
-        where += f", in its substep from t = {float(d[stepper.DIAG_TIME])!r} of h = {d[stepper.DIAG_STEP]:.6g} " \
+        where += f", in its substep from t = {exact_time(d[stepper.DIAG_TIME])} of h = {d[stepper.DIAG_STEP]:.6g} " \
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     lim = method.kind.kernel_map == "lim"   # its small system is the Gram matrix, not Gamma
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]

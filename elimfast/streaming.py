@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DiskFullError
+from .errors import DiskFullError, exact_time
 from .io import hdf5
 from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
 from .io.layout import PROBLEM_FILE_DIGEST, problem_file_attributes
@@ -228,7 +228,7 @@ def interrupted_line(signal_name: str | None, steps_done: int, n_steps: int, t: 
     why = f" by {signal_name}" if signal_name else ""
     how = resume_command or "elimfast run CONFIG -o FILE --resume"
     of = f"/{n_steps}" if n_steps is not None else ""   # adaptive steps: no total known
-    return (f"interrupted{why} at step {steps_done}{of} (t = {float(t)!r}); {path} is complete up to there; "
+    return (f"interrupted{why} at step {steps_done}{of} (t = {exact_time(t)}); {path} is complete up to there; "
             f"continue with: {how}")
 
 
@@ -532,8 +532,8 @@ def _problem_raised(integration, step: int, t: float, err: BaseException, writer
         text = text[:197] + "..."
     what = f"{type(err).__name__}: {text}"
     done = writer.saved["steps_done"]
-    return (f"the problem raised {what} at step {step} (t = {float(t)!r})",
-            f"{where}: a problem function raised {what} at step {step} (t = {float(t)!r}); {writer.path} holds "
+    return (f"the problem raised {what} at step {step} (t = {exact_time(t)})",
+            f"{where}: a problem function raised {what} at step {step} (t = {exact_time(t)}); {writer.path} holds "
             f"the {done} steps saved before it; fix the problem, then continue with: "
             f"{_continue_with(resume_command)}")
 
@@ -706,7 +706,7 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
         if not (new_times.size >= count and np.array_equal(new_times[:count], stored_t)):
             raise OutputError(f"{path}: output.times must keep the {count} times already written and add later "
                               "ones: keep its start and step and give a later stop, e.g. --set "
-                              f"output.times.stop={float(new_end)!r}")
+                              f"output.times.stop={exact_time(new_end)}")
         if status == STATUS_COMPLETE and new_times.size > count and new_times[count] <= old_end:
             raise OutputError(f"{path}: output.times adds times before the stored run's end, {old_end:.10g}: "
                               "only later times can be added")

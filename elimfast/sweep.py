@@ -57,7 +57,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import ConvergenceError, ElimfastError
+from .errors import ConvergenceError, ElimfastError, exact_time
 from .io.safety import OutputError, _size   # _size: the one size formatter of the disk and memory messages
 
 
@@ -712,7 +712,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
         outcome.wall_time = time.perf_counter() - start
         outcome.steps_done = before
         outcome.status = (f"failed: {where}: a problem function raised {type(error).__name__}: {text[:200]} at step "
-                          f"{step} (t = {float(run.t)!r})")
+                          f"{step} (t = {exact_time(run.t)})")
         return outcome
     outcome.wall_time = time.perf_counter() - start
     outcome.steps_done = run.steps_done

@@ -260,3 +260,10 @@ def test_a_run_whose_dense_matrices_do_not_fit_is_refused_and_the_fixed_point_ha
     with pytest.raises(ParameterError, match=r"adaptive steps, output times and events store a dense n x n Hessian"):
         elimfast.integrate(small, hbvm(6, 3), t_end=0.1, rtol=1e-8, solver="fixed_point")
     assert driver.dense_matrix_bytes(200_000, hbvm(6, 3), driver.SolverSettings(), adaptive=False) > 1.5e12
+
+
+def test_messages_give_times_in_their_shortest_exact_form():
+    """A user trial: 't = 0.20000000000000001', 't = 46838.800000000003' (17 digits)."""
+    from elimfast.errors import exact_time
+    assert [exact_time(t) for t in (0.0, 0.1 + 0.1, 0.1 + 0.2, 50.0, 46838.8, -1.5, float("inf"))] == \
+        ["0", "0.2", "0.30000000000000004", "50", "46838.8", "-1.5", "inf"]

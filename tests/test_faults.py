@@ -23,6 +23,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
+from elimfast.errors import exact_time
 from elimfast.integrate import Integration
 from elimfast.config import ConfigError, load_run, load_run_from_dict
 from elimfast.io import hdf5
@@ -577,7 +578,7 @@ def test_a_signal_stops_a_kernel_call_that_never_returns(tmp_path, sig):
         assert f.status == "killed" and f.steps_done == saved
         assert f.verify()["checksummed"]
         t = float(f.saved_state()["clock"][0])
-    assert finished.last_line == (f"interrupted by {name} at step {saved}/100000 (t = {t!r}); {path} is complete "
+    assert finished.last_line == (f"interrupted by {name} at step {saved}/100000 (t = {exact_time(t)}); {path} is complete "
                                   f"up to there; continue with: elimfast run {config} -o {path} --resume")
     if sig == signal.SIGINT:                 # fix the problem, resume, compare with a run of the fixed one
         drift_problem(tmp_path, FIXED)
@@ -597,7 +598,7 @@ def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_pa
     result = CliRunner().invoke(cli, ["run", str(config), "-o", str(path)])
     assert result.exit_code == 1, result.output
     with h5py.File(path, "r") as f:          # closed cleanly at the last saved chunk
-        assert f.attrs["status"] == "stopped: the problem raised ValueError: q is beyond the wall at step 50001 (t = 50.0)"
+        assert f.attrs["status"] == "stopped: the problem raised ValueError: q is beyond the wall at step 50001 (t = 50)"
         saved = int(f["state/steps_done"][()])
         # every step before the one that raised is kept (the kernel call that raised had done them:
         # they are taken again and saved), not only those of the chunks written before it
@@ -606,7 +607,7 @@ def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_pa
     errors = "".join(line for line in result.stderr.splitlines(keepends=True)
                      if not line.startswith("compiling "))
     assert errors == (f"error: {tmp_path / 'drift.py'}: a problem function raised ValueError: q is beyond the "
-                      f"wall at step 50001 (t = 50.0); {path} holds the {saved} steps saved before it; fix the "
+                      f"wall at step 50001 (t = 50); {path} holds the {saved} steps saved before it; fix the "
                       f"problem, then continue with: elimfast run {config} -o {path} --resume\n")
     assert "u_" not in result.stderr
     drift_problem(tmp_path, FIXED)
