@@ -430,18 +430,18 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
                 f"polynomial of degree {int(degree)} <= 2k/s) exactly: it is round-off, which grows with the number "
                 "of steps and with the size of the state against the differences H depends on (a drifting "
                 "system's positions, say); more nodes or smaller steps do not reduce it")
+    def listed(errors):
+        return ", ".join(f"{name} {value:.1e}" if len(errors) > 1 else f"{name} error {value:.1e}"
+                         for name, value in errors.items())
+
     roundoff = roundoff or {}
     if all(value <= roundoff.get(name, 0.0) for name, value in above.items()):
-        listed = ", ".join(f"{name} {value:.1e}" if len(above) > 1 else f"{name} error {value:.1e}"
-                           for name, value in above.items())
         bound = max(roundoff[name] for name in above)
-        return (f"{listed} (relative) {'are' if len(above) > 1 else 'is'} above 1e-12 but within what rounding "
+        return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above 1e-12 but within what rounding "
                 f"can accumulate over {steps:,} steps (up to {bound:.0e} here: {ROUNDOFF_PER_STEP:g} eps "
                 "sqrt(steps) times the size of the terms at t0, a random walk): if it is rounding, more nodes or "
                 "smaller steps do not reduce it; a run with a larger k tells")
     above = {name: value for name, value in above.items() if value > roundoff.get(name, 0.0)}
-    listed = ", ".join(f"{name} {value:.1e}" if len(above) > 1 else f"{name} error {value:.1e}"
-                       for name, value in above.items())
     imposed = [name for name in above if name != "H"]
     same_nodes = r is not None and k is not None and int(r) == int(k)   # EHBVM, GHBVM: r = k
     kept = []
@@ -457,7 +457,7 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     where = (f"at h = {h:g}; raise {nodes} or reduce h" if not adaptive
              else f"at the largest steps the step control allows; raise {nodes}, tighten rtol (or epsilon) or "
                   "set h_max")
-    return (f"{listed} (relative) {'are' if len(above) > 1 else 'is'} above round-off: {method_name} keeps "
+    return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off: {method_name} keeps "
             f"{', '.join(kept)} {where}")
 
 
@@ -641,12 +641,11 @@ def dense_matrix_bytes(n: int, method: Method, solver: "SolverSettings", adaptiv
     Newton's Hessian, Jacobian and factorised blocks (or its whole (s n)^2 matrix), twice in an
     adaptive run (its side steps have a workspace of their own), and the adaptive error
     estimate's Hessian; the fixed point has none but that last one."""
-    total = 8 * n * n if adaptive else 0
-    if solver.method != "fixed_point":
-        blocks = method.newton_values.shape[0]
-        newton = 16 * n * n + (16 * blocks * n * n if blocks > 0 else 8 * (method.s * n) ** 2)
-        total += newton * (2 if adaptive else 1)
-    return total
+    from .kernels.workspace import workspace_dense_bytes
+    # the kernels' n_eigenvalues (stepper.newton_eigenvalues): -1 for the fixed point
+    eigenvalues = -1 if solver.method == "fixed_point" else method.newton_values.shape[0]
+    workspaces = 2 if adaptive else 1
+    return workspaces * workspace_dense_bytes(n, method.s, eigenvalues) + (8 * n * n if adaptive else 0)
 
 
 def require_memory(problem: Problem, method: Method, solver: "SolverSettings", adaptive: bool) -> None:

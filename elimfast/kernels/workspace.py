@@ -240,20 +240,38 @@ def borrow_workspace(w):
 INVERSE_MAX_N = 8
 
 
-@njit(cache=True)
-def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
-    """Allocate every array a step needs (sizes as in the Workspace comments). The Newton
-    matrix is factorised in n_eigenvalues complex blocks (tables.newton_values.shape[0]),
-    inverted when n <= INVERSE_MAX_N, when there are some, else whole (the workspace's array
-    shapes say which). n_eigenvalues < 0: the fixed point, which has no Newton matrix, and
-    the n x n arrays are left empty (fpu_beta with 10^5 masses: 640 GB of them)."""
+@njit(cache=True, inline="always")
+def dense_sizes(n, s, n_eigenvalues):
+    """(n_jacobian, n_blocks, n_full, n_scratch, n_real): the sizes of a workspace's dense arrays
+    (hessian and jacobian n_jacobian^2; newton_blocks n_blocks n^2 complex, or newton_matrix
+    n_full^2; newton_block_scratch n_scratch^2 complex; newton_real_inverse n_real^2), for
+    make_workspace and for the memory they take (workspace_dense_bytes). n_eigenvalues < 0: the
+    fixed point, which has no Newton matrix and leaves them all empty (fpu_beta with 10^5
+    masses: 640 GB of them)."""
     newton = n_eigenvalues >= 0
-    n_tilde = nu + 1 if family == FAMILY_LIM else nu
     n_blocks = max(n_eigenvalues, 0)
     n_full = s * n if newton and n_blocks == 0 else 0
     n_scratch = n if n_blocks > 0 and n <= INVERSE_MAX_N else 0
     n_real = n_scratch if s % 2 == 1 else 0     # an odd s has one real eigenvalue of X
     n_jacobian = n if newton else 0
+    return n_jacobian, n_blocks, n_full, n_scratch, n_real
+
+
+def workspace_dense_bytes(n: int, s: int, n_eigenvalues: int) -> int:
+    """The bytes of one workspace's dense arrays (dense_sizes, evaluated in Python)."""
+    n_jacobian, n_blocks, n_full, n_scratch, n_real = dense_sizes.py_func(n, s, n_eigenvalues)
+    return 16 * n_jacobian ** 2 + 16 * n_blocks * n * n + 8 * n_full ** 2 + 16 * n_scratch ** 2 + 8 * n_real ** 2
+
+
+@njit(cache=True)
+def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
+    """Allocate every array a step needs (sizes as in the Workspace comments). The Newton
+    matrix is factorised in n_eigenvalues complex blocks (tables.newton_values.shape[0]),
+    inverted when n <= INVERSE_MAX_N, when there are some, else whole (the workspace's array
+    shapes say which). n_eigenvalues < 0: the fixed point, whose dense arrays are left empty
+    (dense_sizes)."""
+    n_tilde = nu + 1 if family == FAMILY_LIM else nu
+    n_jacobian, n_blocks, n_full, n_scratch, n_real = dense_sizes(n, s, n_eigenvalues)
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
     e_max = min(k - s, 3)   # room for the predictor's extra terms (stepper.predictor_extra_rows)
