@@ -528,3 +528,26 @@ def test_eccentric_orbits_over_20000_time_units_complete(e, h, bound, make, cons
 def test_ehbvm_12_3_completes_on_eccentric_orbits(e, h):
     result = elimfast.integrate(kepler(e), ehbvm(12, 3), h, t_end=20000.0, conserve=[L1, AY], store_every=1000)
     assert result.status == "complete"
+
+
+def test_the_kernels_run_by_the_interpreter_take_the_compiled_steps(tmp_path):
+    """NUMBA_DISABLE_JIT=1 runs the same kernel code in Python (for debugging, and bench/kernel.py's
+    'JIT disabled' row): it must run, and take the compiled kernel's steps to rounding (the
+    interpreter's float arithmetic is the same IEEE arithmetic, but LLVM may contract or reorder).
+    The memory check called a kernel helper's py_func, which a plain function lacks: it failed
+    before the first step."""
+    import json
+    import os
+    import subprocess
+    code = ("import json, elimfast\n"
+            "from elimfast.methods import ehbvm\n"
+            "from elimfast.problems import kepler\n"
+            "r = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=4, conserve=('angular_momentum', 'lrl_y'))\n"
+            "print(json.dumps({'y': r.y_final.tolist(), 'iterations': r.iterations.tolist()}))\n")
+    env = dict(os.environ, NUMBA_DISABLE_JIT="1")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    interpreted = json.loads(done.stdout.strip().splitlines()[-1])
+    compiled = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=4, conserve=(L1, AY))
+    assert np.max(np.abs(np.array(interpreted["y"]) - compiled.y_final)) <= 1e-14
+    assert abs(sum(interpreted["iterations"]) - int(np.sum(compiled.iterations))) <= 2

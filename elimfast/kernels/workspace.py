@@ -259,7 +259,8 @@ def dense_sizes(n, s, n_eigenvalues):
 
 def workspace_dense_bytes(n: int, s: int, n_eigenvalues: int) -> int:
     """The bytes of one workspace's dense arrays (dense_sizes, evaluated in Python)."""
-    n_jacobian, n_blocks, n_full, n_scratch, n_real = dense_sizes.py_func(n, s, n_eigenvalues)
+    # py_func: the plain function (also what dense_sizes is under NUMBA_DISABLE_JIT=1)
+    n_jacobian, n_blocks, n_full, n_scratch, n_real = getattr(dense_sizes, "py_func", dense_sizes)(n, s, n_eigenvalues)
     return 16 * n_jacobian ** 2 + 16 * n_blocks * n * n + 8 * n_full ** 2 + 16 * n_scratch ** 2 + 8 * n_real ** 2
 
 
