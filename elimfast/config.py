@@ -25,7 +25,7 @@ Format (every section but ``problem``, ``method`` and ``integration`` is optiona
     integration: {h: pi/30, t_end: 20*pi, t0: 0}   # or n_steps instead of t_end (both: must agree)
     # integration: {rtol: 1e-12, t_end: 2000*pi}   # adaptive steps (docs/adaptive.md): rtol [atol, h (first
     #   step), h_max, verify], or step_control: time_scale with epsilon; method k defaults to 2s
-    solver: {method: newton, max_halvings: 4}   # optional; see docs/solver.md (method: fixed_point,
+    solver: {method: auto, max_halvings: 4}     # optional; see docs/solver.md (method: newton, fixed_point;
                                                 #   tol, max_iter, predictor, warm_start, rhs, accelerate)
     output: {path: out/kepler.h5, every: 10}        # path as given (the CLI resolves it)
     #   times: {start: 0, stop: 100, step: 0.5}     # or a list: samples at these times (side steps)
@@ -630,7 +630,7 @@ class _Builder:
         except ParameterError as err:
             raise self.parameter_error(err) from None
         events = self.events(problem, config.events)
-        solver = solver.resolved_for(method, len(conserve))
+        solver = solver.resolved_for(method, len(conserve), 2 * problem.degrees_of_freedom)
         integration_record = {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps}
         if step_control is not None:
             integration_record.update({k: v for k, v in step_control.as_dict().items() if v is not None

@@ -28,7 +28,17 @@ kernel_folder_used(in_package=True)
 
 # Defaults of the step solver (all tunables in one place; docs/solver.md).
 SOLVERS = {"newton": codes.SOLVER_NEWTON, "fixed_point": codes.SOLVER_FIXED_POINT}
-DEFAULT_SOLVER = "newton"
+# 'auto' (the default) is resolved per problem (SolverSettings.resolved_for): simplified Newton up to
+# AUTO_NEWTON_MAX_DIMENSION state components, the fixed point above. Newton pays a dense
+# factorisation per step (n^3) and a dense solve per iteration (n^2) to save iterations; the map
+# costs about n (chains) to n^2 (N bodies) per node. Measured, us per step, Newton against the fixed
+# point (HBVM(6,3)): fpu_beta h = 0.05, n = 16: 7 / 5, 64: 28 / 8, 256: 210 / 16, 512: 766 / 24;
+# N bodies in a cold cluster, h = 0.002, n = 36: 18 / 5, 120: 92 / 21, 240: 605 / 115; where the
+# steps are hard Newton wins at small n: Kepler e = 0.6, h = 0.1 (n = 4) 1.55x faster, the solar
+# system at h = 50 (n = 36) 1.15x, the pendulum 1.1x.
+SOLVER_CHOICES = ("auto", *SOLVERS)
+DEFAULT_SOLVER = "auto"
+AUTO_NEWTON_MAX_DIMENSION = 48
 DEFAULT_TOL = 2.0 ** -52          # relative increment at round-off (machine epsilon): accept at once
 MAX_TOL = 1e-8                    # a looser tol would accept iterates far from the solution
 # Iterations per solve (docs/solver.md). 100, except simplified Newton on ELIM imposing
@@ -116,8 +126,10 @@ def _whole_number(name: str, value, low: int, high: int, why: str = "") -> int:
 class SolverSettings:
     """How each step's nonlinear system is solved (docs/solver.md).
 
-    method: 'newton' (simplified Newton, the default) or 'fixed_point' (the paper's
-    iteration, whose counts Table 2 reports); tol: accept an iterate whose relative
+    method: 'auto' (the default: simplified Newton for problems of at most
+    AUTO_NEWTON_MAX_DIMENSION = 48 state components, the fixed point above, docs/solver.md#settings),
+    'newton' (simplified Newton) or 'fixed_point' (the paper's iteration, whose counts Table 2
+    reports); resolved_for replaces 'auto' by the choice; tol: accept an iterate whose relative
     increment is at most this (default: machine epsilon; the rounding band of the
     stopping rule accepts at round-off level in any case); max_iter: iterations per
     solve; max_halvings: how often a failing step may be split in two (0: never);
@@ -142,9 +154,10 @@ class SolverSettings:
     lim_metric: str = "euclidean"
 
     def __post_init__(self):
-        if self.method not in SOLVERS:
-            raise ParameterError("method", f"must be one of {', '.join(SOLVERS)} (simplified Newton, the default, or "
-                                           f"the paper's fixed-point iteration), got {self.method!r}")
+        if self.method not in SOLVER_CHOICES:
+            raise ParameterError("method", f"must be auto (the default: simplified Newton up to "
+                                           f"{AUTO_NEWTON_MAX_DIMENSION} state components, the fixed point above), "
+                                           f"newton or fixed_point, got {self.method!r}")
         try:
             tol = DEFAULT_TOL if self.tol is None else float(self.tol)
         except (TypeError, ValueError):
@@ -180,12 +193,17 @@ class SolverSettings:
         """The kernels' settings.stable_rhs: bit 0 the stable right-hand side, bit 1 LIM's scaled metric."""
         return int(self.rhs == "stable") | (2 if self.lim_metric == "scaled" else 0)
 
-    def resolved_for(self, method: Method, n_imposed: int) -> "SolverSettings":
-        """These settings with max_iter chosen for the method when it was left out (see DEFAULT_MAX_ITER)."""
-        if self.max_iter is not None:
-            return self
-        elim_newton = (self.method == "newton" and method.kernel_family == codes.FAMILY_ELIM and n_imposed > 0)
-        return replace(self, max_iter=DEFAULT_MAX_ITER_ELIM_NEWTON if elim_newton else DEFAULT_MAX_ITER)
+    def resolved_for(self, method: Method, n_imposed: int, dimension: int) -> "SolverSettings":
+        """These settings for a problem with this many state components: 'auto' replaced by the
+        solver it chooses (AUTO_NEWTON_MAX_DIMENSION), and max_iter chosen for the method when it
+        was left out (see DEFAULT_MAX_ITER)."""
+        settings = self
+        if settings.method == "auto":
+            settings = replace(settings, method="newton" if dimension <= AUTO_NEWTON_MAX_DIMENSION else "fixed_point")
+        if settings.max_iter is not None:
+            return settings
+        elim_newton = (settings.method == "newton" and method.kernel_family == codes.FAMILY_ELIM and n_imposed > 0)
+        return replace(settings, max_iter=DEFAULT_MAX_ITER_ELIM_NEWTON if elim_newton else DEFAULT_MAX_ITER)
 
     def as_dict(self) -> dict:
         """The settings as plain data (the resolved config's solver section)."""
@@ -195,6 +213,8 @@ class SolverSettings:
 
     @property
     def code(self) -> int:
+        if self.method not in SOLVERS:
+            raise ValueError(f"solver method {self.method!r} is not resolved: call resolved_for first")
         if self.method == "newton" and self.accelerate:
             return codes.SOLVER_NEWTON_ACCELERATED
         return SOLVERS[self.method]
@@ -721,7 +741,7 @@ class Integration:
         self.h, self.n_steps = resolve_steps(h, n_steps=n_steps)
         self.backward = bool(backward)
         solver = _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs)
-        self.solver = solver.resolved_for(method, len(self.conserve))
+        self.solver = solver.resolved_for(method, len(self.conserve), 2 * problem.degrees_of_freedom)
         require_memory(problem, method, self.solver, adaptive=False)
         self.store_every = resolve_store_every(store_every)
 
@@ -915,6 +935,10 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"
         if run_file:
             advice += "; a failed run can be continued with --resume after changing solver settings"
+    if status == codes.STATUS_NOT_CONVERGED and solver.method == "fixed_point":
+        # simplified Newton gets through steps the fixed point cannot (docs/solver.md); 'auto' takes
+        # the fixed point for large systems without the user having asked for it
+        advice += ", or use simplified Newton (solver.method: newton)"
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
 
 
@@ -948,8 +972,9 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     LIM/GHBVM: any number; must be empty for GAUSS/HBVM). store_every: keep every n-th
     state (the last one always). backward: integrate towards t0 - n_steps h.
 
-    How each step is solved (docs/solver.md): solver 'newton' (simplified Newton, the
-    default) or 'fixed_point' (the paper's iteration), or a SolverSettings; tol: the
+    How each step is solved (docs/solver.md): solver 'auto' (the default: simplified Newton
+    up to 48 state components, the fixed point above), 'newton' (simplified Newton),
+    'fixed_point' (the paper's iteration), or a SolverSettings; tol: the
     round-off acceptance on the relative increment (default machine epsilon, at most
     1e-8); max_iter: iterations per solve (default 100, 30 for Newton on ELIM imposing
     invariants; a step that needs more is split); predictor: start from the previous step's
@@ -1054,7 +1079,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
         raise ValueError("backward runs take fixed steps without t_eval or events; integrate forwards with t_end")
     y_start = resolve_initial_state(problem, y0)
     names, conserve_idx = resolve_conserve(problem, method, conserve, y_start)
-    solver = solver.resolved_for(method, len(names))
+    solver = solver.resolved_for(method, len(names), 2 * problem.degrees_of_freedom)
     store_every = resolve_store_every(store_every)
     if control is not None:
         control = control.for_method(method, len(names))

@@ -302,7 +302,7 @@ def test_state_round_trip_resumes_bit_for_bit():
 
     p, m = kepler(0.9), ehbvm(8, 4)
     names, idx = resolve_conserve(p, m, (L1, AY))
-    solver = SolverSettings().resolved_for(m, 2)
+    solver = SolverSettings().resolved_for(m, 2, 4)
     control = StepControl(rtol=1e-12)
 
     def new_run():

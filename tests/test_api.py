@@ -160,7 +160,9 @@ def test_an_unknown_solver_is_named_by_integrates_keyword():
                 lambda: Integration(problem, ehbvm(8, 4), h=0.1, n_steps=2, solver="newtn")):
         with pytest.raises(ParameterError) as info:
             run()
-        assert str(info.value).startswith("solver must be one of newton, fixed_point"), str(info.value)
+        assert str(info.value).startswith("solver must be auto (the default: simplified Newton up to 48 state "
+                                          "components, the fixed point above), newton or fixed_point, got 'newtn'"), \
+            str(info.value)
         assert info.value.parameter == "solver"
 
 
@@ -253,13 +255,49 @@ def test_a_run_whose_dense_matrices_do_not_fit_is_refused_and_the_fixed_point_ha
     monkeypatch.setattr(driver, "available_memory", lambda: 100_000)
     with pytest.raises(ParameterError, match=r"^solver cannot run here: simplified Newton stores dense n x n "
                                              r"matrices, 0.0 GB at n = 80, .*use the fixed point"):
-        elimfast.integrate(small, hbvm(6, 3), 0.05, n_steps=2)
+        elimfast.integrate(small, hbvm(6, 3), 0.05, n_steps=2, solver="newton")
+    # the default ('auto') takes the fixed point at this size
+    assert elimfast.integrate(small, hbvm(6, 3), 0.05, n_steps=2).status == "complete"
     assert elimfast.integrate(small, hbvm(6, 3), 0.05, n_steps=2, solver="fixed_point").status == "complete"
     assert elimfast.integrate(small, hbvm(6, 3), t_end=0.1, rtol=1e-8, solver="fixed_point").status == "complete"
     monkeypatch.setattr(driver, "available_memory", lambda: 10_000)
     with pytest.raises(ParameterError, match=r"adaptive steps, output times and events store a dense n x n Hessian"):
         elimfast.integrate(small, hbvm(6, 3), t_end=0.1, rtol=1e-8, solver="fixed_point")
-    assert driver.dense_matrix_bytes(200_000, hbvm(6, 3), driver.SolverSettings(), adaptive=False) > 1.5e12
+    assert driver.dense_matrix_bytes(200_000, hbvm(6, 3), driver.SolverSettings(method="newton"), adaptive=False) > 1.5e12
+
+
+def test_the_default_solver_is_newton_for_small_problems_and_the_fixed_point_for_large_ones():
+    """A user trial: fpu_beta with 256 masses (n = 512) ran 32x slower with the default simplified
+    Newton than with the fixed point (766 against 24 us per step): Newton's dense solves and
+    factorisations grow like n^2 and n^3, the map like n. solver 'auto', the default, takes Newton
+    up to 48 state components and the fixed point above; the run is then bit for bit the run of
+    the explicit choice. An unresolved 'auto' never reaches a kernel."""
+    import importlib
+    driver = importlib.import_module("elimfast.integrate")
+    from elimfast.methods import hbvm
+    from elimfast.problems import fpu_beta
+    method = hbvm(6, 3)
+    assert driver.SolverSettings().method == "auto" == driver.DEFAULT_SOLVER
+    assert driver.SolverSettings().resolved_for(method, 0, 48).method == "newton"
+    assert driver.SolverSettings().resolved_for(method, 0, 50).method == "fixed_point"
+    assert driver.SolverSettings(method="newton").resolved_for(method, 0, 4096).method == "newton"
+    with pytest.raises(ValueError, match="not resolved"):
+        driver.SolverSettings().code
+    for masses, expected in ((24, "newton"), (25, "fixed_point")):
+        chain = fpu_beta(n=masses)
+        chosen = elimfast.integrate(chain, method, 0.05, n_steps=20)
+        explicit = elimfast.integrate(chain, method, 0.05, n_steps=20, solver=expected)
+        assert chosen.solver.method == expected
+        np.testing.assert_array_equal(chosen.y_final, explicit.y_final)
+        np.testing.assert_array_equal(chosen.iterations, explicit.iterations)
+    adaptive = elimfast.integrate(fpu_beta(n=25), method, t_end=0.5, rtol=1e-10)
+    assert adaptive.status == "complete" and adaptive.solver.method == "fixed_point"
+    # a step the fixed point cannot solve names Newton in its advice (auto may have chosen the fixed point)
+    from elimfast.errors import ConvergenceError
+    with pytest.raises(ConvergenceError, match=r"; reduce h, or allow more step halvings \(solver.max_halvings = 0 "
+                                               r"now\), or use simplified Newton \(solver.method: newton\)$"):
+        elimfast.integrate(elimfast.problems.kepler(0.9), method, 1.0, n_steps=4, solver="fixed_point",
+                           max_halvings=0)
 
 
 def test_messages_give_times_in_their_shortest_exact_form():

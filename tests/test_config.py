@@ -78,8 +78,9 @@ def test_kepler_config_is_the_make_run_config():
     assert spec.method.name == "EHBVM(12,3)" and spec.conserve == ("angular_momentum", "lrl_y")
     assert (spec.h, spec.t0, spec.t_end, spec.n_steps) == (0.1, 0.0, 1000.0, 10000)
     assert (spec.output_path, spec.output_every) == ("out/kepler.h5", 10)
-    # simplified Newton with the defaults of docs/solver.md (max_iter 30: ELIM imposing invariants)
-    assert spec.solver == SolverSettings(max_iter=30)
+    # simplified Newton (solver 'auto' at n = 4) with the defaults of docs/solver.md (max_iter 30: ELIM
+    # imposing invariants)
+    assert spec.solver == SolverSettings(method="newton", max_iter=30)
     assert (spec.solver.method, spec.solver.max_iter, spec.solver.max_halvings) == ("newton", 30, 4)
     assert spec.problem.name == "kepler" and spec.problem.parameters == {"eccentricity": 0.6}
 
@@ -132,6 +133,23 @@ def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
                                   "predictor": True, "warm_start": True, "rhs": "stable", "accelerate": True,
                                   "lim_metric": "euclidean"}
     yaml.safe_dump(resolved)
+
+
+def test_the_resolved_config_records_the_solver_that_auto_chose():
+    """solver.method 'auto' (the default) is resolved per problem, and the resolved config (stored in
+    the output, compared by --resume) holds the choice: simplified Newton up to 48 state components,
+    the fixed point above; an explicit choice is kept."""
+    def chain(masses, **solver):
+        data = {"problem": {"builtin": "fpu_beta", "parameters": {"n": masses}},
+                "method": {"name": "hbvm", "k": 6, "s": 3}, "integration": {"h": 0.05, "n_steps": 5}}
+        if solver:
+            data["solver"] = solver
+        return load_run_from_dict(data)
+    assert chain(24).resolved["solver"]["method"] == "newton"          # n = 48
+    assert chain(25).resolved["solver"]["method"] == "fixed_point"     # n = 50
+    assert chain(25, method="auto").solver.method == "fixed_point"
+    assert chain(25, method="newton").resolved["solver"]["method"] == "newton"
+    assert chain(24, method="fixed_point").resolved["solver"]["method"] == "fixed_point"
 
 
 def test_builtin_parameters_and_initial_overrides():
@@ -205,7 +223,7 @@ BAD = [
     ("rhs literal only", _set(("solver", "rhs"), "fancy"), "solver.rhs", "'stable' or 'literal'"),
     ("tol negative", _set(("solver", "tol"), -1), "solver.tol", "must be >= 0"),
     ("max_iter zero", _set(("solver", "max_iter"), 0), "solver.max_iter", "must be >= 1"),
-    ("solver unknown", _set(("solver", "method"), "newtn"), "solver.method", "must be one of newton, fixed_point"),
+    ("solver unknown", _set(("solver", "method"), "newtn"), "solver.method", r"must be auto \(the default: simplified Newton up to 48 state components, the fixed point above\), newton or fixed_point"),
     ("halvings too many", _set(("solver", "max_halvings"), 64), "solver.max_halvings", "must be <= 20"),
     ("every zero", _set(("output", "every"), 0), "output.every", "must be >= 1"),
     ("section not mapping", _set(("solver",), "fast"), "solver", "must be a mapping"),

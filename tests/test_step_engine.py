@@ -360,9 +360,9 @@ def test_solver_settings_are_validated_with_the_parameter_named():
         assert caught.value.parameter == parameter
         assert str(caught.value).startswith(parameter)
     newton, fixed = SolverSettings(), SolverSettings(method="fixed_point")
-    assert newton.resolved_for(ehbvm(12, 3), 2).max_iter == 30 and newton.resolved_for(ehbvm(12, 3), 0).max_iter == 100
-    assert newton.resolved_for(ghbvm(12, 3), 2).max_iter == 100 and fixed.resolved_for(ehbvm(12, 3), 2).max_iter == 100
-    assert SolverSettings(max_iter=7).resolved_for(ehbvm(12, 3), 2).max_iter == 7
+    assert newton.resolved_for(ehbvm(12, 3), 2, 4).max_iter == 30 and newton.resolved_for(ehbvm(12, 3), 0, 4).max_iter == 100
+    assert newton.resolved_for(ghbvm(12, 3), 2, 4).max_iter == 100 and fixed.resolved_for(ehbvm(12, 3), 2, 4).max_iter == 100
+    assert SolverSettings(max_iter=7).resolved_for(ehbvm(12, 3), 2, 4).max_iter == 7
 
 
 def test_energy_warning_names_k_and_h_when_quadrature_loses_H():
