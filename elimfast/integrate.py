@@ -933,12 +933,12 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         advice = _NEARLY_SINGULAR_ADVICE
     elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"
-        if run_file:
-            advice += "; a failed run can be continued with --resume after changing solver settings"
     if status == codes.STATUS_NOT_CONVERGED and solver.method == "fixed_point":
         # simplified Newton gets through steps the fixed point cannot (docs/solver.md); 'auto' takes
         # the fixed point for large systems without the user having asked for it
         advice += ", or use simplified Newton (solver.method: newton)"
+    if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive and run_file:
+        advice += "; a failed run can be continued with --resume after changing solver settings"
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
 
 
