@@ -417,8 +417,10 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
     if outcome.status == STATUS_COMPLETE:
         if not quiet:
             from .report import _rate
-            rate_text = (f", {_rate(outcome.session_steps, outcome.session_wall_s)}"
-                         if outcome.session_steps and outcome.session_wall_s > 0 else "")
+            # the rate of the figures printed beside it (and by inspect): the run's steps over its wall
+            # time; this session's steps over this session's elapsed time printed another number
+            rate_text = (f", {_rate(outcome.steps_done, outcome.wall_time_s)}"
+                         if outcome.steps_done and outcome.wall_time_s > 0 else "")
             click.echo(f"{path}: complete, {outcome.steps_done} steps, wall time {outcome.wall_time_s:.3g} s"
                        f"{rate_text}{note}", err=True)
             from elimfast.io.hdf5 import RunFile
@@ -578,11 +580,12 @@ def inspect(file):
               default="invariants",
               show_default=True, help="orbit: the trajectory; invariants: |I(t) - I(t0)| on a log scale; "
                                       "alpha: the multipliers per step (lambda for LIM); iterations: per step; "
-                                      "section: the states at the run's first event (a surface of section).")
+                                      "section: the states at an event (a surface of section; --event).")
+@click.option("--event", metavar="NAME", help="The event of --kind section (default: the run's first).")
 @click.option("-o", "--output", metavar="FIG.png", callback=_file_name,
               help="Image file (default: OUT_<kind>.png beside OUT.h5); the suffix picks the format (png, pdf, svg).")
 @click.option("--overwrite", is_flag=True, help="Replace FIG if it exists.")
-def plot(file, kind, output, overwrite):
+def plot(file, kind, output, overwrite, event):
     """Plot a run file (or one run of a sweep file, SWEEP.h5:/runs/<label>) with matplotlib (headless).
 
     \b
@@ -608,7 +611,7 @@ def plot(file, kind, output, overwrite):
     if not path.exists():
         check_creatable(path)   # missing directories are made as `run` makes them, once the figure is drawn
     with RunFile(file) as run_file:
-        plot_run(run_file, kind, path)
+        plot_run(run_file, kind, path, event)
     click.echo(str(path))
     return EXIT_OK
 

@@ -99,15 +99,15 @@ def _bodies(names):
     return None, None
 
 
-def plot_run(run_file, kind: str, path) -> None:
+def plot_run(run_file, kind: str, path, event: str | None = None) -> None:
     """Draw one plot kind of a run into the image file ``path``, creating its missing
-    directories (as a run file's writer does)."""
+    directories (as a run file's writer does); event: the section's event (kind section)."""
     import matplotlib.pyplot as plt
 
     from elimfast.io.safety import create_parent_directories
 
     check_image_path(path)
-    figure = draw(run_file, kind)
+    figure = draw(run_file, kind, event)
     try:
         create_parent_directories(path)
         figure.savefig(path)
@@ -115,8 +115,11 @@ def plot_run(run_file, kind: str, path) -> None:
         plt.close(figure)
 
 
-def draw(run_file, kind: str):
-    """The matplotlib figure of one plot kind (the caller saves and closes it)."""
+def draw(run_file, kind: str, event: str | None = None):
+    """The matplotlib figure of one plot kind (the caller saves and closes it); event: the
+    section's event (kind section; default: the run's first)."""
+    if event is not None and kind != "section":
+        raise PlotError(f"--event chooses the event of --kind section, not of --kind {kind}")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -136,7 +139,7 @@ def draw(run_file, kind: str):
         elif kind == "iterations":
             _iterations(run_file, axes)
         elif kind == "section":
-            _section(run_file, axes)
+            _section(run_file, axes, event)
         else:
             raise PlotError(f"unknown plot kind {kind!r}; use orbit, invariants, alpha, iterations or section")
         axes.set_title(plot_title(run_file), fontsize="medium")
@@ -259,22 +262,28 @@ def _step_times(run_file, count: int, stride: int) -> np.ndarray:
     return float(attrs["t0"]) + float(attrs["h"]) * (np.arange(0, count, stride) + 1)
 
 
-def _section(run_file, axes) -> None:
-    """A surface of section: the states at the occurrences of the run's first event, the last
-    q against the last p (Henon-Heiles with the event q1 = 0: the (q2, p2) plane)."""
+def _section(run_file, axes, event: str | None = None) -> None:
+    """A surface of section: the states at the occurrences of an event (the run's first unless
+    event names one), the last q against the last p (Henon-Heiles with the event q1 = 0: the
+    (q2, p2) plane)."""
     names = run_file.event_names()
     if not names:
         raise PlotError(f"{run_file.name}: the run has no events; a section plot needs one, e.g. events: "
                         "{section: {expression: q1, direction: 1}} (docs/adaptive.md)")
-    times, states = run_file.event(names[0])
+    if event is not None and event not in names:
+        raise PlotError(f"{run_file.name}: the run has no event {event!r}; its events: {', '.join(names)}")
+    name = names[0] if event is None else event
+    times, states = run_file.event(name)
     if times.size == 0:
-        raise PlotError(f"{run_file.name}: event {names[0]!r} never occurred; nothing to draw")
+        others = ", ".join(repr(n) for n in names if n != name)
+        hint = f"; choose another with --event ({others})" if others else ""
+        raise PlotError(f"{run_file.name}: event {name!r} never occurred; nothing to draw{hint}")
     coordinates = run_file.coordinate_names
     m = len(coordinates) // 2
     axes.plot(states[:, m - 1], states[:, 2 * m - 1], ".", ms=2.0, color="k")
     axes.set_xlabel(coordinates[m - 1])
     axes.set_ylabel(coordinates[2 * m - 1])
-    axes.annotate(f"{times.size} crossings of {names[0]}", (0.01, 0.01), xycoords="axes fraction",
+    axes.annotate(f"{times.size} crossings of {name}", (0.01, 0.01), xycoords="axes fraction",
                   fontsize="small", color="0.4")
 
 

@@ -158,8 +158,9 @@ UNIMPOSED_DEGENERATE_FRACTION = 0.01
 
 def unimposed_text(count: int, steps_done: int) -> str:
     """What a run's steps with a substep taken without imposing the invariants mean (docs/solver.md)."""
-    text = (f"{count:,} step(s) had a substep the solver could not converge even after the last halving, "
-            "taken without imposing the invariants because that kept them to round-off (their alpha is NaN; "
+    text = (f"{count:,} step(s) were taken, or had a substep taken, without imposing the invariants, because "
+            "imposing failed there (alpha was rounding over rounding, or the solver could not converge even after "
+            "the last halving) and the step kept them to round-off anyway (their alpha is NaN; "
             "docs/solver.md#a-substep-without-imposing)")
     if count > UNIMPOSED_DEGENERATE_FRACTION * steps_done:
         text += ("; that many means the imposed invariants are degenerate along this orbit (e.g. L on a "

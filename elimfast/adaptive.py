@@ -601,9 +601,11 @@ class AdaptiveIntegration:
 
     @property
     def _kernel_t_eval(self) -> np.ndarray:
-        """The requested times after t0 (a requested t0 is the initial sample)."""
+        """The requested times after t0 (a requested t0 is the initial sample). When t0 was the only
+        one: [inf], a time no step reaches, since an empty t_eval tells the kernel to sample every
+        store_every steps (t_eval = [t0] stored every step)."""
         if self.t_eval.size and self.t_eval[0] == self.t0:
-            return self.t_eval[1:]
+            return self.t_eval[1:] if self.t_eval.size > 1 else np.array([np.inf])
         return self.t_eval
 
     def stats(self) -> dict:

@@ -708,6 +708,9 @@ class _Builder:
             else:
                 if not times.step > 0:
                     raise ParameterError("t_eval", f"step must be > 0, got {compact_number(times.step)}")
+                if not times.stop >= times.start:
+                    raise ParameterError("t_eval", f"stop {compact_number(times.stop)} is before start "
+                                                   f"{compact_number(times.start)}; give stop >= start")
                 count = int(np.floor((times.stop - times.start) / times.step * (1 + 1e-12))) + 1
                 if not 1 <= count <= MAX_OUTPUT_TIMES:
                     raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")

@@ -567,7 +567,9 @@ def suggest(word, options, label: str) -> str:
     """'did you mean 'x'? (label: a, b, c)' or 'label: a, b, c' (for the fix of an unknown name)."""
     options = [str(o) for o in options]
     listed = ", ".join(options) or "none"
-    close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    # an option differing only in case or in '_' first (timescale -> time_scale), then difflib's
+    close = [o for o in options if o.lower().replace("_", "") == str(word).lower().replace("_", "")][:1] or \
+        difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
     if not close:   # an abbreviation (dir for direction) is too short for difflib's ratio
         close = [o for o in options if len(str(word)) >= 2 and o.startswith(str(word))][:2]
         close = close if len(close) == 1 else []

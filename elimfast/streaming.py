@@ -710,6 +710,13 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
         if status == STATUS_COMPLETE and new_times.size > count and new_times[count] <= old_end:
             raise OutputError(f"{path}: output.times adds times before the stored run's end, {old_end:.10g}: "
                               "only later times can be added")
+        if new_times.size == count and new_times[-1] <= old_end:
+            # Once the run has gone on, samples before its new end cannot be added: an extension without
+            # them left half a run unsampled, and the advice to add them was refused (a user trial).
+            raise OutputError(f"{path}: output.times stops at {exact_time(float(new_times[-1]))}, so the run "
+                              f"continued to t_end = {exact_time(new_end)} would have no samples after "
+                              f"{exact_time(old_end)}, and they cannot be added later: extend output.times with "
+                              f"it, keeping its start and step, e.g. --set output.times.stop={exact_time(new_end)}")
     return {"t_end": new_end, "n_steps": getattr(integration, "n_steps", None),
             "output_times": new_times.size if new_times.size else None}
 
@@ -798,10 +805,6 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
             if extension is not None:
                 note += f", continued to t_end = {extension['t_end']:.10g} (it ended at {float(attrs['t_end']):.10g})"
-                times = integration_t_eval(integration)
-                if times.size and times[-1] <= float(attrs["t_end"]):
-                    note += (f"; output.times stops at {times[-1]:.10g}: no samples were added (--set "
-                             "output.times.stop=LATER, with the same start and step, adds them)")
             if source_file is not None:
                 note += (f"; the problem file {integration.problem.source_file} has changed since the run began: "
                          f"the {saved['steps_done']} steps before used the old one (problem_file_history)")

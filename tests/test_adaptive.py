@@ -144,6 +144,16 @@ def test_t_eval_samples_have_the_accuracy_of_the_steps(e09_ten_periods):
     assert r.stats["side_steps"] >= 1400
 
 
+def test_t_eval_of_t0_alone_gives_that_one_sample():
+    """A user trial: output.times [0] (t0 only) stored every step instead: t0 is the initial sample,
+    and the kernel took the empty list of later times for 'no output times'."""
+    for run in (lambda: elimfast.integrate(kepler(0.6), ehbvm(8, 4), t_end=2 * PERIOD, rtol=1e-10, t_eval=[0.0]),
+                lambda: elimfast.integrate(kepler(0.6), ehbvm(8, 4), 0.1, n_steps=50, t_eval=[0.0])):
+        result = run()
+        assert result.status == "complete" and result.t.tolist() == [0.0] and result.steps_done > 40
+        np.testing.assert_array_equal(result.y[0], kepler(0.6).y0)
+
+
 def test_t_eval_with_fixed_steps_matches_the_fixed_run():
     p = kepler(0.6)
     fixed = elimfast.integrate(p, ehbvm(12, 3), 0.1, n_steps=100, conserve=(L1, AY))
@@ -518,10 +528,15 @@ def test_a_time_scale_that_reaches_zero_along_the_orbit_is_named_in_the_failure(
                                                r"must stay positive and finite") as failed:
         elimfast.integrate(p, hbvm(8, 4), t_end=1.0, step_control="time_scale")
     assert failed.value.result.steps_done > 100   # the steps before it are kept
+    # Imposing L the steps that grow too short for Gamma are taken unimposed (docs/solver.md#a-substep-without-
+    # imposing), and the run reaches the collapse; with that fallback off, the solver fails first and its
+    # message gives sigma there and at t0
+    with pytest.raises(ConvergenceError, match=r"EHBVM\(8,4\): the problem's time scale collapsed"):
+        elimfast.integrate(p, ehbvm(8, 4), t_end=1.0, step_control="time_scale", conserve=["L"])
     with pytest.raises(ConvergenceError, match=r"\(time scale sigma\(y\) = \S+ there, 0\.4 at t0: steps are "
                                                r"epsilon sigma; a sigma that nears zero along the orbit makes them "
                                                r"collapse\)"):
-        elimfast.integrate(p, ehbvm(8, 4), t_end=1.0, step_control="time_scale", conserve=["L"])
+        elimfast.integrate(p, ehbvm(8, 4), t_end=1.0, step_control="time_scale", conserve=["L"], max_halvings=0)
 
 
 def test_lim_imposing_invariants_of_very_different_sizes_starts_at_a_pericentre():
@@ -673,6 +688,23 @@ def test_a_failed_adaptive_run_gives_advice_about_the_method_not_h():
     # round-off: H moves by ~2e-16 a step in a random walk (no drift, measured over 1e4 steps with and
     # without the secant acceleration), whose standard deviation after 1000 steps is 6e-15
     assert max(done.invariant_errors().values()) < 3e-14
+
+
+def test_an_almost_parabolic_orbit_and_a_tiny_span_complete_imposing_two_invariants():
+    """A user trial: adaptive EHBVM(8,4) imposing L and A_y failed at its first step on Kepler
+    e = 0.9999 (and on any orbit with t_end = 1e-10), after halving the step 40 times, blaming
+    Assumption 1: at the pericentre of so eccentric an orbit, and at any step that short, Gamma is
+    rounding. Those steps are now taken unimposed when that keeps the invariants to rounding
+    (stepper.try_step), and the controller does not hold back a step for the failed imposed solve
+    that preceded it (it shrank every step by 0.8, to 1e-10 and 20,000 steps an orbit)."""
+    orbit = kepler(0.9999)
+    result = elimfast.integrate(orbit, ehbvm(8, 4), t_end=PERIOD, rtol=1e-12, conserve=(L1, AY), store_every=10 ** 6)
+    assert result.status == "complete" and result.steps_done <= 400
+    assert 1 <= result.unimposed_steps < result.steps_done / 2
+    errors = result.relative_invariant_errors()
+    assert errors[L1] < 1e-13 and errors[AY] < 1e-13
+    tiny = elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=1e-10, rtol=1e-12, conserve=(L1, AY))
+    assert tiny.status == "complete" and tiny.steps_done <= 3 and tiny.t[-1] == 1e-10
 
 
 def test_a_failed_adaptive_run_within_the_measured_s_is_not_told_to_lower_s():

@@ -239,6 +239,26 @@ def test_section_plot_of_the_henon_heiles_config(tmp_path):
                              "--quiet", "--set", "integration.t_end=10", "--set", "events=null"])
     refused = CliRunner().invoke(cli, ["plot", str(plain), "--kind", "section", "-o", str(tmp_path / "x.png")])
     assert refused.exit_code != 0 and "has no events" in refused.output and "Traceback" not in refused.output
+    # A user trial: the section was always the first event, so a first event that never occurred (or
+    # one that is no section) left no way to draw the others: --event chooses
+    two = tmp_path / "two.h5"
+    ran = CliRunner().invoke(cli, ["run", str(root / "configs" / "henon_heiles_section.yaml"), "-o", str(two),
+                                   "--quiet", "--set", "integration.t_end=100", "--set",
+                                   'events={never: "q1 - 100", section: {expression: q1, direction: 1}}'])
+    assert ran.exit_code == 0, ran.output
+    first = CliRunner().invoke(cli, ["plot", str(two), "--kind", "section", "-o", str(tmp_path / "n.png")])
+    assert first.exit_code != 0 and "event 'never' never occurred" in first.output
+    assert "choose another with --event ('section')" in first.output
+    chosen = CliRunner().invoke(cli, ["plot", str(two), "--kind", "section", "--event", "section",
+                                      "-o", str(tmp_path / "s.png")])
+    assert chosen.exit_code == 0, chosen.output
+    assert (tmp_path / "s.png").stat().st_size > 5000
+    unknown = CliRunner().invoke(cli, ["plot", str(two), "--kind", "section", "--event", "sectoin",
+                                       "-o", str(tmp_path / "u.png")])
+    assert unknown.exit_code != 0 and "no event 'sectoin'; its events: never, section" in unknown.output
+    wrong_kind = CliRunner().invoke(cli, ["plot", str(two), "--kind", "orbit", "--event", "section",
+                                          "-o", str(tmp_path / "o.png")])
+    assert wrong_kind.exit_code != 0 and "--event chooses the event of --kind section" in wrong_kind.output
 
 
 def test_rtol_sweep_prints_error_against_work(tmp_path):
@@ -322,6 +342,15 @@ def test_an_adaptive_run_continued_to_a_later_end_with_more_output_times(tmp_pat
     removed = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set",
                                        "integration.t_end=60*pi", "--set", "output.times=null"])
     assert removed.exit_code == 2 and "output.times cannot be removed on --resume" in removed.stderr
+    # A user trial: a later t_end alone ran the extension without samples, and the advice printed then
+    # (a later output.times.stop) was refused, the times being before the new end: refused up front now
+    unsampled = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set",
+                                         "integration.t_end=60*pi"])
+    assert unsampled.exit_code == 2, unsampled.stderr
+    assert ("output.times stops at 125.5, so the run continued to t_end = 188.49555921538757 "
+            "would have no samples after 125.66370614359172") in unsampled.stderr
+    with h5py.File(out, "r") as f:
+        assert f.attrs["output_times"] == 503 and f["t"].shape[0] == 503
 
 
 def test_a_run_ended_by_a_terminal_event_is_not_continued_past_it(tmp_path):

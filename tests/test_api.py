@@ -120,11 +120,17 @@ def test_the_step_engine_completes_the_run_the_fixed_point_could_not(kepler):
 
 def test_singular_gamma_is_reported_not_nan(central_quartic):
     # Radial motion (q2 = p2 = 0): L = 0 all along, so phi_j^T gamma_j = 0 and Gamma is singular,
-    # though grad L and grad H are independent at y0.
+    # though grad L and grad H are independent at y0. Without the fallback (max_halvings = 0) that is
+    # the run's failure, named as such; with it every step is taken unimposed, which keeps L = 0
+    # exactly (docs/solver.md#a-substep-without-imposing), and the run says so (alpha NaN).
     with pytest.raises(elimfast.ConvergenceError) as caught:
         elimfast.integrate(central_quartic, ehbvm(6, 3), 0.1, n_steps=5, conserve=["angular_momentum"],
-                           y0=[0.5, 0.0, 0.0, 0.0])
+                           y0=[0.5, 0.0, 0.0, 0.0], max_halvings=0)
     assert caught.value.reason == "singular" and "Gamma" in str(caught.value)
+    radial = elimfast.integrate(central_quartic, ehbvm(6, 3), 0.1, n_steps=5, conserve=["angular_momentum"],
+                                y0=[0.5, 0.0, 0.0, 0.0])
+    assert radial.status == "complete" and radial.unimposed_steps == 5
+    assert radial.invariant_errors()["angular_momentum"] == 0.0
     # At the origin at rest nothing moves and grad H = 0: refused before the first step
     from elimfast.errors import ParameterError
     with pytest.raises(ParameterError, match=r"^conserve names 'angular_momentum', but grad H "

@@ -49,6 +49,10 @@ def test_run_quiet_prints_nothing_and_the_default_prints_one_line(tmp_path):
     loud = invoke("run", KEPLER, "-o", tmp_path / "q.h5", "--overwrite", *SHORT)
     assert loud.exit_code == 0 and loud.stdout == ""
     assert loud.stderr.count("\n") == 1 and "complete, 200 steps" in loud.stderr and "steps/s" in loud.stderr
+    # the rate is that of the figures beside it (a user trial: 41 steps, wall time 0.00384 s, 7,040 steps/s)
+    import re
+    wall, rate = re.search(r"wall time (\S+) s, ([\d,]+) steps/s", loud.stderr).groups()
+    assert abs(200 / float(wall) / float(rate.replace(",", "")) - 1) < 0.01 + 1 / float(rate.replace(",", ""))
 
 
 def test_inspect_summary(kepler_file):
@@ -137,17 +141,17 @@ def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file,
         alpha = f["steps/alpha"][:]
         f["steps/alpha"][5] = np.nan
     text = invoke("inspect", path).stdout
-    assert "1 step(s) had a substep the solver could not converge even after the last halving" in text
+    assert "1 step(s) were taken, or had a substep taken, without imposing the invariants, because imposing failed there" in text
     largest = np.max(np.abs(np.delete(alpha, 5, axis=0)), axis=0)
     assert f"{largest[0]:.3e} (angular_momentum), {largest[1]:.3e} (lrl_y)" in text
     with RunFile(path) as run_file:
-        assert any("taken without imposing the invariants" in note for note in run_notes(run_file))
+        assert any("without imposing the invariants, because imposing failed" in note for note in run_notes(run_file))
     assert "without imposing" not in invoke("inspect", kepler_file).stdout
     assert "degenerate along this orbit" not in text    # 1 of 200 steps: a transient zero of Gamma
     with h5py.File(path, "r+") as f:                    # most steps: L on a circular orbit did that
         f["steps/alpha"][:150] = np.nan
     text = invoke("inspect", path).stdout
-    assert "150 step(s) had a substep" in text and "degenerate along this orbit" in text
+    assert "150 step(s) were taken, or had a substep taken" in text and "degenerate along this orbit" in text
 
 
 def test_inspect_says_the_initial_state_comes_from_problem_initial(kepler_file, tmp_path):

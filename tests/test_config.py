@@ -399,7 +399,8 @@ def test_every_schema_error_of_a_file_names_a_line(tmp_path):
     ({"start": 0, "stop": 10, "stepp": 1}, "output.times.stepp", r"unknown key; did you mean 'step'\?"),
     ([0.5, "x"], "output.times[1]", r"'x' is not a number"),
     ([0.5, float("nan")], "output.times[1]", "must be finite"),
-], ids=["missing start", "misspelt step", "list item not a number", "list item nan"])
+    ({"start": 5, "stop": 1, "step": 1}, "output.times", r"stop 1(\.0)? is before start 5(\.0)?; give stop >= start$"),
+], ids=["missing start", "misspelt step", "list item not a number", "list item nan", "stop before start"])
 def test_output_times_errors_name_the_key_as_written_in_the_config(tmp_path, times, key, match):
     """A mapping of output.times was reported as output.times.TimesSection.start, the name
     of pydantic's model in the key path, and a misspelt key in it as 'unknown key; remove it';

@@ -143,6 +143,10 @@ def test_error_names_the_offending_token():
     with pytest.raises(ExpressionError) as info:
         parse("q1 + q3", NAMES)
     assert info.value.token == "q3" and "did you mean 'q" in str(info.value)
+    # a user trial: P2 was 'did you mean q2' (difflib's ratio); a name differing only in case comes first
+    with pytest.raises(ExpressionError, match=r"did you mean 'p2'\?") as info:
+        parse("q1*p1 + q2*P2", NAMES)
+    assert info.value.token == "P2"
 
 
 @pytest.mark.parametrize("name,ok", [

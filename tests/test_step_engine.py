@@ -329,6 +329,25 @@ def test_a_substep_that_cannot_impose_is_taken_unimposed_when_that_keeps_the_inv
 
 
 
+def test_a_step_too_short_for_gamma_is_taken_unimposed_at_once():
+    """A user trial: EHBVM imposing L and A_y could not take a step of 1e-8 (Kepler e = 0.6): Gamma's
+    entries are Legendre coefficients of index s - nu.. (~h^j), below the rounding of the sums that
+    form them, so alpha is rounding over rounding and the solve ends singular; splitting made it worse,
+    down to the deepest substep, and the run stopped blaming Assumption 1. Such a step keeps the
+    invariants without imposing them: it is taken unimposed at once (alpha NaN, no halving), and the
+    invariants stay at round-off. With the fallback off (max_halvings = 0) it still fails."""
+    for h in (1e-8, 1e-9):
+        result = elimfast.integrate(kepler(0.6), ehbvm(12, 3), h, n_steps=3, conserve=(L1, AY))
+        assert result.status == "complete" and np.all(result.substeps == 1)
+        assert result.unimposed_steps >= 1
+        assert max(result.relative_invariant_errors().values()) <= 4 * np.finfo(float).eps
+    with pytest.raises(elimfast.errors.ConvergenceError, match="singular"):
+        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 1e-8, n_steps=3, conserve=(L1, AY), max_halvings=0)
+    # at ordinary steps nothing changes: every step imposes (the README's run, its first 300 steps)
+    ordinary = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=300, conserve=(L1, AY))
+    assert ordinary.unimposed_steps == 0
+
+
 def test_secant_acceleration_saves_iterations_where_one_mode_is_slow():
     """docs/solver.md#secant-acceleration. Adaptive EHBVM(8,4) on Kepler e = 0.9: near pericentre
     plain simplified Newton contracts by only ~1/40 per iteration (alpha's response to the stages,

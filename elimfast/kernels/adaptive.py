@@ -220,7 +220,8 @@ def side_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserv
     side_last_h[0] = h_side
     status, iterations, _ = try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                      y_side, side_comp, side_clock, side_coef, side_extra, side_mult, h_side,
-                                     side_last_h, newton_base, np.bool_(True), diagnostics, np.bool_(False))
+                                     side_last_h, newton_base, np.bool_(True), diagnostics, np.bool_(False),
+                                     settings.max_halvings > 0)
     return status, iterations
 
 
@@ -435,7 +436,8 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             global_step > 0, diagnostics_view,
             # the error controller retries a failed step with half of it (its main steps are not split):
             # the unimposed substep is its last resort; max_halvings = 0 turns it off, as it does the splitting
-            max_halvings > 0 and (control != CONTROL_ERROR or consecutive_failures + 1 >= MAX_CONSECUTIVE_FAILURES))
+            max_halvings > 0 and (control != CONTROL_ERROR or consecutive_failures + 1 >= MAX_CONSECUTIVE_FAILURES),
+            max_halvings > 0)
         unimposed = work.info[5]
         counters[CNT_ITERATIONS] += iterations
         if status != STATUS_OK:
@@ -463,7 +465,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                     half_status, used, _ = try_step(
                         grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
                         y_half, half_comp, half_clock, half_coef, half_extra, half_mult, 0.5 * h, half_last_h,
-                        base_view, global_step > 0, side_diagnostics, np.bool_(False))
+                        base_view, global_step > 0, side_diagnostics, np.bool_(False), max_halvings > 0)
                     counters[CNT_ITERATIONS] += used
                     if half_status != STATUS_OK:
                         break
@@ -513,7 +515,12 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             if control_state[CS_REJECTED] != 0.0:
                 factor = min(factor, 1.0)
                 control_state[CS_REJECTED] = 0.0
-            if iterations > SLOW_SOLVE_FRACTION * settings.max_iter:
+            # A step taken unimposed counts the imposed solve that failed before it: not a slow solve,
+            # and one that smaller steps do not cure (their Gamma is worse: stepper.try_step). Held
+            # back, Kepler e = 0.9999 imposing L and A_y shrank its steps by 0.8 each, to 1e-10.
+            if unimposed != 0.0:
+                pass
+            elif iterations > SLOW_SOLVE_FRACTION * settings.max_iter:
                 factor = min(factor, SLOW_SOLVE_FACTOR)
             elif iterations > NO_GROWTH_FRACTION * settings.max_iter:
                 factor = min(factor, 1.0)

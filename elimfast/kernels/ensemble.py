@@ -87,7 +87,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view, step > 0,
-            diagnostics_view, settings.max_halvings > 0)
+            diagnostics_view, settings.max_halvings > 0, settings.max_halvings > 0)
         counts[1] += iterations
         if status != STATUS_OK:
             break

@@ -28,7 +28,7 @@ from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
-from .solver import NEARLY_SINGULAR_GAMMA, accelerates, newton_factor, solve
+from .solver import BAND_CAP, NEARLY_SINGULAR_GAMMA, accelerates, newton_factor, solve
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -356,7 +356,7 @@ def _newton_matrix(grad_H, hess_H, params, tables, work, y, h, newton_base, forc
 @internal
 def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
              y, y_comp, clock, coef, coef_extra, mult, h, last_h, newton_base, have_prev, diagnostics,
-             last_resort):
+             last_resort, skip_imposing):
     """One step of size h from (y, clock): predict, solve, fall back, commit (docs/solver.md;
     compensated sums: docs/methods.md#round-off-over-long-times).
 
@@ -372,8 +372,11 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     max_halvings > 0, which 0 turns off with the splitting, and the caller will not retry the
     step itself) and cond(Gamma) <= NEARLY_SINGULAR_GAMMA (above it the imposed
     invariants themselves are degenerate there, and the run stops with that message), taken
-    without imposing the invariants if that keeps them to rounding (_attempt_unimposed);
-    work.info[5] counts such substeps of the step. The clock
+    without imposing the invariants if that keeps them to rounding (_attempt_unimposed).
+    skip_imposing (the run's max_halvings > 0): so is a whole ELIM step whose solve converged
+    to an alpha that is rounding over rounding (STATUS_SINGULAR), before it is split: a step
+    too short for Gamma (docs/solver.md#a-substep-without-imposing). work.info[5] counts the
+    step's substeps taken unimposed. The clock
     advances by h in one compensated addition whether or not the step was split.
 
     Returns (status, iterations, substeps). On failure nothing is applied: y, y_comp,
@@ -396,6 +399,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     h_prev = last_h[0]
     work.info[5] = 0.0
     may_leave_unimposed = last_resort and settings.family == FAMILY_ELIM and conserve_idx.shape[0] > 0
+    may_skip_imposing = skip_imposing and settings.family == FAMILY_ELIM and conserve_idx.shape[0] > 0
     # Only where the solve took secant steps: elsewhere a plain retry would repeat the same solve.
     retry_plain = accelerates(settings, conserve_idx.shape[0])
     plain = Settings(settings.family, np.int64(SOLVER_NEWTON), settings.stable_rhs, settings.warm_start,
@@ -411,6 +415,27 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             status, used = _attempt(grad_H, hess_H, grad_invariants, params, plain, tables, conserve_idx, work,
                                     y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
             iterations += used
+        if (status == STATUS_SINGULAR and depth == 0 and may_skip_imposing and work.info[0] <= BAND_CAP):
+            # The solve converged but its alpha is rounding over rounding: a step so short that the
+            # Legendre coefficients gamma_j, phi_j (j >= s - nu) in Gamma are below the rounding of the
+            # sums that form them (~h^j), and halving only makes it worse (Kepler imposing L and A_y
+            # cannot take h = 1e-8; adaptive runs at e = 0.9999 halved their first step 40 times).
+            # Such a step changes the invariants by less than rounding without imposing them:
+            # taken unimposed if it does (docs/solver.md#a-substep-without-imposing), else split.
+            increment, condition = work.info[0], work.info[1]
+            unimposed_status, unimposed_used = _attempt_unimposed(
+                grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
+                y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
+            iterations += unimposed_used
+            if unimposed_status == STATUS_OK:
+                status = STATUS_OK
+                work.info[5] += 1.0
+            else:
+                work.info[0], work.info[1] = increment, condition
+                # what the split starts from: the step's start (depth 0)
+                _copy(work.coef_start, coef)
+                _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
+                _copy(work.mult_start, mult)
         if (status != STATUS_OK and depth >= settings.max_halvings and may_leave_unimposed
                 and work.info[1] <= NEARLY_SINGULAR_GAMMA):
             # The failure's diagnostics stay those of the imposed solve.
@@ -591,7 +616,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         status, iterations, substeps = try_step(
             grad_H, hess_H, grad_invariants, params_view, settings, tables, conserve_view, work,
             y_view, y_comp_view, clock_view, coef_view, extra_view, mult_view, h, last_h_view, base_view,
-            global_step > 0, diagnostics_view, max_halvings > 0)
+            global_step > 0, diagnostics_view, max_halvings > 0, max_halvings > 0)
         iter_out[step] = iterations
         if status != STATUS_OK:
             break

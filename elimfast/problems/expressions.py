@@ -140,8 +140,11 @@ def check_name(name, what: str = "name") -> str:
 
 
 def did_you_mean(word: str, options) -> str:
-    """A hint such as ``; did you mean 'q1'?`` for the closest option, or an empty string."""
-    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.5)
+    """A hint such as ``; did you mean 'q1'?`` for the closest option, or an empty string. An option
+    that differs only in case comes first (P2 -> p2; difflib's ratio preferred q2)."""
+    options = list(options)
+    close = [o for o in options if o.lower() == word.lower()][:1] or \
+        difflib.get_close_matches(word, options, n=1, cutoff=0.5)
     return f"; did you mean {close[0]!r}?" if close else ""
 
 
