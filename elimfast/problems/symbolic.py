@@ -583,13 +583,15 @@ def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gr
                  if isinstance(value, (int, float)) and not isinstance(value, bool) and name not in coordinate_names}
     declared = coordinate_names + tuple(constants)
     trees = []
+    def label(name):   # 'time scale', not 'time scale time_scale', for a lone expression named as its key
+        return what if key_prefix == name else f"{what} {name}"
+
     for name, text in expressions.items():
         if not isinstance(text, str):
-            raise ExpressionError(f"{what} {name} must be an expression string, got {text!r}",
+            raise ExpressionError(f"{label(name)} must be an expression string, got {text!r}",
                                   key=key_prefix if key_prefix == name else f"{key_prefix}.{name}")
         key = key_prefix if key_prefix == name else f"{key_prefix}.{name}"
-        trees.append((name, text, _checked(parse, text, declared, what=what if key == key_prefix else f"{what} {name}",
-                                           key=key)))
+        trees.append((name, text, _checked(parse, text, declared, what=label(name), key=key)))
     # Only the constants the expressions use: a parameter scan with an event on the state alone
     # compiles it once (a tester's eccentricity scan compiled the same event module per value).
     used = {node.id for _, _, tree in trees for node in ast.walk(tree) if isinstance(node, ast.Name)}
@@ -605,7 +607,7 @@ def compile_state_functions(problem: Problem, expressions: Mapping[str, str], gr
         exprs = []
         for name, text, tree in trees:
             # a value error found only here (sqrt(-1), q1/0) names the expression's key, as a parse error does
-            expr = _checked(to_sympy, tree, symbols, what=f"{what} {name}", text=text,
+            expr = _checked(to_sympy, tree, symbols, what=label(name), text=text,
                             key=key_prefix if key_prefix == name else f"{key_prefix}.{name}")
             exprs.append(expr.subs({symbols[c]: sympy.Float(v, 17) for c, v in constants.items()}))
         targets = [f"out[{i}] = " for i in range(len(exprs))]
