@@ -859,10 +859,25 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
                 where = f"{threads} thread{'s' if threads != 1 else ''}"
             click.echo(f"ensemble: running {n_trajectories:,} trajectories on {where}", err=True)
 
+    finished = {}   # label -> outcome: an interrupted sweep without -o prints these rows
+
     def on_done(outcome, done, total):
+        finished[outcome.label] = outcome
         if not quiet:
             name = "reference run" if outcome.label == sweeps.REFERENCE_LABEL else outcome.label
             click.echo(f"[{done}/{total}] {name}: {outcome.status} ({outcome.wall_time:.2f} s)", err=True)
+
+    def finished_table() -> bool:
+        """Print the table of the runs finished before an interrupt (no -o: nothing else keeps them);
+        True if there were any."""
+        reference = finished.pop(sweeps.REFERENCE_LABEL, None)
+        if output is not None or not finished:
+            return False
+        spec = sweeps.load_sweep(sweep_file)
+        outcomes = [finished[run.label] for run in spec.runs if run.label in finished]
+        header, rows = sweeps.table_rows(spec, outcomes, reference, table_format)
+        click.echo(sweeps.format_table(header, rows, table_format), nl=False)
+        return True
 
     # Ctrl-C and SIGTERM end the sweep (KeyboardInterrupt), also inside a kernel call that does not return.
     with StopOnSignals(raising=True, hard_stop=hard_stop) as stop:
@@ -873,7 +888,12 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
         except KeyboardInterrupt:
             import signal
             name = signal.Signals(stop.signal).name if stop.signal else None
-            click.echo(hard_stop(name), err=True)
+            if finished_table():
+                click.echo(f"error: interrupted{f' by {name}' if name else ''}: the {len(finished)} runs finished "
+                           "are the rows above (no -o OUT.h5: nothing was stored; with it, --resume runs the rest)",
+                           err=True)
+            else:
+                click.echo(hard_stop(name), err=True)
             raise _Exit(EXIT_INTERRUPTED) from None
     if outcome.ensemble is not None:
         result = outcome.ensemble

@@ -121,8 +121,10 @@ def energy_note(run_file) -> str | None:
     initial, scales = run_file.initial_invariants(), run_file.invariant_scales()
     roundoff = {name: roundoff_allowance(steps, initial.get(name, math.nan), scales.get(name, 0.0))
                 for name in relative}
+    tol = (config_of(run_file).get("solver") or {}).get("tol")
     return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive,
-                s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"), roundoff=roundoff, steps=steps)
+                s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"), roundoff=roundoff, steps=steps,
+                tol=tol if isinstance(tol, (int, float)) else None)
 
 
 def run_notes(run_file) -> list[str]:

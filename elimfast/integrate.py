@@ -19,6 +19,7 @@ from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
 from . import methods
 from .methods import Method
+from .methods.base import IMPOSES_NONE
 from .problems import Problem
 from .problems.base import real_state
 
@@ -41,6 +42,7 @@ DEFAULT_SOLVER = "auto"
 AUTO_NEWTON_MAX_DIMENSION = 48
 DEFAULT_TOL = 2.0 ** -52          # relative increment at round-off (machine epsilon): accept at once
 MAX_TOL = 1e-8                    # a looser tol would accept iterates far from the solution
+LOOSE_TOL = 1e-14                 # above it, a run's loss of H is first the tol's (energy_note)
 # Iterations per solve (docs/solver.md). 100, except simplified Newton on ELIM imposing
 # invariants: there a step that needs more than 30 is one whose alpha system is
 # ill-conditioned (nearly symmetric about a pericentre), and its solution carries
@@ -345,7 +347,8 @@ class Result:
                            adaptive=self.step_control is not None, s=self.method.s,
                            degree=self.problem.hamiltonian_degree, steps=steps,
                            roundoff={name: roundoff_allowance(steps, initial[name], scales.get(name, 0.0))
-                                     for name in names})
+                                     for name in names},
+                           tol=self.solver.tol if self.solver is not None else None)
 
     def __repr__(self) -> str:
         errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
@@ -423,7 +426,8 @@ def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
 
 
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
-                s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0) -> str | None:
+                s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0,
+                tol: float | None = None) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -441,10 +445,20 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     ``roundoff``: {name: roundoff_allowance} over the run's ``steps``. Errors within it are
     what rounding accumulates over that many steps, and the note says so instead of naming k or
     h (Kepler e = 0.9 over 4e5 steps lost H to 1.3e-12 with k = 24 and 2.1e-12 with k = 48,
-    and the note said to raise k). Where r = k (EHBVM, GHBVM) the advice names k only."""
+    and the note said to raise k). Where r = k (EHBVM, GHBVM) the advice names k only.
+
+    ``tol``: the solver's; one loosened above LOOSE_TOL accepts iterates that far from the
+    solution, and the invariants are kept only to about that: the note names it first (a user
+    trial: solver.tol = 1e-8 lost H to 1.3e-8 with k = 12 and with k = 24, and the note said to
+    raise k)."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
+    if tol is not None and tol > LOOSE_TOL:
+        listed_errors = ", ".join(f"{name} {value:.1e}" for name, value in above.items())
+        return (f"{listed_errors} (relative) above round-off: solver.tol = {tol:g} accepts iterates about that far "
+                "from the solution, and H and the imposed invariants are kept only to about that; leave tol out "
+                "(machine epsilon) to keep them to round-off")
     if methods.integrates_exactly(degree, k, s) and set(above) == {"H"}:
         return (f"H error {above['H']:.1e} (relative) is above round-off, but {method_name} integrates this H (a "
                 f"polynomial of degree {int(degree)} <= 2k/s) exactly: it is round-off, which grows with the number "
@@ -607,6 +621,10 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
         raise ParameterError("h", f"must be a number, got {h!r}") from None
     if not (math.isfinite(h) and h > 0.0):
         raise ParameterError("h", f"must be > 0 and finite, got {h!r}")
+    if t0 + h == t0:
+        # (a user trial: t0 = 1e20 with h = 0.1 ran, every stored t equal to t0)
+        raise ParameterError("h", f"= {h!r} is below the resolution of the times at t0 = {t0!r} (t0 + h == t0 in "
+                                  "doubles); measure time from a nearer origin (t0 = 0)")
     if t_end is None and n_steps is None:
         raise ParameterError("t_end", "is missing; give t_end (the final time) or n_steps")
     if n_steps is not None:
@@ -914,8 +932,13 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     lim = method.kind.kernel_map == "lim"   # its small system is the Gram matrix, not Gamma
     seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
+    newton_matrix = False
     if status == codes.STATUS_SINGULAR and d[stepper.DIAG_INCREMENT] == math.inf:
         seen = ["before any increment"]   # the solve's d before its first one: the first map failed
+        # ... or, where no invariant can be imposed (GAUSS, HBVM), the Newton matrix did not factorise
+        newton_matrix = method.kind.imposes == IMPOSES_NONE and solver.method == "newton"
+        if newton_matrix:
+            what = "the simplified Newton matrix I - h X (x) J Hess(H) is singular"
     if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot
         seen = [f"sigma(y) = {d[stepper.DIAG_INCREMENT]:.3g} there, next step h = {d[stepper.DIAG_STEP]:.3g}"]
     elif d[stepper.DIAG_CONDITION] != 0.0 and lim:
@@ -923,7 +946,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     elif d[stepper.DIAG_CONDITION] != 0.0:
         seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
-    if status == codes.STATUS_SINGULAR and lim:   # no step size or s makes dependent gradients independent
+    if newton_matrix:
+        advice = "use the fixed point (solver.method: fixed_point), or change h"
+    elif status == codes.STATUS_SINGULAR and lim:   # no step size or s makes dependent gradients independent
         advice = _LIM_SINGULAR_ADVICE
     elif (adaptive and status not in (codes.STATUS_NONFINITE, codes.STATUS_TIME_SCALE)
             and method.s > ADAPTIVE_MEASURED_S):
@@ -935,6 +960,11 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         advice = _NEARLY_SINGULAR_ADVICE
     elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"
+    if status == codes.STATUS_NOT_CONVERGED and solver.max_iter is not None and \
+            solver.max_iter < DEFAULT_MAX_ITER_ELIM_NEWTON:
+        # a cap set below any default is the likelier cause (a user trial: max_iter = 1 was told to reduce h)
+        advice = f"raise solver.max_iter (= {solver.max_iter} now; the default is {DEFAULT_MAX_ITER_ELIM_NEWTON} or " \
+                 f"{DEFAULT_MAX_ITER}), or " + advice
     if status == codes.STATUS_NOT_CONVERGED and solver.method == "fixed_point":
         # simplified Newton gets through steps the fixed point cannot (docs/solver.md); 'auto' takes
         # the fixed point for large systems without the user having asked for it
@@ -1047,6 +1077,13 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
 def _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs) -> SolverSettings:
     if isinstance(solver, SolverSettings):
         return solver
+    if isinstance(solver, Mapping):
+        # a config's solver section as a dict (a user trial: TypeError: unhashable type: 'dict')
+        known = SolverSettings.__dataclass_fields__
+        unknown = [key for key in solver if key not in known]
+        if unknown:
+            raise ParameterError("solver", f"has no key {unknown[0]!r}; {suggest(unknown[0], known, 'keys')}")
+        return SolverSettings(**solver)
     try:
         return SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
                               max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)

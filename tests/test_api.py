@@ -170,6 +170,11 @@ def test_an_unknown_solver_is_named_by_integrates_keyword():
                                           "components, the fixed point above), newton or fixed_point, got 'newtn'"), \
             str(info.value)
         assert info.value.parameter == "solver"
+    # the solver section of a config as a dict (a user trial: TypeError: unhashable type: 'dict')
+    as_dict = elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=5, solver={"method": "fixed_point", "max_iter": 50})
+    assert (as_dict.solver.method, as_dict.solver.max_iter) == ("fixed_point", 50)
+    with pytest.raises(ParameterError, match=r"^solver has no key 'methd'; did you mean 'method'\?"):
+        elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=5, solver={"methd": "fixed_point"})
 
 
 @pytest.mark.parametrize("y0, detail", [
@@ -270,6 +275,15 @@ def test_a_run_whose_dense_matrices_do_not_fit_is_refused_and_the_fixed_point_ha
     with pytest.raises(ParameterError, match=r"adaptive steps, output times and events store a dense n x n Hessian"):
         elimfast.integrate(small, hbvm(6, 3), t_end=0.1, rtol=1e-8, solver="fixed_point")
     assert driver.dense_matrix_bytes(200_000, hbvm(6, 3), driver.SolverSettings(method="newton"), adaptive=False) > 1.5e12
+
+
+def test_a_step_below_the_resolution_of_the_times_is_refused():
+    """A user trial: t0 = 1e20 with h = 0.1 ran, and every stored t was 1e20."""
+    from elimfast.errors import ParameterError
+    from elimfast.methods import hbvm
+    with pytest.raises(ParameterError, match=r"^h = 0.1 is below the resolution of the times at t0 = 1e\+20"):
+        elimfast.integrate(elimfast.problems.kepler(0.6), hbvm(6, 3), 0.1, n_steps=10, t0=1e20)
+    assert elimfast.integrate(elimfast.problems.kepler(0.6), hbvm(6, 3), 0.1, n_steps=10, t0=1e6).t[-1] == 1e6 + 1.0
 
 
 def test_the_default_solver_is_newton_for_small_problems_and_the_fixed_point_for_large_ones():

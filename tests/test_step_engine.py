@@ -329,6 +329,50 @@ def test_a_substep_that_cannot_impose_is_taken_unimposed_when_that_keeps_the_inv
 
 
 
+@pytest.mark.parametrize("masses", [4, 8, 32])
+def test_an_fpu_mode_with_particles_at_rest_is_solved_by_newton(masses):
+    """A user trial: fpu_beta with every other particle at rest (q = 0.5 cos(pi i / 2), p = 0) failed
+    at step 1 with the default simplified Newton, where the fixed point took 4 iterations a step.
+    n = 4 (exact zeros): the components at rest are not exactly zero after Newton's solve, which
+    couples them to the others, and measured against themselves their increments never converged
+    (d stayed at 1). n >= 8 (zeros of 3e-17 from cos): the Newton matrix equilibrated by them had
+    entries of 1e16 and did not factorise, reported as 'Assumption 1 of the paper fails' of an HBVM
+    that imposes nothing. Now the run completes, as the fixed point's does, to the same state."""
+    q = 0.5 * np.cos(np.pi * np.arange(masses) / 2)
+    if masses == 4:
+        q[[1, 3]] = 0.0
+    y0 = np.concatenate([q, np.zeros(masses)])
+    chain = elimfast.problems.fpu_beta(masses)
+    newton = elimfast.integrate(chain, hbvm(6, 3), 0.01, t_end=2.0, y0=y0, solver="newton")
+    fixed = elimfast.integrate(chain, hbvm(6, 3), 0.01, t_end=2.0, y0=y0, solver="fixed_point")
+    assert newton.status == "complete" and np.mean(newton.iterations) < 12
+    np.testing.assert_allclose(newton.y_final, fixed.y_final, rtol=0, atol=1e-13)
+    assert newton.relative_invariant_errors()["H"] < 1e-14
+
+
+def test_a_singular_newton_matrix_of_a_method_that_imposes_nothing_is_named_as_such():
+    """GAUSS and HBVM impose no invariant: a solve singular before any increment is the Newton matrix's,
+    and its message said 'Assumption 1 of the paper fails for these invariants'."""
+    import importlib
+    from elimfast.kernels import codes, stepper
+    driver = importlib.import_module("elimfast.integrate")
+    diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
+    diagnostics[stepper.DIAG_INCREMENT] = np.inf
+    for method in (hbvm(6, 3), gauss(3)):
+        message = driver.failure_message(method, SolverSettings(method="newton"), codes.STATUS_SINGULAR, 3, 0.5,
+                                         0.01, diagnostics)
+        assert message.startswith(f"{method.name}: the simplified Newton matrix I - h X (x) J Hess(H) is singular")
+        assert message.endswith("use the fixed point (solver.method: fixed_point), or change h")
+        assert "Assumption 1" not in message
+    imposing = driver.failure_message(ehbvm(6, 3), SolverSettings(method="newton"), codes.STATUS_SINGULAR, 3, 0.5,
+                                      0.01, diagnostics)
+    assert "Assumption 1" in imposing
+    # a user trial: a cap of max_iter = 1 made every step fail, and the advice was to reduce h
+    with pytest.raises(elimfast.errors.ConvergenceError, match=r"\(max_iter = 1\) .*; raise solver.max_iter \(= 1 now; "
+                                                               r"the default is 30 or 100\), or reduce h"):
+        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=3, conserve=(L1, AY), max_iter=1)
+
+
 def test_a_step_too_short_for_gamma_is_taken_unimposed_at_once():
     """A user trial: EHBVM imposing L and A_y could not take a step of 1e-8 (Kepler e = 0.6): Gamma's
     entries are Legendre coefficients of index s - nu.. (~h^j), below the rounding of the sums that
@@ -392,6 +436,10 @@ def test_energy_warning_names_k_and_h_when_quadrature_loses_H():
     assert warning is not None and "k = 12" in warning and "raise k or reduce h" in warning
     fine = elimfast.integrate(p, hbvm(24, 3), 0.05, t_end=60.0)
     assert fine.energy_warning() is None
+    # A user trial: with a loosened solver.tol the loss is the tol's, whatever k: the note names it
+    loose = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=3000, conserve=(L1, AY), tol=1e-8)
+    warning = loose.energy_warning()
+    assert warning is not None and "solver.tol = 1e-08 accepts iterates" in warning and "raise k" not in warning
 
 
 def test_energy_warning_of_an_adaptive_run_speaks_of_rtol_not_of_its_first_step():

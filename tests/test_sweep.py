@@ -710,6 +710,31 @@ def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
                              f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
 
 
+def test_ctrl_c_of_a_sweep_without_output_prints_the_finished_runs(tmp_path, monkeypatch):
+    """A user trial: Ctrl-C after 10 of 12 runs of a sweep without -o printed 'nothing was stored' and
+    no table: the finished runs were lost. Their rows are printed now, and the line says so."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+
+    import elimfast.sweep
+    real = elimfast.sweep.run_to_file
+
+    def interrupted_after_two(*args, on_done=None, **kwargs):
+        def done(outcome, count, total):
+            on_done(outcome, count, total)
+            if outcome.label != elimfast.sweep.REFERENCE_LABEL and count >= 2:
+                raise KeyboardInterrupt
+        return real(*args, on_done=done, **kwargs)
+    monkeypatch.setattr(elimfast.sweep, "run_to_file", interrupted_after_two)
+    path = small_sweep(tmp_path, ["2*pi/40", "2*pi/60", "2*pi/80", "2*pi/100"])
+    result = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "--quiet", "--format", "csv"])
+    assert result.exit_code == 130
+    rows = [line for line in result.stdout.splitlines()[1:] if line]
+    assert 1 <= len(rows) <= 2 and all("complete" in row for row in rows), result.stdout
+    assert result.stderr.startswith(f"error: interrupted: the {len(rows)} runs finished are the rows above "
+                                    "(no -o OUT.h5: nothing was stored"), result.stderr
+
+
 def adaptive_sweep(tmp_path):
     """A sweep of one fixed-step and two adaptive runs (one with output times and an event)."""
     times = {"start": 0, "stop": "2*pi", "step": "pi/4"}

@@ -45,6 +45,9 @@ ACCEL_FLOOR = 1e-13
 ACCEL_ALIGNMENT = 0.9
 ACCEL_MAX_WEIGHT = 1e3
 ACCEL_SLOW = 1e-3
+# newton_factor's second try, when the Newton matrix equilibrated by the state is singular: no
+# component scaled below this fraction of the largest (2^-26, the square root of eps).
+NEWTON_SCALE_FLOOR = 2.0 ** -26
 
 
 @internal
@@ -69,9 +72,7 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     """
     n = y.shape[0]
     m = n // 2
-    X = tables.X
-    s = X.shape[0]
-    hessian, jacobian, unit, gradient = work.hessian, work.jacobian, work.newton_scale, work.scale
+    hessian, unit, gradient = work.hessian, work.newton_scale, work.scale
     hess_H(y, params, hessian)
     grad_H(y, params, gradient)
     work.info[4] += 1.0
@@ -84,6 +85,37 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     for p in range(n):
         if not (unit[p] > 0.0):
             unit[p] = largest if largest > 0.0 else 1.0
+    status = _newton_factor_scaled(y, h, tables, work)
+    if status != STATUS_SINGULAR:
+        return status
+    # Components far below the state's size are zeros by symmetry that rounding made nonzero, or the
+    # small perturbations they seed (an FPU mode with every other particle at rest from
+    # q = 0.5 cos(pi i / 2): q ~ 3e-17, growing along an unstable mode), coupled through the Hessian to
+    # components of size 1: scaled by themselves they make M~ singular (entries 1e16). M~ is only the
+    # approximate Jacobian of simplified Newton, so a second try scales every component as at least
+    # NEWTON_SCALE_FLOOR of the state as a whole; the first try keeps a genuinely tiny component's own
+    # scale (a light body's momentum, 1e-11 of the solar system's positions), which it needs.
+    changed = False
+    for p in range(n):
+        if unit[p] < NEWTON_SCALE_FLOOR * largest:
+            unit[p] = NEWTON_SCALE_FLOOR * largest
+            changed = True
+    if not changed:
+        return status
+    hess_H(y, params, hessian)   # the first try overwrote it (the real block's scratch)
+    work.info[4] += 1.0
+    return _newton_factor_scaled(y, h, tables, work)
+
+
+@internal
+def _newton_factor_scaled(y, h, tables, work):
+    """newton_factor's J0~ and factorisation, with the equilibration in work.newton_scale and
+    the Hessian at y in work.hessian."""
+    n = y.shape[0]
+    m = n // 2
+    X = tables.X
+    s = X.shape[0]
+    hessian, jacobian, unit = work.hessian, work.jacobian, work.newton_scale
     # J0~[p, q] = (J Hess)[p, q] d_q / d_p, with (J Hess)[p] = Hess[m + p] and [m + p] = -Hess[p].
     for p in range(m):
         inverse_q, inverse_p = 1.0 / unit[p], 1.0 / unit[m + p]
@@ -437,6 +469,15 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 # A component and its increment both exactly zero: measure it against the
                 # state as a whole (NaN falls through to the finiteness test below).
                 scale[i] = largest if largest > 0.0 else 1.0
+            elif newton and scale[i] < EPS * largest:
+                # Below rounding of the state as a whole: a component that is zero by symmetry (an
+                # FPU mode with particles at rest) but not exactly, as Newton's solve couples it to
+                # the others; its value and increment shrink together, so measured against
+                # themselves they never converge (d stayed at 1). Measured against the Newton
+                # matrix's own scale of it (newton_factor's d_p at the step's start: the state as a
+                # whole where it was zero there), as for an exact zero. A small but genuine component
+                # (a light body's momentum) keeps its own scale there too.
+                scale[i] = max(scale[i], work.newton_scale[i])
         for j in range(s):
             for p in range(n):
                 delta[j * n + p] = new_coef[j, p] - coef[j, p]
