@@ -415,13 +415,16 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             status, used = _attempt(grad_H, hess_H, grad_invariants, params, plain, tables, conserve_idx, work,
                                     y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
             iterations += used
-        if (status == STATUS_SINGULAR and depth == 0 and may_skip_imposing and work.info[0] <= BAND_CAP):
-            # The solve converged but its alpha is rounding over rounding: a step so short that the
-            # Legendre coefficients gamma_j, phi_j (j >= s - nu) in Gamma are below the rounding of the
-            # sums that form them (~h^j), and halving only makes it worse (Kepler imposing L and A_y
-            # cannot take h = 1e-8; adaptive runs at e = 0.9999 halved their first step 40 times).
-            # Such a step changes the invariants by less than rounding without imposing them:
-            # taken unimposed if it does (docs/solver.md#a-substep-without-imposing), else split.
+        if status != STATUS_OK and (
+                (status == STATUS_SINGULAR and depth == 0 and may_skip_imposing and work.info[0] <= BAND_CAP)
+                or (depth >= settings.max_halvings and may_leave_unimposed and work.info[1] <= NEARLY_SINGULAR_GAMMA)):
+            # Without imposing, if that keeps the invariants to rounding (docs/solver.md#a-substep-without-
+            # imposing): (1) a whole step whose solve converged but whose alpha is rounding over rounding, a
+            # step so short that the Legendre coefficients gamma_j, phi_j (j >= s - nu) in Gamma are below
+            # the rounding of the sums that form them (~h^j), which halving only makes worse (Kepler
+            # imposing L and A_y could not take h = 1e-8; adaptive runs at e = 0.9999 halved their first
+            # step 40 times); (2) the deepest substep, failing otherwise. The failure's diagnostics stay
+            # those of the imposed solve.
             increment, condition = work.info[0], work.info[1]
             unimposed_status, unimposed_used = _attempt_unimposed(
                 grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
@@ -432,23 +435,10 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
                 work.info[5] += 1.0
             else:
                 work.info[0], work.info[1] = increment, condition
-                # what the split starts from: the step's start (depth 0)
-                _copy(work.coef_start, coef)
-                _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
-                _copy(work.mult_start, mult)
-        if (status != STATUS_OK and depth >= settings.max_halvings and may_leave_unimposed
-                and work.info[1] <= NEARLY_SINGULAR_GAMMA):
-            # The failure's diagnostics stay those of the imposed solve.
-            increment, condition = work.info[0], work.info[1]
-            unimposed_status, unimposed_used = _attempt_unimposed(
-                grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-                y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
-            iterations += unimposed_used
-            if unimposed_status == STATUS_OK:
-                status = STATUS_OK
-                work.info[5] += 1.0
-            else:
-                work.info[0], work.info[1] = increment, condition
+                if depth == 0:   # what a split starts from: the step's start
+                    _copy(work.coef_start, coef)
+                    _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
+                    _copy(work.mult_start, mult)
         if status == STATUS_OK:
             finite = True
             for p in range(n):
