@@ -349,6 +349,16 @@ def _stored_spec(path, overrides, config, quiet):
             stored_integration.pop("n_steps", None)
         elif "integration.n_steps" in keys and "integration.t_end" not in keys:
             stored_integration.pop("t_end", None)
+    stored_solver = data.get("solver") if isinstance(data, dict) else None
+    if isinstance(stored_solver, dict) and "solver.method" in keys and "solver.max_iter" not in keys:
+        # max_iter is stored resolved: where it was the stored solver's default, the new solver gets its
+        # own (a user trial: --set solver.method=fixed_point kept Newton's 30 on ELIM, not 100)
+        from elimfast.integrate import SolverSettings
+        before = load_run_from_dict(data, source=source)
+        default = SolverSettings(method=before.solver.method).resolved_for(
+            before.method, len(before.conserve), 2 * before.problem.degrees_of_freedom).max_iter
+        if stored_solver.get("max_iter") == default:
+            stored_solver.pop("max_iter", None)
     try:
         return load_run_from_dict(data, source=source, overrides=list(overrides))
     except ConfigError:

@@ -241,6 +241,18 @@ def test_iterations_plot_names_the_solver_that_iterated(kepler_file, tmp_path):
         plt.close(figure)
     assert labels == {"newton": "simplified Newton iterations per step", "fixed": "fixed-point iterations per step",
                       "changed": "solver iterations per step"}
+    # max_iter is stored resolved: a resume that changes the solver gets the new solver's default where
+    # the stored one was the old default (a user trial: fixed_point kept Newton's 30 on ELIM), and keeps
+    # a max_iter that was set
+    import yaml
+    for set_first, expected in (([], 30), (["--set", "solver.max_iter=40"], 40)):
+        path = tmp_path / f"max_iter_{expected}.h5"
+        assert invoke("run", KEPLER, "-o", path, "--set", "integration.t_end=5", "--set",
+                      "solver.method=fixed_point", *set_first, "--quiet").exit_code == 0
+        assert invoke("run", KEPLER, "-o", path, "--resume", "--set", "integration.t_end=10", "--set",
+                      "solver.method=newton", "--quiet").exit_code == 0
+        with h5py.File(path, "r") as f:
+            assert yaml.safe_load(f.attrs["config"])["solver"]["max_iter"] == expected
 
 
 def test_orbit_plot_of_the_solar_system_draws_every_body_in_the_plane(tmp_path):
