@@ -13,7 +13,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from .cache import kernel_folder_used
-from .errors import ConvergenceError, ParameterError, exact_time
+from .errors import ConvergenceError, ParameterError, ProblemRaisedError, exact_time
 from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
@@ -1018,7 +1018,8 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     ``method`` may be written as the paper writes it, e.g. "EHBVM(12,3)" (methods.as_method).
 
     Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
-    every depth, Gamma is singular, or the solution stops being finite.
+    every depth, Gamma is singular, or the solution stops being finite; ProblemRaisedError,
+    a ConvergenceError whose cause is the problem's exception, when a problem function raises.
     """
     method = methods.as_method(method)
     adaptive = rtol is not None or atol is not None or step_control is not None or epsilon is not None
@@ -1042,8 +1043,7 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
                       store_every=store_every, rhs=rhs, warm_start=warm_start, t0=t0, y0=y0, backward=backward,
                       solver=solver, predictor=predictor, max_halvings=max_halvings)
     chunks = [run.initial_chunk()]
-    while not run.finished:
-        chunks.append(run.advance(chunk_steps))
+    _run_to_end(run, chunks, chunk_steps, lambda: _collect(run, chunks))
     result = _collect(run, chunks)
     if run.status != codes.STATUS_OK:
         message = run.failure_message()
@@ -1051,6 +1051,46 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
         raise ConvergenceError(message, step=run.steps_done + 1, time=run.t, result=result,
                                reason=STATUS_NAMES[run.status])
     return result
+
+
+def steps_before_raise(run) -> int:
+    """How many steps the kernel call that raised had completed (its progress counter)."""
+    progress = getattr(run, "_progress", None)
+    try:
+        return int(progress[0]) if progress is not None else 0
+    except (TypeError, ValueError, IndexError):
+        return 0
+
+
+def _run_to_end(run, chunks: list, chunk_steps: int, partial_result) -> None:
+    """Advance run (Integration or AdaptiveIntegration) to its end, appending its chunks.
+
+    Where a problem function raises inside the kernel (a python: problem's own exception), the
+    steps the call completed before it are taken again from the state before the call (a kernel
+    call is deterministic, as resume relies on; its output died with the exception), and
+    ProblemRaisedError carries them as its partial Result (partial_result()), the original
+    exception as its cause. (A user trial: integrate raised the bare ValueError, the steps lost.)"""
+    while not run.finished:
+        before_state = run.state()
+        before = run.steps_done
+        try:
+            chunks.append(run.advance(chunk_steps))
+        except Exception as err:   # noqa: BLE001 -- a problem function raised inside the kernel
+            n_done, t_raised = steps_before_raise(run), run.t
+            run.restore(before_state)
+            if n_done > 0:
+                try:
+                    chunks.append(run.advance(n_done))
+                except Exception:   # noqa: BLE001 -- the steps before it raise too (an invariant on the last sample)
+                    run.restore(before_state)
+            step = before + n_done + 1
+            text = " ".join(str(err).split()) or "(no message)"
+            result = partial_result()
+            message = (f"the problem raised {type(err).__name__}: {text[:200]} at step {step} (t = {exact_time(t_raised)}); "
+                       f".result holds the {run.steps_done} steps before it")
+            result.status = "failed: " + message
+            raise ProblemRaisedError(message, step=step, time=t_raised, result=result,
+                                     reason="problem raised") from err
 
 
 def _collect(run: Integration, chunks: list[Chunk]) -> Result:
@@ -1135,8 +1175,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
                               y0=y_start, t_eval=t_eval, events=event_spec, store_every=store_every, h=h,
                               n_steps=n_steps)
     chunks = [run.initial_chunk()]
-    while not run.finished:
-        chunks.append(run.advance(chunk_steps))
+    _run_to_end(run, chunks, chunk_steps, lambda: run.result(chunks))
     result = run.result(chunks)
     if run.status != codes.STATUS_OK:
         message = run.failure_message()

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DiskFullError, exact_time
+from .integrate import steps_before_raise
 from .io import hdf5
 from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
 from .io.layout import PROBLEM_FILE_DIGEST, problem_file_attributes
@@ -489,15 +490,6 @@ def _write_failed(writer, err, resume_command) -> tuple[str, str]:
     return (f"write failed at step {done + 1}",
             f"cannot write {writer.path} at step {done + 1} ({type(err).__name__}: {detail}); the {done} steps "
             f"before it are in the file; check the disk, then continue with: {_continue_with(resume_command)}")
-
-
-def steps_before_raise(integration) -> int:
-    """How many steps the kernel call that raised had completed (its progress counter)."""
-    progress = getattr(integration, "_progress", None)
-    try:
-        return int(progress[0]) if progress is not None else 0
-    except (TypeError, ValueError, IndexError):
-        return 0
 
 
 def _save_steps_before_raise(integration, before_state: dict, n: int, writer, stop, wall_s: float,

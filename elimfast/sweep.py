@@ -706,7 +706,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
         problem = spec.problem
         where = (getattr(problem, "source_file", None) or spec.resolved["problem"].get("python")
                  or f"problem {problem.name!r}")
-        from .streaming import steps_before_raise
+        from .integrate import steps_before_raise
         step = before + steps_before_raise(run) + 1
         text = " ".join(str(error).split()) or "(no message)"
         outcome.wall_time = time.perf_counter() - start

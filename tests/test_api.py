@@ -277,6 +277,27 @@ def test_a_run_whose_dense_matrices_do_not_fit_is_refused_and_the_fixed_point_ha
     assert driver.dense_matrix_bytes(200_000, hbvm(6, 3), driver.SolverSettings(method="newton"), adaptive=False) > 1.5e12
 
 
+def test_a_problem_that_raises_mid_run_gives_the_steps_before_it():
+    """A user trial: integrate with a python: problem whose gradient raises at t = 1.4 raised the bare
+    ValueError, and the 14 steps before it were lost (the CLI keeps them in its file). Now
+    ProblemRaisedError (a ConvergenceError) carries them as .result, the step and the time, and the
+    problem's exception as its cause: the same steps as a run stopped just before, fixed or adaptive."""
+    from elimfast.errors import ConvergenceError, ProblemRaisedError
+    problem = elimfast.problems.problem_from_file(Path(__file__).parent / "data" / "kepler_raising_late.py")
+    for options in ({"h": 0.1, "t_end": 10.0}, {"t_end": 10.0, "rtol": 1e-10}):
+        with pytest.raises(ProblemRaisedError, match=r"^the problem raised ValueError: negative q1 at step (\d+) "
+                                                     r"\(t = 1\.4\d*\); \.result holds the \d+ steps before it$") as info:
+            elimfast.integrate(problem, "HBVM(6,3)", **options)
+        error = info.value
+        assert isinstance(error, ConvergenceError) and isinstance(error.__cause__, ValueError)
+        partial = error.result
+        assert error.step == partial.steps_done + 1 >= 10 and partial.t[-1] == error.time
+        assert partial.status.startswith("failed: the problem raised ValueError")
+        if "h" in options:   # the same steps as a run of exactly that many
+            before = elimfast.integrate(problem, "HBVM(6,3)", 0.1, n_steps=partial.steps_done)
+            np.testing.assert_array_equal(partial.y_final, before.y_final)
+
+
 def test_a_step_below_the_resolution_of_the_times_is_refused():
     """A user trial: t0 = 1e20 with h = 0.1 ran, and every stored t was 1e20."""
     from elimfast.errors import ParameterError
