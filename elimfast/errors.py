@@ -49,12 +49,6 @@ class ConvergenceError(ElimfastError, RuntimeError):
         self.reason = reason
 
 
-class ProblemRaisedError(ConvergenceError):
-    """A problem function raised inside the kernel (a python: problem's own exception, its
-    __cause__). As ConvergenceError: step, time, and result, the partial Result of every step
-    completed before it; reason 'problem raised'."""
-
-
 class ResourceError(ElimfastError):
     """An input that asks for more memory, disk or steps than the run may take; the
     message says how much it would need and what to change (exit code 2)."""

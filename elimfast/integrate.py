@@ -13,7 +13,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from .cache import kernel_folder_used
-from .errors import ConvergenceError, ParameterError, ProblemRaisedError, exact_time
+from .errors import ConvergenceError, ParameterError, exact_time
 from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
@@ -1018,8 +1018,8 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     ``method`` may be written as the paper writes it, e.g. "EHBVM(12,3)" (methods.as_method).
 
     Raises ConvergenceError (with the partial Result as ``.result``) when a step fails at
-    every depth, Gamma is singular, or the solution stops being finite; ProblemRaisedError,
-    a ConvergenceError whose cause is the problem's exception, when a problem function raises.
+    every depth, Gamma is singular, or the solution stops being finite. A problem function's
+    own exception is re-raised as it is, with the steps before it as its ``.result``.
     """
     method = methods.as_method(method)
     adaptive = rtol is not None or atol is not None or step_control is not None or epsilon is not None
@@ -1067,9 +1067,10 @@ def _run_to_end(run, chunks: list, chunk_steps: int, partial_result) -> None:
 
     Where a problem function raises inside the kernel (a python: problem's own exception), the
     steps the call completed before it are taken again from the state before the call (a kernel
-    call is deterministic, as resume relies on; its output died with the exception), and
-    ProblemRaisedError carries them as its partial Result (partial_result()), the original
-    exception as its cause. (A user trial: integrate raised the bare ValueError, the steps lost.)"""
+    call is deterministic, as resume relies on; its output died with the exception), and the
+    exception, re-raised as it is (code that catches the problem's own exception type still
+    does), carries them as ``.result`` (partial_result()), with ``.step`` and ``.time`` and a note
+    saying so. (A user trial: integrate raised the bare ValueError, the steps lost.)"""
     while not run.finished:
         before_state = run.state()
         before = run.steps_done
@@ -1086,11 +1087,15 @@ def _run_to_end(run, chunks: list, chunk_steps: int, partial_result) -> None:
             step = before + n_done + 1
             text = " ".join(str(err).split()) or "(no message)"
             result = partial_result()
-            message = (f"the problem raised {type(err).__name__}: {text[:200]} at step {step} (t = {exact_time(t_raised)}); "
-                       f".result holds the {run.steps_done} steps before it")
+            message = (f"the problem raised {type(err).__name__}: {text[:200]} at step {step} "
+                       f"(t = {exact_time(t_raised)}); its .result holds the {run.steps_done} steps before it")
             result.status = "failed: " + message
-            raise ProblemRaisedError(message, step=step, time=t_raised, result=result,
-                                     reason="problem raised") from err
+            try:
+                err.result, err.step, err.time = result, step, t_raised
+            except AttributeError:   # an exception type that takes no attributes: the note still says it
+                pass
+            err.add_note(f"elimfast: {message}")
+            raise
 
 
 def _collect(run: Integration, chunks: list[Chunk]) -> Result:

@@ -469,15 +469,18 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 # A component and its increment both exactly zero: measure it against the
                 # state as a whole (NaN falls through to the finiteness test below).
                 scale[i] = largest if largest > 0.0 else 1.0
-            elif newton and scale[i] < EPS * largest:
-                # Below rounding of the state as a whole: a component that is zero by symmetry (an
-                # FPU mode with particles at rest) but not exactly, as Newton's solve couples it to
-                # the others; its value and increment shrink together, so measured against
-                # themselves they never converge (d stayed at 1). Measured against the Newton
-                # matrix's own scale of it (newton_factor's d_p at the step's start: the state as a
-                # whole where it was zero there), as for an exact zero. A small but genuine component
-                # (a light body's momentum) keeps its own scale there too.
-                scale[i] = max(scale[i], work.newton_scale[i])
+            elif scale[i] < EPS * largest:
+                # Below rounding of the state as a whole, a component's value and increment shrink
+                # together, so measured against themselves they never converge (d stayed at 1):
+                # Newton: one zero by symmetry (an FPU mode with particles at rest) that its solve
+                # couples to the others; the fixed point: the far end of a chain started from rest,
+                # which the iteration reaches one neighbour per sweep (a pulse at one end of 64
+                # masses failed at step 1). Newton measures it against the Newton matrix's own
+                # scale of it (newton_factor's d_p at the step's start: the state as a whole where
+                # it was zero there), so that a small but genuine component (a light body's
+                # momentum) keeps its own; the fixed point, which has none, against rounding of
+                # the state, eps times its largest component.
+                scale[i] = max(scale[i], work.newton_scale[i] if newton else EPS * largest)
         for j in range(s):
             for p in range(n):
                 delta[j * n + p] = new_coef[j, p] - coef[j, p]
