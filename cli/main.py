@@ -905,6 +905,10 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
             else:
                 click.echo(hard_stop(name), err=True)
             raise _Exit(EXIT_INTERRUPTED) from None
+    shared = outcome.config_error()
+    if shared is not None:
+        # every run failed to load: a 200-row table of the same failure, exit 1, hid a bad input
+        fail(f"every run of the sweep failed to load its config, the first with: {shared}", EXIT_USAGE)
     if outcome.ensemble is not None:
         result = outcome.ensemble
         click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "

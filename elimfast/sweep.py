@@ -104,6 +104,7 @@ class RunOutcome:
     initial_invariants: dict[str, float] = field(default_factory=dict)   # I(t0), for the relative errors
     invariant_scales: dict[str, float] = field(default_factory=dict)     # the size of each I's terms at t0
     result: Any = None                  # the Result integrate would return (kept when the runs are stored)
+    config_error: bool = False          # failed before any step: its config (or problem file) did not load
     # What a run file of this run records beside its Result, for the sweep file's run group:
     # the config's end (an adaptive run's n_steps * h is no end) and, for runs of the adaptive
     # kernel, how the steps were chosen (AdaptiveIntegration.file_attributes).
@@ -680,6 +681,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
         spec = _load_point(source, label, config)
     except ElimfastError as error:
         outcome.status = f"failed: {error}"
+        outcome.config_error = True
         return outcome
     outcome.resolved = spec.resolved
     outcome.h = spec.h
@@ -1091,6 +1093,14 @@ class SweepOutcome:
         if self.ensemble is not None:
             return ensemble_table(self.ensemble, fmt)
         return table_rows(self.spec, self.outcomes, self.reference, fmt)
+
+    def config_error(self) -> str | None:
+        """The first run's error when every run of a grid sweep failed to load its config (an error of
+        the base or of a problem file they share, not of a run): a bad input, said once."""
+        runs = [o for o in self.outcomes if o.label != REFERENCE_LABEL]
+        if self.ensemble is not None or not runs or not all(o.config_error for o in runs):
+            return None
+        return runs[0].status.removeprefix("failed: ")
 
     def failures(self) -> list[str]:
         """One line per thing that failed (empty when everything completed)."""

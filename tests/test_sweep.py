@@ -735,6 +735,27 @@ def test_ctrl_c_of_a_sweep_without_output_prints_the_finished_runs(tmp_path, mon
                                     "(no -o OUT.h5: nothing was stored"), result.stderr
 
 
+def test_a_sweep_whose_every_run_fails_to_load_is_one_error(tmp_path):
+    """A user trial: a base naming a python: file with a syntax error, over 200 grid values, printed a
+    200-row table of 'failed', exited 1, and said '200 of 200 runs failed (see the status column)'.
+    When every run failed to load its config, the sweep says the first error once and exits 2; a
+    sweep where some runs load still prints its table."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    (tmp_path / "broken.py").write_text("def H(y, params):\n    return (\n")
+    base = {**BASE, "problem": {"python": "broken.py"}, "conserve": []}
+    path = write_sweep(tmp_path, {"base": base, "grid": [{"name": "h", "key": "integration.h",
+                                                          "values": ["2*pi/40", "2*pi/60", "2*pi/80"]}]})
+    result = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "--quiet"])
+    assert result.exit_code == 2 and result.stdout == ""
+    assert result.stderr.startswith("error: every run of the sweep failed to load its config, the first with: ")
+    assert "broken.py" in result.stderr and result.stderr.count("\n") == 1
+    some = write_sweep(tmp_path, {"base": BASE, "grid": [{"name": "h", "key": "integration.h",
+                                                          "values": ["2*pi/40", -1]}]}, name="some.yaml")
+    mixed = CliRunner().invoke(cli, ["sweep", str(some), "--workers", "1", "--quiet"])
+    assert mixed.exit_code == 1 and "complete" in mixed.stdout and "1 of 2 runs failed" in mixed.stderr
+
+
 def adaptive_sweep(tmp_path):
     """A sweep of one fixed-step and two adaptive runs (one with output times and an event)."""
     times = {"start": 0, "stop": "2*pi", "step": "pi/4"}
