@@ -21,8 +21,10 @@ from runfiles import steps_on_disk
 ROOT = Path(__file__).resolve().parents[1]
 KEPLER = str(ROOT / "configs" / "kepler.yaml")
 ELIMFAST = str(Path(sys.executable).with_name("elimfast"))
-# ~2 s of EHBVM(12,3) steps: long enough to stop after a few chunks of ~0.5 s each.
-OVERRIDES = ["integration.t_end=15000", "output.every=50"]
+# EHBVM(12,3) steps for a few chunks of ~0.5 s each, so that a signal sent once the first chunk is on
+# disk stops the run before its end: 150,000 steps took 2 s when this was written and 0.87 s on a later
+# machine, where the signal sometimes came after the last chunk had started (exit 0, not 130).
+OVERRIDES = ["integration.t_end=45000", "output.every=50"]
 SET = [arg for item in OVERRIDES for arg in ("--set", item)]
 STEPS_BEFORE_SIGNAL = 1000    # the first chunk (64 steps) and the next are on disk
 
