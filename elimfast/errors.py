@@ -67,6 +67,21 @@ class ProblemFunctionError(ElimfastError, RuntimeError):
     exit_code = 1
 
 
+def closest(word, options, cutoff: float = 0.6) -> str | None:
+    """The option a mistyped word most likely meant, or None: one that differs only in case or in
+    '_' first (P2 -> p2, timescale -> time_scale; difflib's ratio preferred q2 and nothing), else
+    difflib's closest above cutoff. The one rule of every 'did you mean' (integrate.suggest,
+    expressions.did_you_mean, a sweep's unknown keys)."""
+    import difflib
+    options = [str(option) for option in options]
+    folded = str(word).lower().replace("_", "")
+    for option in options:
+        if option.lower().replace("_", "") == folded:
+            return option
+    close = difflib.get_close_matches(str(word), options, n=1, cutoff=cutoff)
+    return close[0] if close else None
+
+
 def exact_time(t) -> str:
     """A time as messages write it: the shortest text that reads back as the same float, without
     a trailing '.0' (t = 0 -> 0.1, t = 0.30000000000000004, t = 50), where 17 digits gave

@@ -5,7 +5,6 @@ Data flow: (problem, method, h, ...) -> Integration -> kernels.stepper.time_loop
 """
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass, field, replace
 from typing import Iterable, Mapping
@@ -13,7 +12,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from .cache import kernel_folder_used
-from .errors import ConvergenceError, ParameterError, exact_time
+from .errors import ConvergenceError, ParameterError, closest, exact_time
 from .function_addresses import remembered_addresses
 from .kernels import codes, stepper
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
@@ -581,9 +580,8 @@ def suggest(word, options, label: str) -> str:
     """'did you mean 'x'? (label: a, b, c)' or 'label: a, b, c' (for the fix of an unknown name)."""
     options = [str(o) for o in options]
     listed = ", ".join(options) or "none"
-    # an option differing only in case or in '_' first (timescale -> time_scale), then difflib's
-    close = [o for o in options if o.lower().replace("_", "") == str(word).lower().replace("_", "")][:1] or \
-        difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    match = closest(word, options)
+    close = [match] if match is not None else []
     if not close:   # an abbreviation (dir for direction) is too short for difflib's ratio
         close = [o for o in options if len(str(word)) >= 2 and o.startswith(str(word))][:2]
         close = close if len(close) == 1 else []

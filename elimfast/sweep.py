@@ -57,7 +57,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import ConvergenceError, ElimfastError, exact_time
+from .errors import ConvergenceError, ElimfastError, closest, exact_time
 from .io.safety import OutputError, _size   # _size: the one size formatter of the disk and memory messages
 
 
@@ -423,11 +423,10 @@ VARIANT_KEYS = ("label", "set")
 
 def _known_keys(source: str, where: str, mapping: dict, known: tuple[str, ...]) -> None:
     """Refuse a key of a grid axis or variant that sweeps do not read (with a suggestion)."""
-    import difflib
     for name in mapping:
         if name not in known:
-            close = difflib.get_close_matches(str(name), known, n=1)
-            hint = f"did you mean {close[0]!r}? " if close else ""
+            close = closest(name, known)
+            hint = f"did you mean {close!r}? " if close is not None else ""
             _fail(source, f"{where}.{name}", f"unknown key; {hint}(known: {', '.join(known)})")
 
 

@@ -32,7 +32,6 @@ sympy is imported only by ``to_sympy``, so evaluating numbers stays cheap.
 from __future__ import annotations
 
 import ast
-import difflib
 import keyword
 import math
 import re
@@ -40,7 +39,7 @@ import unicodedata
 import warnings
 from typing import Mapping
 
-from ..errors import ElimfastError
+from ..errors import ElimfastError, closest
 
 MAX_LENGTH = 20_000          # characters in one expression
 MAX_NODES = 5_000            # AST nodes in one expression
@@ -140,12 +139,9 @@ def check_name(name, what: str = "name") -> str:
 
 
 def did_you_mean(word: str, options) -> str:
-    """A hint such as ``; did you mean 'q1'?`` for the closest option, or an empty string. An option
-    that differs only in case comes first (P2 -> p2; difflib's ratio preferred q2)."""
-    options = list(options)
-    close = [o for o in options if o.lower() == word.lower()][:1] or \
-        difflib.get_close_matches(word, options, n=1, cutoff=0.5)
-    return f"; did you mean {close[0]!r}?" if close else ""
+    """A hint such as ``; did you mean 'q1'?`` for the closest option (errors.closest), or an empty string."""
+    close = closest(word, options, cutoff=0.5)
+    return f"; did you mean {close!r}?" if close is not None else ""
 
 
 def parse(text, names=(), what: str = "expression") -> ast.Expression:
