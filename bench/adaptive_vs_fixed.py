@@ -38,9 +38,8 @@ STEPS_PER_PERIOD = (400, 480, 560, 640, 720, 800, 960, 1120, 1280, 1440, 1600, 1
 START_SPACING = 1e-3
 
 
-def start_state(mean_anomaly: float) -> np.ndarray:
+def start_state(mean_anomaly: float, e: float = ECCENTRICITY) -> np.ndarray:
     """The orbit of kepler(e) (a = 1, period 2 pi) at a mean anomaly: Kepler's equation by Newton."""
-    e = ECCENTRICITY
     anomaly = mean_anomaly
     for _ in range(50):
         anomaly -= (anomaly - e * math.sin(anomaly) - mean_anomaly) / (1.0 - e * math.cos(anomaly))
@@ -49,9 +48,12 @@ def start_state(mean_anomaly: float) -> np.ndarray:
     return np.array([c - e, b * s, -s / r, b * c / r])
 
 
-def problems(starts: int):
-    base = kepler(ECCENTRICITY)
-    return [base if j == 0 else base.with_initial(start_state(j * START_SPACING)) for j in range(starts)]
+def problems(starts: int, eccentricity: float = ECCENTRICITY):
+    """kepler(e) from `starts` points of its orbit: the pericentre (its own y0), then mean anomalies
+    START_SPACING, 2 START_SPACING, ... (bench/controllers.py takes them too)."""
+    base = kepler(eccentricity)
+    return [base if j == 0 else base.with_initial(start_state(j * START_SPACING, eccentricity))
+            for j in range(starts)]
 
 
 def one_run(problem, periods: int, setting: dict) -> dict:

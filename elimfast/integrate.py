@@ -89,6 +89,13 @@ ADAPTIVE_MEASURED_S = 6   # docs/adaptive.md: the range of s measured for adapti
 _LIM_SINGULAR_ADVICE = ("the gradients of H and the imposed invariants are (nearly) linearly dependent here "
                         "(LIM's Gram matrix, docs/methods.md#lim; e.g. angular momentum on a circular orbit); "
                         "impose fewer or other invariants")
+# The paper's right-hand side of the multipliers' system cancels O(h^2) terms down to O(h^(2s)):
+# its rounding turns alpha into noise as h shrinks (docs/methods.md#stable-right-hand-side), so a
+# smaller h or more halvings make it worse. A user trial: EHBVM(12,3) imposing L and A_y, going
+# back over steps of 0.2 that the stable form retraces to 1.7e-13, failed "after 4 halvings" and
+# was told to reduce h.
+_LITERAL_RHS_ADVICE = ("the literal right-hand side's multipliers are rounding noise at small steps: use the stable "
+                       "one (solver.rhs: stable, the default; docs/methods.md#stable-right-hand-side)")
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
                            "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
                            "other invariants, whose gradients stay independent along the orbit")
@@ -958,6 +965,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         advice = _NEARLY_SINGULAR_ADVICE
     elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"
+    if solver.rhs == "literal" and method.kind.imposes != IMPOSES_NONE and \
+            status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR):
+        advice = _LITERAL_RHS_ADVICE
     if status == codes.STATUS_NOT_CONVERGED and solver.max_iter is not None and \
             solver.max_iter < DEFAULT_MAX_ITER_ELIM_NEWTON:
         # a cap set below any default is the likelier cause (a user trial: max_iter = 1 was told to reduce h)

@@ -387,6 +387,21 @@ def test_a_singular_newton_matrix_of_a_method_that_imposes_nothing_is_named_as_s
         elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=3, conserve=(L1, AY), max_iter=1)
 
 
+def test_a_failure_with_the_literal_right_hand_side_advises_the_stable_one():
+    """A user trial: going back over 100 steps of 0.2 with the paper's literal right-hand side failed
+    'after 4 halvings' and was told to 'reduce h, or allow more step halvings', which makes its
+    noise worse (docs/methods.md#stable-right-hand-side); the stable form retraces them."""
+    forward = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, conserve=(L1, AY))
+    with pytest.raises(elimfast.errors.ConvergenceError) as failure:
+        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, y0=forward.y[-1], backward=True,
+                           conserve=(L1, AY), rhs="literal")
+    message = str(failure.value)
+    assert "use the stable one (solver.rhs: stable" in message and "reduce h" not in message
+    back = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, y0=forward.y[-1], backward=True,
+                              conserve=(L1, AY))
+    assert np.max(np.abs(back.y[-1] - kepler(0.6).y0)) < 1e-11
+
+
 def test_a_step_too_short_for_gamma_is_taken_unimposed_at_once():
     """A user trial: EHBVM imposing L and A_y could not take a step of 1e-8 (Kepler e = 0.6): Gamma's
     entries are Legendre coefficients of index s - nu.. (~h^j), below the rounding of the sums that
