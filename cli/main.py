@@ -641,7 +641,7 @@ def repair(file):
     Example:
       elimfast repair out/kepler.h5
     """
-    from elimfast.io.runfile import repair as repair_file
+    from elimfast.io.repair import repair as repair_file
 
     click.echo(repair_file(file))
     return EXIT_OK
