@@ -33,6 +33,7 @@ import ctypes
 import ctypes.util
 import errno
 import fcntl
+import hashlib
 import io
 import os
 import resource
@@ -369,13 +370,13 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
                           "of a sweep file; a run is written to a file of its own: give -o OUT.h5 (a sweep's runs "
                           "are continued with elimfast sweep SWEEP.yaml -o SWEEP.h5 --resume)")
     path = Path(path)
-    if path.is_dir():
+    if path.is_dir() or text.endswith(("/", os.sep)):   # a trailing '/': see output_path
         raise OutputError(f"{path}: is a directory; give a file name such as {path / 'run.h5'}")
     if path.exists():
-        if not (overwrite or resume):
-            raise OutputError(f"{path}: already exists; pass --overwrite to replace it or --resume to continue it")
         if not path.is_file():
             raise OutputError(f"{path}: not a regular file (a device, FIFO or socket); choose another output path")
+        if not (overwrite or resume):
+            raise OutputError(f"{path}: already exists; pass --overwrite to replace it or --resume to continue it")
         try:
             with open(path, "r+b"):
                 pass
@@ -384,6 +385,14 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
         ensure_not_busy(path)
         return path
     return check_creatable(path)
+
+
+def output_path(text) -> Path:
+    """The Path of an output option's text ('~' expanded), OutputError for one that ends in '/':
+    it names a directory (Path drops the '/', and 'newdir/' became a file named newdir)."""
+    if str(text).endswith(("/", os.sep)):
+        raise OutputError(f"{text}: is a directory; give a file name such as {Path(text).expanduser() / 'run.h5'}")
+    return Path(text).expanduser()
 
 
 def check_creatable(path) -> Path:
@@ -433,9 +442,26 @@ def _mkstemp(directory: Path):
     return tempfile.mkstemp(prefix=".elimfast-probe-", dir=directory)
 
 
+NAME_MAX = 255            # bytes of a file name (Linux, most file systems): a temporary name must fit too
+_TEMPORARY_PID = 20       # room kept for '.' + a pid + '.tmp'
+
+
+def _published_path(path: Path) -> Path:
+    """Where the file ``path`` names is written: a symlink's target (an existing link, a dangling
+    one too), so that --overwrite replaces the target and keeps the link, as --resume writes it."""
+    return Path(os.path.realpath(path)) if os.path.islink(path) else path
+
+
 def _temporary_path(path: Path) -> Path:
-    """Where a new file is built before it is renamed to ``path``; stale ones of dead writers go."""
-    prefix = f".{path.name}."
+    """Where a new file is built before it is renamed to ``path`` (beside its symlink's target:
+    a rename does not cross file systems); stale ones of dead writers go. A name too long for
+    '.<name>.<pid>.tmp' (249 to 255 bytes) is shortened, with a hash of it to keep it apart."""
+    path = _published_path(path)
+    stem = path.name
+    if len(os.fsencode(stem)) + 1 + _TEMPORARY_PID > NAME_MAX:
+        digest = hashlib.sha1(os.fsencode(stem)).hexdigest()[:12]
+        stem = os.fsencode(stem)[:NAME_MAX - _TEMPORARY_PID - 1 - 13].decode(errors="ignore") + "~" + digest
+    prefix = f".{stem}."
     with contextlib.suppress(OSError):
         for name in os.listdir(path.parent):
             pid = name[len(prefix):-len(".tmp")]
@@ -446,8 +472,9 @@ def _temporary_path(path: Path) -> Path:
 
 
 def _publish(temporary: Path, path: Path, overwrite: bool) -> None:
-    """Rename the finished new file onto ``path`` (refusing a file that appeared meanwhile
-    unless overwriting, and a file another process is writing in any case)."""
+    """Rename the finished new file onto ``path`` (a symlink: onto its target), refusing a file
+    that appeared meanwhile unless overwriting, and a file another process is writing in any case."""
+    path = _published_path(path)
     ensure_not_busy(path)
     if overwrite:
         os.replace(temporary, path)
@@ -645,6 +672,11 @@ def _open(path) -> h5py.File:
     if _held_exclusively(path):
         raise FileBusyError(f"{path}: is open for writing in another process (a run finishing, or another HDF5 "
                             "program); try again when it is done") from None
+    if consistency_flags(path) or (recorded_end(path) or 0) > path.stat().st_size:
+        # a writer killed (or a write cut off) before it closed the file: what repair undoes
+        raise _damaged(path, "its start (HDF5 cannot open it)", first,
+                       f"its writer did not close it: run {REPAIR_HINT.format(path=path)}, or {_DAMAGE_ADVICE}") \
+            from None
     raise _damaged(path, "its start (HDF5 cannot open it)", first) from None
 
 
@@ -737,8 +769,8 @@ def _hdf5_reason(err: BaseException) -> str:
     return text if len(text) <= 160 else text[:157] + "..."
 
 
-def _damaged(path, where: str, err: BaseException) -> DamagedFileError:
-    return DamagedFileError(f"{path} is damaged at {where} ({_hdf5_reason(err)}); {_DAMAGE_ADVICE}")
+def _damaged(path, where: str, err: BaseException, advice: str = _DAMAGE_ADVICE) -> DamagedFileError:
+    return DamagedFileError(f"{path} is damaged at {where} ({_hdf5_reason(err)}); {advice}")
 
 
 # What HDF5 raises for a read it cannot do (a checksum, a chunk it cannot find or decode).
