@@ -97,3 +97,22 @@ def test_a_sweep_output_ending_in_a_slash_is_refused(tmp_path):
     result = CliRunner().invoke(cli, ["sweep", str(sweep), "-o", f"{tmp_path / 'newdir'}/", "-q"])
     assert result.exit_code == 2 and "is a directory; give a file name" in result.stderr, result.output
     assert not (tmp_path / "newdir").exists()
+
+
+def test_inspect_says_when_the_newest_saved_state_is_damaged(tmp_path):
+    """/state/record keeps the state twice; with the newer copy spoiled, resume falls back to the
+    older one (test_faults), and inspect says so instead of showing the older count silently."""
+    path = tmp_path / "run.h5"
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "-q",
+                                    "--set", "output.every=1"]).exit_code == 0
+    with h5py.File(path, "r+") as f:
+        record = f["state/record"]
+        newer = int(record[0, 0] < record[1, 0])
+        row = record[newer]
+        row[10] += 1.0                       # its CRC no longer matches
+        record[newer] = row
+    with hdf5.RunFile(path) as run_file:
+        older = run_file.saved_state()["steps_done"]
+    result = CliRunner().invoke(cli, ["inspect", str(path)])
+    assert "the newest copy of the saved state is damaged" in result.output, result.output
+    assert f"resume continues from the other copy, at step {older}" in result.output

@@ -735,6 +735,7 @@ class RunFile:
             if self.run is not None:   # the sweep file's versions and date, under the run's own attributes
                 self.attrs = {**{key: _plain(value) for key, value in self._file.attrs.items()
                                  if key not in ("format", "sweep")}, **self.attrs}
+        self.state_damage = None   # what a damaged copy of the saved state costs (_read_state), for inspect
         self._saved = self._read_state() if self.run is None else self._sweep_run_counts()
         self.steps_done = self._saved["steps_done"]
         with self._reading("/t"):
@@ -806,6 +807,10 @@ class RunFile:
         if best is None:
             raise DamagedFileError(f"{self.path} is damaged at /state/record: neither copy of the saved state is "
                                    f"sound ({'; '.join(problems)}); {_DAMAGE_ADVICE}")
+        # the named datasets are written after the record: a later count there means the lost copy was the newer
+        if problems and int(named["steps_done"]) > best["steps_done"]:
+            self.state_damage = (f"the newest copy of the saved state is damaged ({'; '.join(problems)}); resume "
+                                 f"continues from the other copy, at step {best['steps_done']}")
         return best
 
     def _sweep_run_counts(self) -> dict:
