@@ -275,9 +275,10 @@ def run(config, output, overrides, overwrite, resume, quiet):
         raise click.UsageError("--overwrite and --resume contradict each other; give one of them")
     with start_up():
         from elimfast.io.hdf5 import check_output_path
+        from elimfast.io.safety import output_path
 
         if output is not None:   # before loading the config: compiling a problem can take a while
-            output = str(Path(output).expanduser())
+            output = str(output_path(output))
             _refuse_writing_over(output, config, "config file")
             check_output_path(output, overwrite=overwrite, resume=resume)
         announce_compilation()
@@ -641,7 +642,7 @@ def repair(file):
     Example:
       elimfast repair out/kepler.h5
     """
-    from elimfast.io.runfile import repair as repair_file
+    from elimfast.io.repair import repair as repair_file
 
     click.echo(repair_file(file))
     return EXIT_OK
@@ -838,7 +839,11 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     announce_compilation()   # a sweep after an upgrade compiles its kernels first (40 s for an ensemble)
 
     if output is not None:
-        output = Path(output).expanduser()
+        from elimfast.io.safety import OutputError, output_path
+        try:
+            output = output_path(output)
+        except OutputError as err:
+            fail(str(err), EXIT_USAGE)
         _refuse_writing_over(output, sweep_file, "sweep file")
     if resume and output is None:
         fail("--resume continues the sweep file given with -o OUT.h5; add it", EXIT_USAGE)

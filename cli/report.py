@@ -361,6 +361,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
                    if integrity["checksummed"] else
                    f"{integrity['chunks']} data chunks read back (a format 1 file: its data carry no checksums)")
         row("integrity", checked)
+    if run_file.state_damage:
+        row("saved state", run_file.state_damage)
     return "\n".join(rows)
 
 

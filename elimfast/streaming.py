@@ -40,6 +40,7 @@ from .integrate import steps_before_raise
 from .io import hdf5
 from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
 from .io.layout import PROBLEM_FILE_DIGEST, problem_file_attributes
+from .io.safety import no_room
 
 # Tunables of the driver (all in one place).
 TARGET_CHUNK_SECONDS = 0.5     # kernel time per chunk: progress and Ctrl-C latency vs flush overhead
@@ -473,18 +474,21 @@ def _continue_with(resume_command: str | None) -> str:
     return resume_command or "elimfast run CONFIG -o FILE --resume"
 
 
-def _disk_full(writer, resume_command) -> tuple[str, str]:
+def _disk_full(writer, resume_command, room=None) -> tuple[str, str]:
+    """A run stopped for lack of room: ``room`` (safety.NoRoom) or what fit_steps found."""
+    room = room or writer.no_room or no_room(DiskFullError())
     done = writer.saved["steps_done"]
-    return (f"disk full at step {done + 1}",
-            f"disk full at step {done + 1}; the {done} steps before it are in {writer.path}; free some space, "
+    return (f"{room.short} at step {done + 1}",
+            f"{room.short} at step {done + 1}; the {done} steps before it are in {writer.path}; {room.fix}, "
             f"then continue with: {_continue_with(resume_command)}")
 
 
 def _write_failed(writer, err, resume_command) -> tuple[str, str]:
-    if isinstance(err, DiskFullError) or hdf5._is_disk_full(err):
-        return _disk_full(writer, resume_command)
+    room = no_room(err)
+    if room is not None:
+        return _disk_full(writer, resume_command, room)
     done = writer.saved["steps_done"]
-    detail = " ".join(str(err).split())
+    detail = writer.describe(err)
     if len(detail) > 200:
         detail = detail[:197] + "..."
     return (f"write failed at step {done + 1}",

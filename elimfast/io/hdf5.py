@@ -10,7 +10,8 @@ from __future__ import annotations
 from .layout import (FAILED_PREFIX, FORMAT, FORMAT_VERSION, STATUS_COMPLETE, STATUS_INTERRUPTED,
                      STATUS_KILLED, STATUS_RUNNING, STOPPED_PREFIX, multiplier_name, version_attributes)
 from .layout import SWEEP_FORMAT, split_run_path
-from .runfile import RunFile, RunWriter, repair
+from .repair import repair
+from .runfile import RunFile, RunWriter
 from .safety import (DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError, _is_disk_full,
                      check_creatable, check_output_path, clear_consistency_flags, consistency_flags,
                      create_parent_directories, ensure_not_busy, lookup3, set_consistency_flags)

@@ -55,16 +55,17 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATS_PREFIX,
-                     STATUS_KILLED, STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
+                     STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
                      RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
                      PROBLEM_FILE_DIGEST, problem_file_attributes, version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
-                     _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason, _is_disk_full,
+                     _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
                      _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
-                     damaged_row_ranges, ensure_not_busy, open_unflagged, rows_text, set_consistency_flags)
+                     damaged_row_ranges, ensure_not_busy, extended_to_recorded_end, no_room, open_unflagged,
+                     rows_text, set_consistency_flags)
 
 
 
@@ -120,59 +121,6 @@ def _sweep_run_group(path: Path, f, label: str):
     labels = [str(_plain(runs[name].attrs.get("label", name))) for name in runs]
     shown = ", ".join(labels[:8]) + (", ..." if len(labels) > 8 else "")
     raise OutputError(f"{path}: has no run {label!r}; its runs: {shown or 'none'}")
-
-
-def repair(path) -> str:
-    """Make the file of a killed writer readable by every HDF5 program (as ``h5clear -s``),
-    once no process writes it; return what was done.
-
-    A run file is also cut back to its saved state (the rows of the chunk that was being
-    written go) and gets ``status = killed`` and the saved ``steps_done`` as root
-    attributes, so that readers that know nothing of /state (xarray) see the truth.
-    ``--resume`` continues a repaired file as it would the killed one.
-    """
-    path = Path(path)
-    _regular_file(path, "file")
-    if not h5py.is_hdf5(path):
-        raise NotAnElimfastFile(f"{path}: not an HDF5 file; nothing to repair")
-    ensure_not_busy(path)
-    flags = consistency_flags(path)
-    if not flags:
-        return f"{path}: nothing to repair (no writer left it open)"
-    with RunFile(path) if _format_of(path) == FORMAT else contextlib.nullcontext() as run_file:
-        saved = run_file.saved_state() if run_file is not None else None
-    guard = _FileGuard(path)
-    try:
-        if not guard.lock():
-            raise FileBusyError(f"{path}: is being written by another process; stop it first")
-        clear_consistency_flags(path)
-        try:
-            with h5py.File(path, "r+", libver=LIBVER) as f:
-                if saved is not None:
-                    _cut_back(f, saved["n_samples"], saved["steps_done"])
-                    f.attrs["status"] = STATUS_KILLED
-                    f.attrs["steps_done"] = saved["steps_done"]
-                    f.attrs["wall_time_s"] = float(saved["wall_time_s"])
-                    f.attrs["kernel_time_s"] = float(saved["kernel_time_s"])
-        except (OSError, RuntimeError) as err:
-            with contextlib.suppress(OSError, OutputError):
-                set_consistency_flags(path, flags)
-            raise _damaged(path, "its start (HDF5 cannot open it for the repair)", err) from None
-    finally:
-        guard.close()
-    if saved is None:
-        return f"{path}: repaired: cleared the flags its writer left; every HDF5 program opens it now"
-    return (f"{path}: repaired: cleared the flags its killed writer left and kept the {saved['steps_done']} steps "
-            "it had saved; every HDF5 program opens it now (continue the run with elimfast run ... --resume)")
-
-
-def _format_of(path) -> str:
-    from .safety import _open_swmr
-    try:
-        with _open_swmr(path) as f:
-            return str(_plain(f.attrs.get("format", "")))
-    except (OSError, RuntimeError, KeyError):
-        return ""
 
 
 def _cut_back(f, n_samples: int, steps_done: int, event_counts=()) -> None:
@@ -308,6 +256,8 @@ class RunWriter:
         self._guard = guard
         self.failed_step_iterations = None
         self.abandoned = False
+        self.no_room = None          # why fit_steps found no room (safety.NoRoom)
+        self.opened_as = path        # the name HDF5 knows the file by (a new file's temporary name)
         self.saved = {"steps_done": 0, "n_samples": 0, "t": math.nan}
 
     @classmethod
@@ -351,9 +301,10 @@ class RunWriter:
         except OSError as err:
             with contextlib.suppress(OSError):
                 temporary.unlink()
-            if _is_disk_full(err):
-                raise DiskFullError(f"{path}: the disk is full; free some space, or write the run elsewhere") from None
-            raise OutputError(f"{path}: cannot create: {_one_line(err)}") from None
+            room = no_room(err)
+            if room is not None:
+                raise DiskFullError(f"{path}: {room.sentence}; {room.fix}, or write the run elsewhere") from None
+            raise OutputError(f"{path}: cannot create: {_described(err, temporary, path)}") from None
         guard = None
         try:
             guard = _FileGuard(temporary)
@@ -390,6 +341,7 @@ class RunWriter:
             _mark_writer(state)
 
             writer = cls(path, f, datasets, guard=guard, sequence=1)
+            writer.opened_as = temporary
             writer.append(integration.initial_chunk())
             writer.saved = {"steps_done": run.steps_done, "n_samples": 1, "t": run.t}
             f.swmr_mode = True   # flushes: from here on the file on disk is always consistent
@@ -402,10 +354,10 @@ class RunWriter:
             _abandon(f, guard)
             with contextlib.suppress(OSError):
                 temporary.unlink()
-            if isinstance(err, DiskFullError) or _is_disk_full(err):
-                raise DiskFullError(f"{path}: the disk is full; free some space, or write the run "
-                                    "elsewhere") from None
-            raise OutputError(f"{path}: cannot create: {_one_line(err)}") from None
+            room = no_room(err)
+            if room is not None:
+                raise DiskFullError(f"{path}: {room.sentence}; {room.fix}, or write the run elsewhere") from None
+            raise OutputError(f"{path}: cannot create: {_described(err, temporary, path)}") from None
         except BaseException:
             _close_quietly(f, guard, temporary)
             raise
@@ -434,7 +386,9 @@ class RunWriter:
         if not h5py.is_hdf5(path):
             raise NotAnElimfastFile(f"{path}: not an HDF5 file, so not an elimfast run to resume")
         ensure_not_busy(path)
-        with RunFile(path) as existing:
+        # a write cut off part-way (a file-size limit) leaves the file shorter than HDF5 recorded:
+        # extended back (its saved part is whole, and verified here), or left as it was if not sound
+        with extended_to_recorded_end(path), RunFile(path) as existing:
             saved = existing.saved_state()
             existing.verify(stop=stop)
             # A failed fixed-step run ends with a sample of its last good state, off the grid
@@ -444,12 +398,12 @@ class RunWriter:
                 saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
                     saved["steps_done"], int(existing.attrs.get("output_every", 1))))
             n_datasets = 4 + len(existing.invariant_names) + (existing.multiplier_name is not None)
-        # A format 1 file (no checksums, no record) is continued in its own format.
-        if restore is not None:
-            try:
-                restore(saved)
-            except (KeyError, ValueError) as err:
-                raise OutputError(f"{path}: the stored state does not fit this run ({err})") from None
+            # A format 1 file (no checksums, no record) is continued in its own format.
+            if restore is not None:
+                try:
+                    restore(saved)
+                except (KeyError, ValueError) as err:
+                    raise OutputError(f"{path}: the stored state does not fit this run ({err})") from None
         flags = consistency_flags(path)
         guard = _FileGuard(path)
         try:
@@ -458,7 +412,7 @@ class RunWriter:
             guard.reserve(SPACE_BASE + n_datasets * SPACE_MARGIN)
         except DiskFullError as err:
             guard.close()
-            raise DiskFullError(f"{err}; free some space, then resume again") from None
+            raise DiskFullError(f"{err}; {no_room(err).fix}, then resume again") from None
         except BaseException:
             guard.close()
             raise
@@ -509,8 +463,9 @@ class RunWriter:
             f.swmr_mode = True
         except (OSError, RuntimeError) as err:
             _abandon(f, guard)
-            if _is_disk_full(err):
-                raise DiskFullError(f"{path}: the disk is full; free some space, then resume again") from None
+            room = no_room(err)
+            if room is not None:
+                raise DiskFullError(f"{path}: {room.sentence}; {room.fix}, then resume again") from None
             raise OutputError(f"{path}: cannot be resumed: {_one_line(err)}") from None
         except BaseException:
             _close_quietly(f, guard, None)
@@ -528,7 +483,8 @@ class RunWriter:
 
     def fit_steps(self, steps: int, step_bytes: float) -> int:
         """How many of ``steps`` steps (at ``step_bytes`` each) the disk can take; their
-        space is reserved. 0: not even one step fits (the disk is full)."""
+        space is reserved. 0: not even one step fits (the disk is full, or the file-size limit is
+        reached: ``no_room`` says which)."""
         if self._guard is None:
             return steps
         margin = SPACE_BASE + self.n_datasets * SPACE_MARGIN
@@ -537,13 +493,13 @@ class RunWriter:
             return steps
         except DiskFullError:
             pass
-        free = (self._guard.available() or 0) + self._guard.reserved()
-        fitting = int((free - margin) // max(SPACE_FACTOR * step_bytes, 1.0))
-        if fitting < 1:
-            return 0
+        fitting = int((self._guard.room() - margin) // max(SPACE_FACTOR * step_bytes, 1.0))
         try:
+            if fitting < 1:   # what reserve says about it: a full disk or the file-size limit
+                self._guard.reserve(margin + SPACE_FACTOR * step_bytes)
             self._guard.reserve(margin + SPACE_FACTOR * fitting * step_bytes)
-        except DiskFullError:
+        except DiskFullError as err:
+            self.no_room = no_room(err)
             return 0
         return min(steps, fitting)
 
@@ -618,11 +574,21 @@ class RunWriter:
             if self._guard is not None:
                 self._guard.close()
 
+    def describe(self, err: BaseException) -> str:
+        """An HDF5 error on one line, naming the user's file where HDF5 names the temporary one."""
+        return _described(err, self.opened_as, self.path)
+
     def abandon(self) -> None:
         """After HDF5 failed a write: never touch the file again (see _ABANDONED)."""
         if not self.abandoned:
             self.abandoned = True
             _abandon(self._file, self._guard, keep=self)
+
+
+def _described(err: BaseException, opened_as: Path, path: Path) -> str:
+    """HDF5's error text on one line, with ``path`` where HDF5 names the file it opened (a new
+    file's hidden temporary name, which the user never gave)."""
+    return _one_line(err).replace(str(opened_as), str(path))
 
 
 def _mark_writer(state_group) -> None:
@@ -769,6 +735,7 @@ class RunFile:
             if self.run is not None:   # the sweep file's versions and date, under the run's own attributes
                 self.attrs = {**{key: _plain(value) for key, value in self._file.attrs.items()
                                  if key not in ("format", "sweep")}, **self.attrs}
+        self.state_damage = None   # what a damaged copy of the saved state costs (_read_state), for inspect
         self._saved = self._read_state() if self.run is None else self._sweep_run_counts()
         self.steps_done = self._saved["steps_done"]
         with self._reading("/t"):
@@ -840,6 +807,10 @@ class RunFile:
         if best is None:
             raise DamagedFileError(f"{self.path} is damaged at /state/record: neither copy of the saved state is "
                                    f"sound ({'; '.join(problems)}); {_DAMAGE_ADVICE}")
+        # the named datasets are written after the record: a later count there means the lost copy was the newer
+        if problems and int(named["steps_done"]) > best["steps_done"]:
+            self.state_damage = (f"the newest copy of the saved state is damaged ({'; '.join(problems)}); resume "
+                                 f"continues from the other copy, at step {best['steps_done']}")
         return best
 
     def _sweep_run_counts(self) -> dict:

@@ -9,8 +9,9 @@ While a run writes a file it holds an exclusive lock on it (a Linux open-file-de
 lock, which HDF5's own locking does not see: HDF5 drops its lock in SWMR mode), and
 ``--overwrite`` and ``--resume`` refuse a file that another live process holds. Before
 each chunk the writer reserves its disk space (``fallocate``): when the file system is
-full the run stops at the chunk boundary with a clean, resumable file, instead of HDF5
-failing part-way through a write (after which HDF5 2.0 crashes on closing the file).
+full, or the file would pass the file-size limit (``ulimit -f``), the run stops at the chunk
+boundary with a clean, resumable file, instead of HDF5 failing part-way through a write
+(after which HDF5 2.0 crashes on closing the file).
 
 Crash recovery. Run files are written in HDF5's single-writer/multiple-reader (SWMR)
 mode, whose ordered metadata writes keep the file consistent at every instant. After a
@@ -32,11 +33,14 @@ import ctypes
 import ctypes.util
 import errno
 import fcntl
+import hashlib
 import io
 import os
+import resource
 import socket
 import stat
 import struct
+import typing
 from pathlib import Path
 
 import h5py
@@ -66,6 +70,11 @@ class FileBusyError(OutputError):
     """Another live process is writing the file."""
 
 
+class FileSizeLimitError(DiskFullError):
+    """The output file would grow past the largest file this process may write (RLIMIT_FSIZE:
+    the shell's ``ulimit -f``): the run stops as on a full disk, its file closed and resumable."""
+
+
 # --- plain files ---------------------------------------------------------------------------
 def _regular_file(path: Path, what: str = "file") -> os.stat_result:
     """stat of an existing regular file; an OutputError for anything else (a device, a FIFO)."""
@@ -93,6 +102,51 @@ def _is_disk_full(err: BaseException) -> bool:
     text = str(err)
     return f"errno = {errno.ENOSPC}," in text or f"errno = {errno.EDQUOT}," in text \
         or "No space left on device" in text or "Disk quota exceeded" in text
+
+
+def _is_file_too_large(err: BaseException) -> bool:
+    """Whether an OSError (or an HDF5 error, whose text carries the errno) means EFBIG: the
+    file-size limit (ulimit -f), a per-file quota, or the file system's largest file."""
+    if isinstance(err, FileSizeLimitError) or getattr(err, "errno", None) == errno.EFBIG:
+        return True
+    text = str(err)
+    return f"errno = {errno.EFBIG}," in text or "File too large" in text
+
+
+def _file_size_limit() -> int | None:
+    """The largest file this process may write, in bytes (the soft RLIMIT_FSIZE, which the shell's
+    ``ulimit -f`` sets); None when unlimited. Python ignores SIGXFSZ, so a write past it fails
+    with EFBIG, part-way through an HDF5 flush: the writers check it before, as they check free space."""
+    try:
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    except (OSError, ValueError):
+        return None
+    return None if soft == resource.RLIM_INFINITY or soft < 0 else int(soft)
+
+
+class NoRoom(typing.NamedTuple):
+    """Why a write has no room, in a message's words: ``short`` for a status ('disk full at step
+    12'), ``sentence`` after a file's name, ``fix`` what the user does before continuing."""
+    short: str
+    sentence: str
+    fix: str
+
+
+def no_room(err: BaseException | None) -> NoRoom | None:
+    """The one wording of every 'no room' message (a full disk or quota; a file-size limit), or
+    None when ``err`` is another failure."""
+    if err is None:
+        return None
+    if _is_file_too_large(err):
+        limit = _file_size_limit()
+        if limit is None:   # a per-file quota, or the file system's largest file
+            return NoRoom("file too large", "the file has reached the largest size allowed here (File too large)",
+                          "write it where larger files are allowed, or raise that limit")
+        return NoRoom("file-size limit reached", f"the file-size limit (ulimit -f: {_size(limit)}) is reached",
+                      "raise the limit (ulimit -f unlimited)")
+    if isinstance(err, DiskFullError) or _is_disk_full(err):
+        return NoRoom("disk full", "the disk is full", "free some space")
+    return None
 
 
 def _free_bytes(directory: Path) -> int | None:
@@ -189,6 +243,10 @@ class _FileGuard:
         """Make sure the next n_bytes of the file have room on disk; DiskFullError if not."""
         n_bytes = int(max(n_bytes, 1))
         size = os.fstat(self.fd).st_size
+        limit = _file_size_limit()
+        if limit is not None and size + n_bytes > limit:
+            raise FileSizeLimitError(f"{self.path}: the file-size limit (ulimit -f: {_size(limit)}) is reached "
+                                     f"({_size(size)} written, {_size(n_bytes)} more needed)")
         try:
             if _fallocate(self.fd, size, n_bytes):
                 return
@@ -199,13 +257,14 @@ class _FileGuard:
         if free is not None and free < n_bytes:
             raise DiskFullError(f"{self.path}: the disk is full ({_size(free)} free, {_size(n_bytes)} needed)")
 
-    def available(self) -> int | None:
-        return _free_bytes(self.path.parent)
-
-    def reserved(self) -> int:
-        """Bytes allocated beyond the end of the file (reserved earlier, not yet written)."""
+    def room(self) -> int:
+        """Bytes the file can still grow by: the free space plus what it reserved earlier beyond
+        its end, and no more than the file-size limit allows."""
         info = os.fstat(self.fd)
-        return max(0, getattr(info, "st_blocks", 0) * 512 - info.st_size)
+        reserved = max(0, getattr(info, "st_blocks", 0) * 512 - info.st_size)
+        room = (_free_bytes(self.path.parent) or 0) + reserved
+        limit = _file_size_limit()
+        return room if limit is None else min(room, limit - info.st_size)
 
     def close(self) -> None:
         """Give back the space reserved beyond the end of the file (a truncation to the
@@ -311,13 +370,13 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
                           "of a sweep file; a run is written to a file of its own: give -o OUT.h5 (a sweep's runs "
                           "are continued with elimfast sweep SWEEP.yaml -o SWEEP.h5 --resume)")
     path = Path(path)
-    if path.is_dir():
+    if path.is_dir() or text.endswith(("/", os.sep)):   # a trailing '/': see output_path
         raise OutputError(f"{path}: is a directory; give a file name such as {path / 'run.h5'}")
     if path.exists():
-        if not (overwrite or resume):
-            raise OutputError(f"{path}: already exists; pass --overwrite to replace it or --resume to continue it")
         if not path.is_file():
             raise OutputError(f"{path}: not a regular file (a device, FIFO or socket); choose another output path")
+        if not (overwrite or resume):
+            raise OutputError(f"{path}: already exists; pass --overwrite to replace it or --resume to continue it")
         try:
             with open(path, "r+b"):
                 pass
@@ -326,6 +385,14 @@ def check_output_path(path, *, overwrite: bool = False, resume: bool = False) ->
         ensure_not_busy(path)
         return path
     return check_creatable(path)
+
+
+def output_path(text) -> Path:
+    """The Path of an output option's text ('~' expanded), OutputError for one that ends in '/':
+    it names a directory (Path drops the '/', and 'newdir/' became a file named newdir)."""
+    if str(text).endswith(("/", os.sep)):
+        raise OutputError(f"{text}: is a directory; give a file name such as {Path(text).expanduser() / 'run.h5'}")
+    return Path(text).expanduser()
 
 
 def check_creatable(path) -> Path:
@@ -375,9 +442,26 @@ def _mkstemp(directory: Path):
     return tempfile.mkstemp(prefix=".elimfast-probe-", dir=directory)
 
 
+NAME_MAX = 255            # bytes of a file name (Linux, most file systems): a temporary name must fit too
+_TEMPORARY_PID = 20       # room kept for '.' + a pid + '.tmp'
+
+
+def _published_path(path: Path) -> Path:
+    """Where the file ``path`` names is written: a symlink's target (an existing link, a dangling
+    one too), so that --overwrite replaces the target and keeps the link, as --resume writes it."""
+    return Path(os.path.realpath(path)) if os.path.islink(path) else path
+
+
 def _temporary_path(path: Path) -> Path:
-    """Where a new file is built before it is renamed to ``path``; stale ones of dead writers go."""
-    prefix = f".{path.name}."
+    """Where a new file is built before it is renamed to ``path`` (beside its symlink's target:
+    a rename does not cross file systems); stale ones of dead writers go. A name too long for
+    '.<name>.<pid>.tmp' (249 to 255 bytes) is shortened, with a hash of it to keep it apart."""
+    path = _published_path(path)
+    stem = path.name
+    if len(os.fsencode(stem)) + 1 + _TEMPORARY_PID > NAME_MAX:
+        digest = hashlib.sha1(os.fsencode(stem)).hexdigest()[:12]
+        stem = os.fsencode(stem)[:NAME_MAX - _TEMPORARY_PID - 1 - 13].decode(errors="ignore") + "~" + digest
+    prefix = f".{stem}."
     with contextlib.suppress(OSError):
         for name in os.listdir(path.parent):
             pid = name[len(prefix):-len(".tmp")]
@@ -388,8 +472,9 @@ def _temporary_path(path: Path) -> Path:
 
 
 def _publish(temporary: Path, path: Path, overwrite: bool) -> None:
-    """Rename the finished new file onto ``path`` (refusing a file that appeared meanwhile
-    unless overwriting, and a file another process is writing in any case)."""
+    """Rename the finished new file onto ``path`` (a symlink: onto its target), refusing a file
+    that appeared meanwhile unless overwriting, and a file another process is writing in any case."""
+    path = _published_path(path)
     ensure_not_busy(path)
     if overwrite:
         os.replace(temporary, path)
@@ -460,6 +545,46 @@ def _superblock(path) -> tuple[bytearray, int]:
     if version not in (2, 3) or size_of_offsets not in (2, 4, 8):
         raise OutputError(f"{path}: HDF5 superblock version {version} has no consistency flags to clear")
     return raw, 12 + 4 * size_of_offsets
+
+
+def recorded_end(path) -> int | None:
+    """The end of the file that its superblock records (base address + end-of-file address),
+    or None where the superblock cannot say (not HDF5, version 0/1, a damaged superblock)."""
+    try:
+        raw, end = _superblock(path)
+    except (OutputError, OSError):
+        return None
+    if lookup3(bytes(raw[:end])) != struct.unpack("<I", raw[end:end + 4])[0]:
+        return None
+    size = raw[9]
+    base = int.from_bytes(raw[12:12 + size], "little")
+    return base + int.from_bytes(raw[12 + 2 * size:12 + 3 * size], "little")
+
+
+@contextlib.contextmanager
+def extended_to_recorded_end(path):
+    """A file shorter than its recorded end, extended to it with zeros for the block; yields
+    the bytes added (0: the file was whole). HDF5 refuses such a file ('truncated file'): a
+    write that failed part-way (EFBIG, a file-size limit) after HDF5 had allocated the space
+    leaves one, whose saved part is whole; the callers verify what they read. The file keeps
+    the extension when the block ends normally, and gets its old size back when it raises."""
+    path = Path(path)
+    size, end = os.stat(path).st_size, recorded_end(path)
+    if end is None or end <= size:
+        yield 0
+        return
+    try:
+        os.truncate(path, end)
+    except OSError as err:
+        raise OutputError(f"{path}: is shorter than HDF5 recorded ({size} of {end} bytes) and cannot be "
+                          f"extended to that ({err.strerror}); {no_room(err).fix if no_room(err) else 'check the disk'}"
+                          ", then try again") from None
+    try:
+        yield end - size
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.truncate(path, size)
+        raise
 
 
 def consistency_flags(path) -> int:
@@ -547,6 +672,11 @@ def _open(path) -> h5py.File:
     if _held_exclusively(path):
         raise FileBusyError(f"{path}: is open for writing in another process (a run finishing, or another HDF5 "
                             "program); try again when it is done") from None
+    if consistency_flags(path) or (recorded_end(path) or 0) > path.stat().st_size:
+        # a writer killed (or a write cut off) before it closed the file: what repair undoes
+        raise _damaged(path, "its start (HDF5 cannot open it)", first,
+                       f"its writer did not close it: run {REPAIR_HINT.format(path=path)}, or {_DAMAGE_ADVICE}") \
+            from None
     raise _damaged(path, "its start (HDF5 cannot open it)", first) from None
 
 
@@ -639,8 +769,8 @@ def _hdf5_reason(err: BaseException) -> str:
     return text if len(text) <= 160 else text[:157] + "..."
 
 
-def _damaged(path, where: str, err: BaseException) -> DamagedFileError:
-    return DamagedFileError(f"{path} is damaged at {where} ({_hdf5_reason(err)}); {_DAMAGE_ADVICE}")
+def _damaged(path, where: str, err: BaseException, advice: str = _DAMAGE_ADVICE) -> DamagedFileError:
+    return DamagedFileError(f"{path} is damaged at {where} ({_hdf5_reason(err)}); {advice}")
 
 
 # What HDF5 raises for a read it cannot do (a checksum, a chunk it cannot find or decode).

@@ -28,7 +28,7 @@ from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PRE
                      _set_attributes, append_rows, RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes,
                      version_attributes)
 from .runfile import _now
-from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, _is_disk_full, _one_line, _plain,
+from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, no_room, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
                      ensure_not_busy)
 
@@ -175,10 +175,10 @@ class SweepWriter:
             _publish(temporary, self.path, overwrite)
             if ensemble is not None:
                 self._file.swmr_mode = True   # flushes; from here on the file on disk is always consistent
-        except DiskFullError:
+        except DiskFullError as err:
             _close_quietly(self._file, self._guard, temporary)
-            raise DiskFullError(f"{self.path}: the disk is full; free some space, or write the sweep elsewhere") \
-                from None
+            room = no_room(err)
+            raise DiskFullError(f"{self.path}: {room.sentence}; {room.fix}, or write the sweep elsewhere") from None
         except BaseException:
             _close_quietly(self._file, self._guard, temporary)
             raise
@@ -309,8 +309,8 @@ class SweepWriter:
         n_bytes = sum(getattr(value, "nbytes", 0) for value in arrays)
         try:
             self._guard.reserve(SPACE_BASE + SPACE_FACTOR * n_bytes)
-        except DiskFullError:
-            raise DiskFullError(f"{self.path}: the disk is full; the runs stored before this one are in the "
+        except DiskFullError as err:
+            raise DiskFullError(f"{self.path}: {no_room(err).sentence}; the runs stored before this one are in the "
                                 "file") from None
 
     def add_run(self, label: str, result=None, *, status: str, config_text: str, coordinates: dict,
@@ -402,8 +402,9 @@ class _SweepWriting:
         if kind is not None and issubclass(kind, (OSError, RuntimeError)) and not issubclass(kind, ElimfastError):
             self.writer.abandoned = True
             _abandon(self.writer._file, None, keep=self.writer)
-            if _is_disk_full(err):
-                raise DiskFullError(f"{self.writer.path}: the disk is full; {self.writer._kept}") from None
+            room = no_room(err)
+            if room is not None:
+                raise DiskFullError(f"{self.writer.path}: {room.sentence}; {self.writer._kept}") from None
             raise OutputError(f"{self.writer.path}: cannot write ({_one_line(err)[:200]}); {self.writer._kept}") \
                 from None
         return False
