@@ -357,3 +357,18 @@ def test_resume_ignores_differences_of_the_config_files_form(tmp_path):
     result = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
     assert result.exit_code == 0 and "already complete" in result.stderr, result.stderr
     assert "changes the stored run's config" not in result.stderr
+
+
+@pytest.mark.parametrize("change", ["integration.t_end=20.05", "integration.n_steps=100"])
+def test_resume_refuses_an_end_for_the_reason_a_new_run_gives(tmp_path, change):
+    """A user trial: --resume --set integration.t_end=20.05 with h = 0.1 was refused as 'only
+    solver.* may change on --resume; integration.t_end changes the trajectory', contradicting
+    the documented extension; the reason is the fractional number of steps, which a new run
+    names. (--set integration.n_steps=100 was refused naming the stored integration.t_end.)"""
+    path = tmp_path / "part.h5"
+    args = ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=10"]
+    assert CliRunner().invoke(cli, [*args, "--quiet"]).exit_code == 0
+    new = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(tmp_path / "new.h5"), "--set", change])
+    resumed = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", change])
+    assert new.exit_code == resumed.exit_code == 2 and resumed.stderr.count("\n") == 1
+    assert resumed.stderr == new.stderr and "may change on --resume" not in resumed.stderr
