@@ -340,7 +340,8 @@ def _stored_spec(path, overrides, config):
     --set, as KEY=VALUE, {their keys: CONFIG} for the refusal to say where they come from)."""
     from elimfast.config import ConfigError, load_run_from_dict, parse_yaml
     from elimfast.io.hdf5 import RunFile
-    from elimfast.streaming import ABSENT, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences, resume_refusal
+    from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences,
+                                    resume_refusal)
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
@@ -357,11 +358,10 @@ def _stored_spec(path, overrides, config):
         by_set = any(key == k or key.startswith(k + ".") or k.startswith(key + ".") for k in set_keys)
         if not by_set:
             origins[key] = str(config)
-        if value is ABSENT:   # no --set removes a key: a removal is a change of its own, ruled on here
+        if value is ABSENT:   # a key CONFIG leaves out, as --set KEY=null leaves it out
             if key.split(".")[0] in SOLVER_SECTIONS or key in LOAD_ONLY_KEYS:
                 continue
-            raise resume_refusal(path, key, prefix="was written from a different config; ", configs=(data, given),
-                                 origins=origins)
+            value = None
         if key == "integration.n_steps" and "integration.t_end" in {_set_key(item) for item in changes}:
             continue   # follows from t_end
         item = f"{key}={_yaml_value(value)}"
@@ -380,21 +380,24 @@ def _stored_spec(path, overrides, config):
     try:
         return load_run_from_dict(data, source=source, overrides=changes), from_config, origins
     except ConfigError:
-        # A change of integration.h or t0 contradicts the stored n_steps before the resume can
-        # compare configs: when the solver changes alone load, the others are at fault.
+        # CONFIG with --set loaded as a whole, so a change that does not load on the stored config
+        # contradicts what it keeps (integration.h the stored n_steps, say): the resume's rule names
+        # the first change that fails alone, one that may not change before one that may.
         kept = [item for item in changes if _set_key(item).split(".")[0] in SOLVER_SECTIONS]
         if len(kept) == len(changes):
             raise
         load_run_from_dict(data, source=source, overrides=kept)
-        others = [item for item in changes if item not in kept]
-        for item in others:   # the one that fails alone
+        others = sorted((item for item in changes if item not in kept),
+                        key=lambda item: any(_set_key(item).startswith(k) for k in EXTENSION_KEYS))
+
+        def fails(item) -> bool:
             try:
                 load_run_from_dict(data, source=source, overrides=[*kept, item])
             except ConfigError:
-                if _set_key(item).split(".")[0] != "integration":
-                    raise
-                raise resume_refusal(path, _set_key(item), configs=(data,), origins=origins) from None
-        raise resume_refusal(path, _set_key(others[0]), configs=(data,), origins=origins) from None
+                return True
+            return False
+        failing = next((item for item in others if fails(item)), others[0])
+        raise resume_refusal(path, _set_key(failing), configs=(data, given), origins=origins) from None
 
 
 def _yaml_value(value) -> str:
