@@ -661,6 +661,17 @@ def _parsed(*texts: str) -> list:
     return parsed
 
 
+def terminal_event_end(integration, status: str, clock, t_end: float) -> float | None:
+    """The time at which a terminal event ended the stored run (complete before its t_end),
+    else None. ``clock``: the stored state's [t, compensation]."""
+    t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else t_end
+    terminal = np.any(np.asarray(getattr(getattr(integration, "events", None), "terminal", ()), dtype=bool))
+    # (a fixed-step clock may end an ulp short of t_end: only a terminal event ends a run early)
+    if status == STATUS_COMPLETE and terminal and t_final < t_end - 1e-12 * abs(t_end):
+        return t_final
+    return None
+
+
 def integration_t_eval(integration) -> np.ndarray:
     """The run's requested output times (empty without them)."""
     return np.asarray(getattr(integration, "t_eval", np.zeros(0)))
@@ -703,12 +714,10 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
         raise OutputError(f"{path}: integration.t_end = {new_end:.10g} is before the end of the stored run, "
                           f"{old_end:.10g}: --resume continues a run to a later t_end, never an earlier one; start "
                           "a new run (-o NEW.h5) for a shorter one")
-    t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else old_end
-    terminal = np.any(np.asarray(getattr(getattr(integration, "events", None), "terminal", ()), dtype=bool))
-    # (a fixed-step clock may end an ulp short of t_end: only a terminal event ends a run early)
-    if status == STATUS_COMPLETE and terminal and t_final < old_end - 1e-12 * abs(old_end):
-        raise OutputError(f"{path}: the run was ended by a terminal event at t = {t_final:.10g}; a later t_end "
-                          "does not continue it past the event: start a new run from there, without terminal")
+    t_event = terminal_event_end(integration, status, clock, old_end)
+    if t_event is not None:
+        raise OutputError(f"{path}: the run was ended by a terminal event at t = {exact_time(t_event)}; a later "
+                          "t_end does not continue it past the event: start a new run from there, without terminal")
     if stored_t is not None:
         count = stored_t.size
         if not (new_times.size >= count and np.array_equal(new_times[:count], stored_t)):
@@ -789,11 +798,16 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             solver_changed = config_difference(stored, config_text,
                                                ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS) is not None
             if status == STATUS_COMPLETE and extension is None:
+                t_event = terminal_event_end(integration, status, clock, float(attrs.get("t_end", math.nan)))
+                if t_event is not None:   # a later t_end would be refused (run_extension): no hint to give one
+                    done = f"already complete: it ended at its terminal event at t = {exact_time(t_event)}"
+                else:
+                    done = ("already complete; nothing to resume; to continue it to a later end: --resume --set "
+                            "integration.t_end=LATER")
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,
                                n_steps=int(attrs["n_steps"]), wall_time_s=float(attrs.get("wall_time_s", 0.0)),
                                kernel_time_s=float(attrs.get("kernel_time_s", 0.0)),
-                               note="already complete; nothing to resume; to continue it to a later end: --resume --set "
-                                    "integration.t_end=LATER")
+                               note=done)
             if status.startswith(FAILED_PREFIX) and not solver_changed:
                 raise OutputError(f"{path}: the run {status}; resuming with the same solver settings would fail the "
                                   "same way: resume with other ones (e.g. --set solver.max_halvings=8), or start "

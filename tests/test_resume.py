@@ -294,7 +294,7 @@ def test_resume_with_another_config_is_refused_naming_the_change(tmp_path):
     pendulum = str(ROOT / "configs" / "pendulum.yaml")
     other = CliRunner().invoke(cli, ["run", pendulum, "-o", str(path), "--resume"])
     assert other.exit_code == 2 and other.stderr.count("\n") == 1, other.stderr
-    assert "only solver.* may change on --resume; problem." in other.stderr
+    assert "only solver.* may change on --resume; " in other.stderr
     assert f" (in {pendulum}) changes the trajectory" in other.stderr
     same = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])
     assert same.exit_code == 0 and "already complete" in same.stderr, same.stderr
@@ -372,3 +372,17 @@ def test_resume_refuses_an_end_for_the_reason_a_new_run_gives(tmp_path, change):
     resumed = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", change])
     assert new.exit_code == resumed.exit_code == 2 and resumed.stderr.count("\n") == 1
     assert resumed.stderr == new.stderr and "may change on --resume" not in resumed.stderr
+
+
+def test_resume_of_a_run_a_terminal_event_ended_gives_no_hint_to_extend_it(tmp_path):
+    """A user trial: a run ended by a terminal event said 'already complete; nothing to resume;
+    to continue it to a later end: --resume --set integration.t_end=LATER', and following that
+    hint was refused ('ended by a terminal event')."""
+    path = tmp_path / "event.h5"
+    args = ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=20", "--set",
+            'events={peri: {expression: "q1*p1 + q2*p2", direction: 1, terminal: true}}']
+    assert CliRunner().invoke(cli, [*args, "--quiet"]).exit_code == 0
+    result = CliRunner().invoke(cli, [*args, "--resume"])
+    assert result.exit_code == 0, result.stderr
+    assert "already complete: it ended at its terminal event at t = 6.28" in result.stderr
+    assert "integration.t_end=LATER" not in result.stderr
