@@ -299,6 +299,10 @@ def run(config, output, overrides, overwrite, resume, quiet):
         if resume and output is None and path.is_file():
             _refuse_resuming_a_sweep(path)
             spec, from_config, origins = _stored_spec(path, overrides, config)
+        if resume and not path.exists():
+            # Resume-or-start serves job scripts that rerun one command; said first, and under --quiet
+            # too, so that a mistyped path does not restart a long run unnoticed.
+            click.echo(f"note: no file {path} to resume: starting a new run", err=True)
         integration = Integration.from_spec(spec)
         from elimfast import streaming
     label = f"{spec.method.name} {spec.problem.name}"

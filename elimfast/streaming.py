@@ -760,7 +760,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
     config, output path and solver settings aside, and read back without damage); a
     missing file starts a new run. A complete run is left as it is; a failed one
     continues from its last good step only with changed solver settings (with the same
-    ones it would fail again). Raises OutputError for file problems and DiskFullError when the disk has no
+    ones it would fail again). The caller says that a missing file starts a new run (the
+    command line does so before the run). Raises OutputError for file problems and DiskFullError when the disk has no
     room, before any step is computed. ``resume_command``: the command line that
     continues this run, quoted in the messages of an interrupted or stopped run. ``origins``:
     resume_refusal's, for the changes that come from a file rather than --set.
@@ -840,8 +841,6 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             opening = time.perf_counter()
             writer = hdf5.RunWriter.create(path, integration, config_text=config_text, t_end=t_end,
                                            overwrite=overwrite or resume)
-            if resume:
-                note = "no file to resume: started a new run"
         open_s = time.perf_counter() - opening
         drive_options.setdefault("problem_source", _python_file(config_text))
         outcome = drive(integration, writer, progress=progress, stop=stop, wall_offset=wall_offset,

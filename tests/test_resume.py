@@ -278,10 +278,17 @@ def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_pa
         in report.stdout
 
 
-def test_resume_without_a_file_starts_a_new_run(tmp_path):
+def test_resume_without_a_file_starts_a_new_run_and_says_so_even_when_quiet(tmp_path):
+    """Resume-or-start serves job scripts; a mistyped path restarted a long run silently under
+    -q (a user trial), so the line is printed first, also with --quiet. A missing CONFIG is an
+    error as for a new run (it was accepted on --resume of an existing file)."""
     path = tmp_path / "new.h5"
-    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])
-    assert result.exit_code == 0 and "no file to resume: started a new run" in result.stderr
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume",
+                                      "-q"])
+    assert result.exit_code == 0
+    assert result.stderr == f"note: no file {path} to resume: starting a new run\n"
+    missing = CliRunner().invoke(cli, ["run", str(tmp_path / "nothere.yaml"), "-o", str(path), "--resume"])
+    assert missing.exit_code == 2 and missing.stderr.count("\n") == 1 and "nothere.yaml" in missing.stderr
 
 
 def test_resume_with_another_config_is_refused_naming_the_change(tmp_path):
