@@ -256,12 +256,13 @@ def run(config, output, overrides, overwrite, resume, quiet):
     The run proceeds in chunks, each appended to OUT.h5 and flushed, with a progress bar
     on a terminal (a line every few seconds otherwise). Ctrl-C or SIGTERM stops at the
     next chunk boundary (exit 130); --resume continues exactly where it stopped, even
-    after kill -9, and ends bit for bit where an uninterrupted run ends. --resume uses the
-    config stored in OUT.h5 (the --set values of the first run need not be repeated); a
-    --set on resume may change solver.* only, e.g. to continue a failed run with more
-    step halvings, and integration.t_end (with output.times, keeping the times written), to
-    continue a run, complete or not, to a later end. A relative output path is taken from
-    the current directory.
+    after kill -9, and ends bit for bit where an uninterrupted run ends. --resume reads
+    CONFIG and --set again (give the first run's --set values again: the resume command
+    printed on an interruption does) and takes their differences from the config stored in
+    OUT.h5 as changes: solver.* only, e.g. to continue a failed run with more step
+    halvings, and integration.t_end (with output.times, keeping the times written), to
+    continue a run, complete or not, to a later end; others are refused. A relative output
+    path is taken from the current directory.
 
     \b
     Examples:
@@ -284,9 +285,10 @@ def run(config, output, overrides, overwrite, resume, quiet):
         announce_compilation()
         from elimfast.integrate import Integration
 
+        from_config, origins = [], {}
         if resume and output is not None and Path(output).is_file():
             _refuse_resuming_a_sweep(output)
-            spec = _stored_spec(output, overrides, config, quiet)   # the run continues from its stored config
+            spec, from_config, origins = _stored_spec(output, overrides, config)
         else:
             spec = _load(config, overrides)
         path = output if output is not None else spec.output_path
@@ -297,14 +299,20 @@ def run(config, output, overrides, overwrite, resume, quiet):
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
             _refuse_resuming_a_sweep(path)
-            spec = _stored_spec(path, overrides, config, quiet)
+            spec, from_config, origins = _stored_spec(path, overrides, config)
+        if resume and not path.exists():
+            # Resume-or-start serves job scripts that rerun one command; said first, and under --quiet
+            # too, so that a mistyped path does not restart a long run unnoticed.
+            click.echo(f"note: no file {path} to resume: starting a new run", err=True)
         integration = Integration.from_spec(spec)
         from elimfast import streaming
     label = f"{spec.method.name} {spec.problem.name}"
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
-        resume_command=_resume_command(config, path))
+        resume_command=_resume_command(config, path, overrides), origins=origins)
+    if from_config:
+        outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
     return _report_run(outcome, config, path, overrides, quiet)
 
 
@@ -327,97 +335,92 @@ def _refuse_writing_over(output, source, what: str) -> None:
                                "another output file, e.g. -o out/run.h5")
 
 
-def _stored_spec(path, overrides, config, quiet):
-    """The run spec of the config stored in a run file, with --set overrides on top (--resume
-    continues the run it holds: the CONFIG argument and its earlier --set values are not
-    needed again; changes other than solver.* are refused by the resume itself)."""
+def _stored_spec(path, overrides, config):
+    """The spec with which --resume continues the run stored in ``path``: its stored config with
+    the differences of CONFIG and --set from it on top, each as the --set of that key, so that
+    the resume's one rule decides on all of them (solver.* and a later end are taken; other
+    changes refused, by streaming.resume_refusal). CONFIG is read as a new run reads it (its
+    errors are a new run's), and the resolved configs are compared, so comments, formatting and
+    defaults written out are no change. Returns (spec, the changes that come from CONFIG, not
+    --set, as KEY=VALUE, {their keys: CONFIG} for the refusal to say where they come from)."""
     from elimfast.config import ConfigError, load_run_from_dict, parse_yaml
     from elimfast.io.hdf5 import RunFile
-    from elimfast.streaming import SOLVER_SECTIONS, resume_refusal
+    from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences,
+                                    resume_refusal)
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
-    if not quiet:
-        _note_other_config(config, path, data)
+    given = parse_yaml(_resolved_yaml(_load(config, overrides)), str(config))
+    set_keys = {_set_key(item) for item in overrides}
+    if set_keys & {"integration.t_end", "integration.n_steps"}:   # either one decides the other
+        set_keys |= {"integration.t_end", "integration.n_steps"}
+    changes, from_config, origins = [], [], {}
+    for key, value in config_differences(data, given):
+        if key == "output.path":
+            continue
+        by_set = any(key == k or key.startswith(k + ".") or k.startswith(key + ".") for k in set_keys)
+        if not by_set:
+            origins[key] = str(config)
+        if value is ABSENT:   # a key CONFIG leaves out, as --set KEY=null leaves it out
+            if key.split(".")[0] in SOLVER_SECTIONS or key in LOAD_ONLY_KEYS:
+                continue
+            value = None
+        if key == "integration.n_steps" and "integration.t_end" in {_set_key(item) for item in changes}:
+            continue   # follows from t_end
+        item = f"{key}={_yaml_value(value)}"
+        changes.append(item)
+        if not by_set:
+            from_config.append(item)
     # The stored config resolves both t_end and n_steps: a run continued to a later end
-    # (--set integration.t_end=LATER, or n_steps) gets the other from the one given.
-    keys = {_set_key(item) for item in overrides}
+    # gets the other from the one given.
+    keys = {_set_key(item) for item in changes}
     stored_integration = data.get("integration") if isinstance(data, dict) else None
     if isinstance(stored_integration, dict):
         if "integration.t_end" in keys and "integration.n_steps" not in keys:
             stored_integration.pop("n_steps", None)
         elif "integration.n_steps" in keys and "integration.t_end" not in keys:
             stored_integration.pop("t_end", None)
-    stored_solver = data.get("solver") if isinstance(data, dict) else None
-    if isinstance(stored_solver, dict) and "solver.method" in keys and "solver.max_iter" not in keys:
-        # max_iter is stored resolved: where it was the stored solver's default, the new solver gets its
-        # own (a user trial: --set solver.method=fixed_point kept Newton's 30 on ELIM, not 100)
-        from elimfast.integrate import SolverSettings
-        before = load_run_from_dict(data, source=source)
-        default = SolverSettings(method=before.solver.method).resolved_for(
-            before.method, len(before.conserve), 2 * before.problem.degrees_of_freedom).max_iter
-        if stored_solver.get("max_iter") == default:
-            stored_solver.pop("max_iter", None)
     try:
-        return load_run_from_dict(data, source=source, overrides=list(overrides))
+        return load_run_from_dict(data, source=source, overrides=changes), from_config, origins
     except ConfigError:
-        # A --set of integration.h or t_end contradicts the stored n_steps before the resume can
-        # compare configs: when the solver overrides alone load, the others are at fault.
-        kept = [item for item in overrides if _set_key(item).split(".")[0] in SOLVER_SECTIONS]
-        if len(kept) == len(overrides):
+        # CONFIG with --set loaded as a whole, so a change that does not load on the stored config
+        # contradicts what it keeps (integration.h the stored n_steps, say): the resume's rule names
+        # the first change that fails alone, one that may not change before one that may.
+        kept = [item for item in changes if _set_key(item).split(".")[0] in SOLVER_SECTIONS]
+        if len(kept) == len(changes):
             raise
         load_run_from_dict(data, source=source, overrides=kept)
-        others = [item for item in overrides if item not in kept]
-        for item in others:   # the one that fails alone (an equal value repeated from the first run loads)
+        others = sorted((item for item in changes if item not in kept),
+                        key=lambda item: any(_set_key(item).startswith(k) for k in EXTENSION_KEYS))
+
+        def fails(item) -> bool:
             try:
                 load_run_from_dict(data, source=source, overrides=[*kept, item])
             except ConfigError:
-                if _set_key(item).split(".")[0] != "integration":
-                    # not a contradiction with the stored n_steps (only integration.* can be): a value
-                    # that is invalid in itself, whose own message says what is wrong with it
-                    raise
-                raise resume_refusal(path, _set_key(item), configs=(data,)) from None
-        raise resume_refusal(path, _set_key(others[0]), configs=(data,)) from None
+                return True
+            return False
+        failing = next((item for item in others if fails(item)), others[0])
+        raise resume_refusal(path, _set_key(failing), configs=(data, given), origins=origins) from None
 
 
-def _note_other_config(config, path, stored_config: dict) -> None:
-    """--resume continues the run stored in ``path`` from its own config: say so when CONFIG
-    describes another problem or method (a user trial resumed a Kepler file with
-    configs/pendulum.yaml, and got the Kepler run without a word). Compared by the problem's
-    kind and name and the method's name only: CONFIG is the user's text, the stored config
-    the resolved one (``stored_config``, parsed), and values set by --set on the first run
-    need not be repeated."""
-    from elimfast.config import ConfigError, parse_yaml
-
-    def identity(data, directory: Path) -> tuple:
-        problem = data.get("problem") if isinstance(data, dict) else None
-        method = data.get("method") if isinstance(data, dict) else None
-        problem = problem if isinstance(problem, dict) else {}
-        kind = next((key for key in ("builtin", "python", "hamiltonian") if key in problem), None)
-        name = str(problem.get(kind)) if kind in ("builtin", "python") else None
-        if kind == "python":   # relative to its config's directory (stored resolved)
-            name = str((directory / name).resolve())
-        return kind, name, str(method.get("name", "")).lower() if isinstance(method, dict) else None
-    try:
-        given = identity(parse_yaml(Path(config).read_text(), str(config)), Path(config).parent)
-    except (ConfigError, OSError, ValueError):
-        return
-    stored = identity(stored_config, Path("/"))
-    if given != stored and None not in given[::2]:
-        click.echo(f"note: {config} describes another run than the one stored in {path} "
-                   f"({stored[1] or stored[0]}, {stored[2]}); --resume continues the stored run, from its own "
-                   "config", err=True)
+def _yaml_value(value) -> str:
+    """A value as the text of a --set that reads back as the same value."""
+    import yaml
+    return yaml.safe_dump(value, default_flow_style=True, width=float("inf")).strip().removesuffix("\n...")
 
 
 def _set_key(item: str) -> str:
     return str(item).partition("=")[0].strip()
 
 
-def _resume_command(config, path) -> str:
+def _resume_command(config, path, overrides=()) -> str:
+    """The command that continues a run: CONFIG and --set are read again on --resume, so
+    the --set values of this one are part of it."""
     import shlex
-    return shlex.join(["elimfast", "run", str(config), "-o", str(path), "--resume"])
+    sets = [word for item in overrides for word in ("--set", item)]
+    return shlex.join(["elimfast", "run", str(config), "-o", str(path), *sets, "--resume"])
 
 
 def _report_run(outcome, config, path, overrides, quiet) -> int:
@@ -443,7 +446,7 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:
         click.echo(interrupted_line(outcome.signal_name, outcome.steps_done, outcome.n_steps, outcome.t, path,
-                                    _resume_command(config, path)), err=True)
+                                    _resume_command(config, path, overrides)), err=True)
         return EXIT_INTERRUPTED
     if outcome.status.startswith(STOPPED_PREFIX) and outcome.message:
         click.echo(f"error: {one_line(outcome.message)}", err=True)

@@ -567,20 +567,27 @@ def step_solver_refusal(path, key: str) -> OutputError:
                        "not change it: start a new run (-o NEW.h5), or replace this one with --overwrite")
 
 
-def resume_refusal(path, key: str, prefix: str = "", configs=()) -> OutputError:
+def resume_refusal(path, key: str, prefix: str = "", configs=(), origins=None) -> OutputError:
     """The refusal of a --resume that would change ``key``, a key outside SOLVER_SECTIONS;
     ``configs``: the stored config and the new one, as far as known (parsed YAML), which tell
-    a terminal event from one that is not (``change_effect``)."""
+    a terminal event from one that is not (``change_effect``). ``origins``: {dotted key: the
+    file that changes it} for changes not given with --set (the CONFIG of the command line),
+    so that a change the user did not type names where it comes from."""
+    origin = next((where for changed, where in (origins or {}).items()
+                   if key == changed or key.startswith(changed + ".") or changed.startswith(key + ".")), None)
+    label = f"{key} (in {origin})" if origin else key
     return OutputError(f"{path}: {prefix}only {'/'.join(s + '.*' for s in SOLVER_SECTIONS)} may change on --resume; "
-                       f"{change_effect(key, configs)}: start a new run (-o NEW.h5), or replace this one with "
+                       f"{change_effect(key, configs, label)}: start a new run (-o NEW.h5), or replace this one with "
                        "--overwrite")
 
 
-def change_effect(key: str, configs=()) -> str:
+def change_effect(key: str, configs=(), label: str | None = None) -> str:
     """What changing ``key`` of a stored run would do, in the words of resume_refusal. Only a
     terminal event ends the run: one that is not leaves every step as it is (events are
     located by side steps with their own workspace, docs/adaptive.md), but the events the
-    file holds were found with the stored definitions. output.every changes the sampling."""
+    file holds were found with the stored definitions. output.every changes the sampling.
+    ``label``: the key as the message writes it (default: the key itself)."""
+    label = label or key
     section, _, rest = key.partition(".")
     if section == "events":
         name, _, field = rest.partition(".")
@@ -591,14 +598,14 @@ def change_effect(key: str, configs=()) -> str:
             return any(isinstance(entry, dict) and bool(entry.get("terminal")) for entry in entries)
 
         if field == "terminal" or any(terminal(config) for config in configs):
-            return f"{key} changes where the run ends (a terminal event stops it), and so the trajectory"
-        return (f"{key} leaves the trajectory as it is (an event that is not terminal only records where it "
+            return f"{label} changes where the run ends (a terminal event stops it), and so the trajectory"
+        return (f"{label} leaves the trajectory as it is (an event that is not terminal only records where it "
                 "occurs), but the events stored for the steps already done were found with the stored definition, "
                 "so the file would hold events of two definitions")
     if section == "output":
-        return (f"{key} leaves the trajectory as it is, but changes which states are sampled, so the file's "
+        return (f"{label} leaves the trajectory as it is, but changes which states are sampled, so the file's "
                 "samples would change their spacing part-way")
-    return f"{key} changes the trajectory"
+    return f"{label} changes the trajectory"
 
 
 def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
@@ -620,21 +627,30 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
                 section, _, name = key.partition(".")
                 if isinstance(tree.get(section), dict):
                     tree[section].pop(name, None)
+    return next((key for key, _ in config_differences(old, new)), None)
 
-    def first_difference(a, b, prefix=""):
-        if isinstance(a, dict) and isinstance(b, dict):
-            keys = sorted(set(a) | set(b), key=str)
-            if "t_end" in keys and "n_steps" in keys:   # n_steps follows from t_end: name the one users write
-                keys.remove("t_end")
-                keys.insert(0, "t_end")
-            for key in keys:
-                found = first_difference(a.get(key), b.get(key), f"{prefix}{key}.")
-                if found:
-                    return found
-            return None
-        return None if a == b else prefix.rstrip(".") or "config"
 
-    return first_difference(old, new)
+ABSENT = object()   # config_differences' new value of a key that only the old config has
+
+
+def config_differences(old, new, prefix: str = ""):
+    """Every (dotted key, new value) where two parsed configs differ, recursing while both
+    sides are mappings (t_end before n_steps, which follows from it; else in key order); the
+    new value is ABSENT for a key the new config does not have."""
+    if not (isinstance(old, dict) and isinstance(new, dict)):
+        if old != new:
+            yield prefix.rstrip(".") or "config", new
+        return
+    keys = sorted(set(old) | set(new), key=str)
+    if "t_end" in keys and "n_steps" in keys:   # n_steps follows from t_end: name the one users write
+        keys.remove("t_end")
+        keys.insert(0, "t_end")
+    for key in keys:
+        if key not in new:
+            if old[key] is not None:
+                yield f"{prefix}{key}", ABSENT
+        else:
+            yield from config_differences(old.get(key), new[key], f"{prefix}{key}.")
 
 
 def _parsed(*texts: str) -> list:
@@ -647,6 +663,17 @@ def _parsed(*texts: str) -> list:
         except yaml.YAMLError:
             parsed.append(None)
     return parsed
+
+
+def terminal_event_end(integration, status: str, clock, t_end: float) -> float | None:
+    """The time at which a terminal event ended the stored run (complete before its t_end),
+    else None. ``clock``: the stored state's [t, compensation]."""
+    t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else t_end
+    terminal = np.any(np.asarray(getattr(getattr(integration, "events", None), "terminal", ()), dtype=bool))
+    # (a fixed-step clock may end an ulp short of t_end: only a terminal event ends a run early)
+    if status == STATUS_COMPLETE and terminal and t_final < t_end - 1e-12 * abs(t_end):
+        return t_final
+    return None
 
 
 def integration_t_eval(integration) -> np.ndarray:
@@ -691,12 +718,10 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
         raise OutputError(f"{path}: integration.t_end = {new_end:.10g} is before the end of the stored run, "
                           f"{old_end:.10g}: --resume continues a run to a later t_end, never an earlier one; start "
                           "a new run (-o NEW.h5) for a shorter one")
-    t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else old_end
-    terminal = np.any(np.asarray(getattr(getattr(integration, "events", None), "terminal", ()), dtype=bool))
-    # (a fixed-step clock may end an ulp short of t_end: only a terminal event ends a run early)
-    if status == STATUS_COMPLETE and terminal and t_final < old_end - 1e-12 * abs(old_end):
-        raise OutputError(f"{path}: the run was ended by a terminal event at t = {t_final:.10g}; a later t_end "
-                          "does not continue it past the event: start a new run from there, without terminal")
+    t_event = terminal_event_end(integration, status, clock, old_end)
+    if t_event is not None:
+        raise OutputError(f"{path}: the run was ended by a terminal event at t = {exact_time(t_event)}; a later "
+                          "t_end does not continue it past the event: start a new run from there, without terminal")
     if stored_t is not None:
         count = stored_t.size
         if not (new_times.size >= count and np.array_equal(new_times[:count], stored_t)):
@@ -731,16 +756,19 @@ def _python_file(config_text: str) -> str | None:
 
 def run_to_file(integration, path, *, config_text: str, t_end: float | None = None, overwrite: bool = False,
                 resume: bool = False, progress: NoProgress | None = None, handle_signals: bool = True,
-                label: str = "", resume_command: str | None = None, **drive_options) -> Outcome:
+                label: str = "", resume_command: str | None = None, origins: dict | None = None,
+                **drive_options) -> Outcome:
     """Run ``integration`` into the HDF5 file ``path`` (new, overwritten, or resumed).
 
     resume: continue the run stored in ``path`` (which must come from the same resolved
     config, output path and solver settings aside, and read back without damage); a
     missing file starts a new run. A complete run is left as it is; a failed one
     continues from its last good step only with changed solver settings (with the same
-    ones it would fail again). Raises OutputError for file problems and DiskFullError when the disk has no
+    ones it would fail again). The caller says that a missing file starts a new run (the
+    command line does so before the run). Raises OutputError for file problems and DiskFullError when the disk has no
     room, before any step is computed. ``resume_command``: the command line that
-    continues this run, quoted in the messages of an interrupted or stopped run.
+    continues this run, quoted in the messages of an interrupted or stopped run. ``origins``:
+    resume_refusal's, for the changes that come from a file rather than --set.
     """
     path = Path(path)
     if overwrite and resume:
@@ -767,7 +795,7 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                                            ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS)
             if difference is not None:
                 raise resume_refusal(path, difference, prefix="was written from a different config; ",
-                                     configs=_parsed(stored, config_text))
+                                     configs=_parsed(stored, config_text), origins=origins)
             step_key = step_solver_change(stored, config_text)
             if step_key is not None:
                 raise step_solver_refusal(path, step_key)
@@ -775,11 +803,16 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             solver_changed = config_difference(stored, config_text,
                                                ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS) is not None
             if status == STATUS_COMPLETE and extension is None:
+                t_event = terminal_event_end(integration, status, clock, float(attrs.get("t_end", math.nan)))
+                if t_event is not None:   # a later t_end would be refused (run_extension): no hint to give one
+                    done = f"already complete: it ended at its terminal event at t = {exact_time(t_event)}"
+                else:
+                    done = ("already complete; nothing to resume; to continue it to a later end: --resume --set "
+                            "integration.t_end=LATER")
                 return Outcome(status=STATUS_COMPLETE, path=path, steps_done=steps_done,
                                n_steps=int(attrs["n_steps"]), wall_time_s=float(attrs.get("wall_time_s", 0.0)),
                                kernel_time_s=float(attrs.get("kernel_time_s", 0.0)),
-                               note="already complete; nothing to resume; to continue it to a later end: --resume --set "
-                                    "integration.t_end=LATER")
+                               note=done)
             if status.startswith(FAILED_PREFIX) and not solver_changed:
                 raise OutputError(f"{path}: the run {status}; resuming with the same solver settings would fail the "
                                   "same way: resume with other ones (e.g. --set solver.max_halvings=8), or start "
@@ -812,8 +845,6 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             opening = time.perf_counter()
             writer = hdf5.RunWriter.create(path, integration, config_text=config_text, t_end=t_end,
                                            overwrite=overwrite or resume)
-            if resume:
-                note = "no file to resume: started a new run"
         open_s = time.perf_counter() - opening
         drive_options.setdefault("problem_source", _python_file(config_text))
         outcome = drive(integration, writer, progress=progress, stop=stop, wall_offset=wall_offset,

@@ -345,7 +345,7 @@ def test_an_adaptive_run_continued_to_a_later_end_with_more_output_times(tmp_pat
     # A user trial: a later t_end alone ran the extension without samples, and the advice printed then
     # (a later output.times.stop) was refused, the times being before the new end: refused up front now
     unsampled = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set",
-                                         "integration.t_end=60*pi"])
+                                         "output.times.stop=40*pi", "--set", "integration.t_end=60*pi"])
     assert unsampled.exit_code == 2, unsampled.stderr
     assert ("output.times stops at 125.5, so the run continued to t_end = 188.49555921538757 "
             "would have no samples after 125.66370614359172") in unsampled.stderr

@@ -130,8 +130,8 @@ def test_a_run_continued_to_a_later_end_is_the_run_to_that_end(tmp_path):
     extended, whole = tmp_path / "extended.h5", tmp_path / "whole.h5"
     base = ["run", KEPLER, "--set", "output.every=7", "--quiet"]
     assert CliRunner().invoke(cli, [*base, "-o", str(extended), "--set", "integration.t_end=5"]).exit_code == 0
-    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(extended), "--resume", "--set",
-                                      "integration.t_end=12"])
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(extended), "--resume", "--set", "output.every=7",
+                                      "--set", "integration.t_end=12"])
     assert result.exit_code == 0, result.stderr
     assert "resumed at step 50, continued to t_end = 12 (it ended at 5)" in result.stderr
     assert CliRunner().invoke(cli, [*base, "-o", str(whole), "--set", "integration.t_end=12"]).exit_code == 0
@@ -182,10 +182,12 @@ def test_resume_with_an_invalid_value_reports_the_value_not_the_resume_rule(tmp_
     event = 'events={p: {expression: "q1*p1 + q2*p2", direction: 1}}'
     assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--set", event,
                                     "--quiet"]).exit_code == 0
-    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "events.p.direction=5"])
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", event,
+                                      "--set", "events.p.direction=5"])
     assert result.exit_code == 2 and result.stderr.count("\n") == 1
     assert "events.p.direction: must be 1" in result.stderr and "may change on --resume" not in result.stderr
-    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "integration.h=0.05"])
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", event, "--set",
+                                      "integration.h=0.05"])
     assert result.exit_code == 2 and "only solver.* may change on --resume; integration.h" in result.stderr
 
 
@@ -276,25 +278,33 @@ def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_pa
         in report.stdout
 
 
-def test_resume_without_a_file_starts_a_new_run(tmp_path):
+def test_resume_without_a_file_starts_a_new_run_and_says_so_even_when_quiet(tmp_path):
+    """Resume-or-start serves job scripts; a mistyped path restarted a long run silently under
+    -q (a user trial), so the line is printed first, also with --quiet. A missing CONFIG is an
+    error as for a new run (it was accepted on --resume of an existing file)."""
     path = tmp_path / "new.h5"
-    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])
-    assert result.exit_code == 0 and "no file to resume: started a new run" in result.stderr
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume",
+                                      "-q"])
+    assert result.exit_code == 0
+    assert result.stderr == f"note: no file {path} to resume: starting a new run\n"
+    missing = CliRunner().invoke(cli, ["run", str(tmp_path / "nothere.yaml"), "-o", str(path), "--resume"])
+    assert missing.exit_code == 2 and missing.stderr.count("\n") == 1 and "nothere.yaml" in missing.stderr
 
 
-def test_resume_with_another_config_says_that_the_stored_run_goes_on(tmp_path):
-    """--resume continues the run stored in the file from its own config; a CONFIG describing
-    another problem used to be ignored without a word (a user trial's finding)."""
+def test_resume_with_another_config_is_refused_naming_the_change(tmp_path):
+    """A CONFIG describing another problem used to be ignored without a word (a user trial's
+    finding), then noted while the stored run went on; CONFIG's differences now count as --set
+    ones, so another problem is refused, naming the first key that differs and the file."""
     path = tmp_path / "kepler.h5"
     assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5",
                                     "--quiet"]).exit_code == 0
     pendulum = str(ROOT / "configs" / "pendulum.yaml")
     other = CliRunner().invoke(cli, ["run", pendulum, "-o", str(path), "--resume"])
-    assert other.exit_code == 0
-    assert f"note: {pendulum} describes another run than the one stored in {path} (kepler, ehbvm); --resume " \
-           "continues the stored run, from its own config" in other.stderr
-    same = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume"])
-    assert same.exit_code == 0 and "describes another run" not in same.stderr
+    assert other.exit_code == 2 and other.stderr.count("\n") == 1, other.stderr
+    assert "only solver.* may change on --resume; " in other.stderr
+    assert f" (in {pendulum}) changes the trajectory" in other.stderr
+    same = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])
+    assert same.exit_code == 0 and "already complete" in same.stderr, same.stderr
 
 
 def test_inspect_names_the_solver_settings_a_run_was_resumed_with(tmp_path):
@@ -306,3 +316,80 @@ def test_inspect_names_the_solver_settings_a_run_was_resumed_with(tmp_path):
                                     "--quiet"]).exit_code == 0
     report = CliRunner().invoke(cli, ["inspect", str(path)])
     assert "resumed      solver from step 0: max_iter 30 (before: 3)\n" in report.stdout
+
+
+FAILING = ("problem: {builtin: kepler, parameters: {eccentricity: 0.95}}\nconserve: [angular_momentum, lrl_y]\n"
+           "method: {name: ehbvm, k: 12, s: 3}\nintegration: {h: 0.5, t_end: 20}\nsolver: {max_halvings: 1}\n"
+           "output: {every: 10}\n")
+
+
+def test_resume_applies_the_config_files_edits_as_set_would(tmp_path):
+    """A user trial: a run failed with max_halvings: 1; the user edited the YAML to 8 and ran
+    --resume, which refused 'resuming with the same solver settings would fail the same way'
+    (the edit was ignored; --set worked), and an edit of method.s or t_end was ignored without a
+    word. CONFIG's differences from the stored config now go through the rule of --set."""
+    config, path = tmp_path / "fail.yaml", tmp_path / "f.h5"
+    config.write_text(FAILING)
+    assert CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--quiet"]).exit_code == 1
+    before = path.read_bytes()
+    config.write_text(FAILING.replace("s: 3}", "s: 4}").replace("max_halvings: 1", "max_halvings: 8"))
+    refused = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert refused.exit_code == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert f"only solver.* may change on --resume; method.s (in {config}) changes the trajectory" in refused.stderr
+    assert path.read_bytes() == before
+    config.write_text(FAILING.replace("max_halvings: 1", "max_halvings: 8"))
+    fixed = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert fixed.exit_code == 0, fixed.stderr
+    assert f"with {config}'s changes: solver.max_halvings=8" in fixed.stderr
+    assert "resumed at step 0 with new solver settings" in fixed.stderr
+    config.write_text(FAILING.replace("max_halvings: 1", "max_halvings: 8").replace("t_end: 20", "t_end: 30"))
+    later = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert later.exit_code == 0, later.stderr
+    assert "continued to t_end = 30 (it ended at 20)" in later.stderr
+    with h5py.File(path, "r") as f:
+        assert f.attrs["status"] == "complete" and f.attrs["steps_done"] == 60
+
+
+def test_resume_ignores_differences_of_the_config_files_form(tmp_path):
+    """Comments, block style, the order of keys and defaults written out are no change: the
+    resolved configs are compared, not the text."""
+    config, path = tmp_path / "k.yaml", tmp_path / "k.h5"
+    config.write_text("problem: {builtin: kepler, parameters: {eccentricity: 0.6}}\nconserve: [angular_momentum]\n"
+                      "method: {name: ehbvm, k: 12, s: 3}\nintegration: {h: 0.1, t_end: 5}\n")
+    assert CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--quiet"]).exit_code == 0
+    config.write_text("# the same run, written otherwise\nmethod:\n  name: EHBVM\n  s: 3\n  k: 12\n"
+                      "integration:\n  t_end: 5.0   # a comment\n  h: 0.1\n  t0: 0\n"
+                      "problem:\n  builtin: kepler\n  parameters:\n    eccentricity: 0.6\n"
+                      "conserve: [angular_momentum]\noutput: {every: 1}\n")
+    result = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert result.exit_code == 0 and "already complete" in result.stderr, result.stderr
+    assert "changes the stored run's config" not in result.stderr
+
+
+@pytest.mark.parametrize("change", ["integration.t_end=20.05", "integration.n_steps=100"])
+def test_resume_refuses_an_end_for_the_reason_a_new_run_gives(tmp_path, change):
+    """A user trial: --resume --set integration.t_end=20.05 with h = 0.1 was refused as 'only
+    solver.* may change on --resume; integration.t_end changes the trajectory', contradicting
+    the documented extension; the reason is the fractional number of steps, which a new run
+    names. (--set integration.n_steps=100 was refused naming the stored integration.t_end.)"""
+    path = tmp_path / "part.h5"
+    args = ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=10"]
+    assert CliRunner().invoke(cli, [*args, "--quiet"]).exit_code == 0
+    new = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(tmp_path / "new.h5"), "--set", change])
+    resumed = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", change])
+    assert new.exit_code == resumed.exit_code == 2 and resumed.stderr.count("\n") == 1
+    assert resumed.stderr == new.stderr and "may change on --resume" not in resumed.stderr
+
+
+def test_resume_of_a_run_a_terminal_event_ended_gives_no_hint_to_extend_it(tmp_path):
+    """A user trial: a run ended by a terminal event said 'already complete; nothing to resume;
+    to continue it to a later end: --resume --set integration.t_end=LATER', and following that
+    hint was refused ('ended by a terminal event')."""
+    path = tmp_path / "event.h5"
+    args = ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=20", "--set",
+            'events={peri: {expression: "q1*p1 + q2*p2", direction: 1, terminal: true}}']
+    assert CliRunner().invoke(cli, [*args, "--quiet"]).exit_code == 0
+    result = CliRunner().invoke(cli, [*args, "--resume"])
+    assert result.exit_code == 0, result.stderr
+    assert "already complete: it ended at its terminal event at t = 6.28" in result.stderr
+    assert "integration.t_end=LATER" not in result.stderr
