@@ -257,9 +257,9 @@ def run(config, output, overrides, overwrite, resume, quiet):
     on a terminal (a line every few seconds otherwise). Ctrl-C or SIGTERM stops at the
     next chunk boundary (exit 130); --resume continues exactly where it stopped, even
     after kill -9, and ends bit for bit where an uninterrupted run ends. --resume reads
-    CONFIG and --set again (give the first run's --set values again: the resume command
-    printed on an interruption does) and takes their differences from the config stored in
-    OUT.h5 as changes: solver.* only, e.g. to continue a failed run with more step
+    CONFIG again, with the --set values of the runs before (stored in OUT.h5) and then the
+    new ones, and takes its differences from the config stored in OUT.h5 as changes (an
+    edit of CONFIG counts as the --set of that key): solver.* only, e.g. to continue a failed run with more step
     halvings, and integration.t_end (with output.times, keeping the times written), to
     continue a run, complete or not, to a later end; others are refused. A relative output
     path is taken from the current directory.
@@ -285,10 +285,10 @@ def run(config, output, overrides, overwrite, resume, quiet):
         announce_compilation()
         from elimfast.integrate import Integration
 
-        from_config, origins = [], {}
+        from_config, origins, set_overrides = [], {}, list(overrides)
         if resume and output is not None and Path(output).is_file():
             _refuse_resuming_a_sweep(output)
-            spec, from_config, origins = _stored_spec(output, overrides, config)
+            spec, from_config, origins, set_overrides = _stored_spec(output, overrides, config)
         else:
             spec = _load(config, overrides)
         path = output if output is not None else spec.output_path
@@ -299,7 +299,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
             _refuse_resuming_a_sweep(path)
-            spec, from_config, origins = _stored_spec(path, overrides, config)
+            spec, from_config, origins, set_overrides = _stored_spec(path, overrides, config)
         if resume and not path.exists():
             # Resume-or-start serves job scripts that rerun one command; said first, and under --quiet
             # too, so that a mistyped path does not restart a long run unnoticed.
@@ -310,7 +310,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
-        resume_command=_resume_command(config, path, overrides), origins=origins)
+        resume_command=_resume_command(config, path), origins=origins, set_overrides=set_overrides)
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
     return _report_run(outcome, config, path, overrides, quiet)
@@ -340,19 +340,24 @@ def _stored_spec(path, overrides, config):
     the differences of CONFIG and --set from it on top, each as the --set of that key, so that
     the resume's one rule decides on all of them (solver.* and a later end are taken; other
     changes refused, by streaming.resume_refusal). CONFIG is read as a new run reads it (its
-    errors are a new run's), and the resolved configs are compared, so comments, formatting and
-    defaults written out are no change. Returns (spec, the changes that come from CONFIG, not
-    --set, as KEY=VALUE, {their keys: CONFIG} for the refusal to say where they come from)."""
+    errors are a new run's), with the --set values the file stores from the runs before applied
+    first, as they were then (they need not be given again); the resolved configs are compared,
+    so comments, formatting and defaults written out are no change. Returns (spec, the changes
+    that come from CONFIG, not --set, as KEY=VALUE, {their keys: CONFIG} for the refusal to say
+    where they come from, the --set values to store: the stored ones merged with the given)."""
     from elimfast.config import ConfigError, load_run_from_dict, parse_yaml
     from elimfast.io.hdf5 import RunFile
+    from elimfast.io.layout import stored_set_overrides
     from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences,
                                     resume_refusal)
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
+        stored_sets = stored_set_overrides(run_file.attrs) or []   # none in files written before they were
+    set_overrides = _merge_sets(stored_sets, overrides)
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
-    given = parse_yaml(_resolved_yaml(_load(config, overrides)), str(config))
+    given = parse_yaml(_resolved_yaml(_load(config, set_overrides)), str(config))
     set_keys = {_set_key(item) for item in overrides}
     if set_keys & {"integration.t_end", "integration.n_steps"}:   # either one decides the other
         set_keys |= {"integration.t_end", "integration.n_steps"}
@@ -383,7 +388,7 @@ def _stored_spec(path, overrides, config):
         elif "integration.n_steps" in keys and "integration.t_end" not in keys:
             stored_integration.pop("t_end", None)
     try:
-        return load_run_from_dict(data, source=source, overrides=changes), from_config, origins
+        return load_run_from_dict(data, source=source, overrides=changes), from_config, origins, set_overrides
     except ConfigError:
         # CONFIG with --set loaded as a whole, so a change that does not load on the stored config
         # contradicts what it keeps (integration.h the stored n_steps, say): the resume's rule names
@@ -415,12 +420,24 @@ def _set_key(item: str) -> str:
     return str(item).partition("=")[0].strip()
 
 
-def _resume_command(config, path, overrides=()) -> str:
-    """The command that continues a run: CONFIG and --set are read again on --resume, so
-    the --set values of this one are part of it."""
+def _resume_command(config, path) -> str:
+    """The command that continues a run: its --set values are stored in the file
+    (io.layout.SET_OVERRIDES) and applied again, so they are not part of it."""
     import shlex
-    sets = [word for item in overrides for word in ("--set", item)]
-    return shlex.join(["elimfast", "run", str(config), "-o", str(path), *sets, "--resume"])
+    return shlex.join(["elimfast", "run", str(config), "-o", str(path), "--resume"])
+
+
+def _merge_sets(stored, given) -> list[str]:
+    """The --set values a run goes on with: the stored ones, less those a given one replaces (the
+    same key, a key under it or above it; t_end and n_steps decide each other), then the given."""
+    keys = {_set_key(item) for item in given}
+    if keys & {"integration.t_end", "integration.n_steps"}:
+        keys |= {"integration.t_end", "integration.n_steps"}
+
+    def replaced(item) -> bool:
+        key = _set_key(item)
+        return any(key == k or key.startswith(k + ".") or k.startswith(key + ".") for k in keys)
+    return [item for item in stored if not replaced(item)] + list(given)
 
 
 def _report_run(outcome, config, path, overrides, quiet) -> int:
@@ -446,7 +463,7 @@ def _report_run(outcome, config, path, overrides, quiet) -> int:
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:
         click.echo(interrupted_line(outcome.signal_name, outcome.steps_done, outcome.n_steps, outcome.t, path,
-                                    _resume_command(config, path, overrides)), err=True)
+                                    _resume_command(config, path)), err=True)
         return EXIT_INTERRUPTED
     if outcome.status.startswith(STOPPED_PREFIX) and outcome.message:
         click.echo(f"error: {one_line(outcome.message)}", err=True)

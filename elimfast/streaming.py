@@ -39,7 +39,7 @@ from .errors import DiskFullError, exact_time
 from .integrate import steps_before_raise
 from .io import hdf5
 from .io.hdf5 import FAILED_PREFIX, STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX, OutputError
-from .io.layout import PROBLEM_FILE_DIGEST, problem_file_attributes
+from .io.layout import PROBLEM_FILE_DIGEST, problem_file_attributes, set_overrides_attribute
 from .io.safety import no_room
 
 # Tunables of the driver (all in one place).
@@ -757,7 +757,7 @@ def _python_file(config_text: str) -> str | None:
 def run_to_file(integration, path, *, config_text: str, t_end: float | None = None, overwrite: bool = False,
                 resume: bool = False, progress: NoProgress | None = None, handle_signals: bool = True,
                 label: str = "", resume_command: str | None = None, origins: dict | None = None,
-                **drive_options) -> Outcome:
+                set_overrides=None, **drive_options) -> Outcome:
     """Run ``integration`` into the HDF5 file ``path`` (new, overwritten, or resumed).
 
     resume: continue the run stored in ``path`` (which must come from the same resolved
@@ -768,7 +768,9 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
     command line does so before the run). Raises OutputError for file problems and DiskFullError when the disk has no
     room, before any step is computed. ``resume_command``: the command line that
     continues this run, quoted in the messages of an interrupted or stopped run. ``origins``:
-    resume_refusal's, for the changes that come from a file rather than --set.
+    resume_refusal's, for the changes that come from a file rather than --set. ``set_overrides``:
+    the command line's --set values the run is made with (all of them, a resume's merged with the
+    stored ones), stored for the next --resume (io.layout.SET_OVERRIDES); None stores none.
     """
     path = Path(path)
     if overwrite and resume:
@@ -829,7 +831,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 source_file = None
             writer, saved = hdf5.RunWriter.resume(
                 path, restore=restore, stop=stop, extension=extension, problem_file=source_file,
-                config_text=config_text if (solver_changed or extension is not None) else None)
+                config_text=config_text if (solver_changed or extension is not None) else None,
+                set_overrides=set_overrides)
             wall_offset, kernel_offset = float(saved["wall_time_s"]), float(saved["kernel_time_s"])
             note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
             if extension is not None:
@@ -844,7 +847,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
         else:
             opening = time.perf_counter()
             writer = hdf5.RunWriter.create(path, integration, config_text=config_text, t_end=t_end,
-                                           overwrite=overwrite or resume)
+                                           overwrite=overwrite or resume,
+                                           attributes=set_overrides_attribute(set_overrides))
         open_s = time.perf_counter() - opening
         drive_options.setdefault("problem_source", _python_file(config_text))
         outcome = drive(integration, writer, progress=progress, stop=stop, wall_offset=wall_offset,

@@ -2,6 +2,7 @@
 compare with an uninterrupted run: the final state and every stored row must be equal
 bit for bit. A SIGKILLed file must open in h5py with every flushed chunk readable.
 """
+import json
 import signal
 import subprocess
 import sys
@@ -348,6 +349,37 @@ def test_resume_applies_the_config_files_edits_as_set_would(tmp_path):
     assert "continued to t_end = 30 (it ended at 20)" in later.stderr
     with h5py.File(path, "r") as f:
         assert f.attrs["status"] == "complete" and f.attrs["steps_done"] == 60
+
+
+def test_resume_applies_the_first_runs_set_values_again_and_the_config_files_edits_too(tmp_path):
+    """Reading CONFIG again on --resume had made the first run's --set values count as changes:
+    they had to be given again (a --resume without them was refused as an earlier end). They are
+    stored in the file and applied again over CONFIG; an edit of CONFIG still counts, and a key
+    given by --set changes only by --set."""
+    config, path, direct = tmp_path / "fail.yaml", tmp_path / "f.h5", tmp_path / "direct.h5"
+    config.write_text(FAILING)
+    first = ["--set", "integration.t_end=30", "--set", "output.every=5"]
+    assert CliRunner().invoke(cli, ["run", str(config), "-o", str(path), *first, "--quiet"]).exit_code == 1
+    with h5py.File(path, "r") as f:
+        assert json.loads(f.attrs["set_overrides"]) == ["integration.t_end=30", "output.every=5"]
+    config.write_text(FAILING.replace("max_halvings: 1", "max_halvings: 8"))   # the fix, in the file
+    resumed = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert resumed.exit_code == 0, resumed.stderr
+    assert f"with {config}'s changes: solver.max_halvings=8" in resumed.stderr
+    done = CliRunner().invoke(cli, ["run", str(config), "-o", str(direct), *first, "--quiet"])
+    assert done.exit_code == 0, done.stderr
+    with h5py.File(path, "r") as resumed_file, h5py.File(direct, "r") as direct_file:
+        assert resumed_file.attrs["steps_done"] == direct_file.attrs["steps_done"] == 60
+        assert np.array_equal(resumed_file["y"][...], direct_file["y"][...])
+        assert json.loads(resumed_file.attrs["set_overrides"]) == ["integration.t_end=30", "output.every=5"]
+    # a later end by --set replaces the stored one, and is kept for the next resume
+    later = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume", "--set",
+                                     "integration.t_end=40"])
+    assert later.exit_code == 0 and "continued to t_end = 40" in later.stderr, later.stderr
+    again = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert again.exit_code == 0 and "already complete" in again.stderr, again.stderr
+    with h5py.File(path, "r") as f:
+        assert json.loads(f.attrs["set_overrides"]) == ["output.every=5", "integration.t_end=40"]
 
 
 def test_resume_ignores_differences_of_the_config_files_form(tmp_path):

@@ -168,6 +168,29 @@ def multiplier_datasets(steps) -> list[str]:
 
 
 PROBLEM_FILE_DIGEST = "problem_file_sha256"   # root attribute: the python: problem file the steps used
+# Root attribute: the --set values the run was made with (JSON list of KEY=VALUE, the latest last),
+# applied again over CONFIG on --resume so that they need not be given again while an edit of
+# CONFIG still counts. Files written before it have none.
+SET_OVERRIDES = "set_overrides"
+
+
+def set_overrides_attribute(overrides) -> dict:
+    """{SET_OVERRIDES: the JSON text of the --set values} ({} for None: a run made without the command line)."""
+    import json
+    return {} if overrides is None else {SET_OVERRIDES: json.dumps([str(item) for item in overrides])}
+
+
+def stored_set_overrides(attrs) -> list[str] | None:
+    """The --set values a run file's root attributes record (set_overrides_attribute), None if none."""
+    import json
+    text = attrs.get(SET_OVERRIDES)
+    if text is None:
+        return None
+    try:
+        values = json.loads(str(text))
+    except ValueError:
+        return None
+    return [str(item) for item in values] if isinstance(values, list) else None
 
 
 def problem_file_attributes(problem) -> dict:

@@ -59,7 +59,8 @@ from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, S
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
                      RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
-                     PROBLEM_FILE_DIGEST, problem_file_attributes, version_attributes)
+                     PROBLEM_FILE_DIGEST, problem_file_attributes, SET_OVERRIDES, set_overrides_attribute,
+                     version_attributes)
 from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError,
                      _abandon, _close_quietly, _damaged, _FileGuard, _free_bytes, _hdf5_reason,
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
@@ -364,7 +365,8 @@ class RunWriter:
 
     @classmethod
     def resume(cls, path, *, restore=None, stop=None, config_text: str | None = None,
-               extension: dict | None = None, problem_file: dict | None = None) -> tuple["RunWriter", dict]:
+               extension: dict | None = None, problem_file: dict | None = None,
+               set_overrides=None) -> tuple["RunWriter", dict]:
         """Reopen a run for writing; return (writer, saved) with saved = the state and the root attributes.
 
         Nothing is changed until everything the run will build on has been read back and
@@ -378,6 +380,8 @@ class RunWriter:
         {"t_end", "n_steps", "output_times"} of a run continued to a later end
         (streaming.run_extension), recorded in ``extension_history``. ``problem_file``: an
         edited python: file's {problem_file_sha256}, recorded in ``problem_file_history``.
+        ``set_overrides``: the --set values the run goes on with (layout.SET_OVERRIDES), or None to keep
+        what is stored.
         """
         path = Path(path)
         if not path.exists():
@@ -455,6 +459,9 @@ class RunWriter:
                 history.append(f"from step {saved['steps_done']}: sha256 {digest[:16]} (before: "
                                f"{str(attrs.get(PROBLEM_FILE_DIGEST))[:16]})")
                 _replace_attributes(f, {PROBLEM_FILE_DIGEST: digest, "problem_file_history": history})
+            stored_sets = set_overrides_attribute(set_overrides)
+            if stored_sets and stored_sets[SET_OVERRIDES] != attrs.get(SET_OVERRIDES):
+                _replace_attributes(f, stored_sets)
             for key in ("failed_step_iterations",):
                 if key in f.attrs:
                     del f.attrs[key]
