@@ -254,7 +254,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
     """Run the integration described by CONFIG into an HDF5 file.
 
     The run proceeds in chunks, each appended to OUT.h5 and flushed, with a progress bar
-    on a terminal (a line every few seconds otherwise). Ctrl-C or SIGTERM stops at the
+    on a terminal (a line every few seconds otherwise). Ctrl-C, SIGTERM or SIGHUP stops at the
     next chunk boundary (exit 130); --resume continues exactly where it stopped, even
     after kill -9, and ends bit for bit where an uninterrupted run ends. --resume reads
     CONFIG again, with the --set values of the runs before (stored in OUT.h5) and then the

@@ -86,7 +86,8 @@ class Outcome:
 
 # --- signals ------------------------------------------------------------------------------
 class StopOnSignals:
-    """Context manager: SIGINT/SIGTERM set ``.signal`` instead of raising (main thread only).
+    """Context manager: SIGINT/SIGTERM/SIGHUP set ``.signal`` instead of raising (main thread only).
+    SIGHUP is a closed terminal: without it a run ended as after kill -9 (a user trial).
 
     The driver checks ``requested`` between chunks. A kernel call runs in compiled code
     that Python cannot interrupt, and Python runs signal handlers only between bytecodes,
@@ -101,7 +102,7 @@ class StopOnSignals:
     and resumable.
     """
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(self, enabled: bool = True, grace: float | None = None, hard_stop=None, raising: bool = False):
         self.enabled = enabled and threading.current_thread() is threading.main_thread()

@@ -70,7 +70,8 @@ def assert_equal_to_reference(path: Path, reference):
         np.testing.assert_array_equal(f["steps/iterations"][:], reference["iterations"])
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+# SIGHUP (the terminal closed): a user trial found it ended the run like kill -9, the file left "killed"
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
 def test_signal_stops_at_a_chunk_boundary_and_resume_is_exact(tmp_path, reference, sig):
     path = tmp_path / "run.h5"
     code, stdout, stderr = start_and_signal(path, sig)
