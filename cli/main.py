@@ -81,6 +81,21 @@ def _leave(code: int, fast: bool):
 
 
 _COMMAND_LINE = False   # set by ElimfastGroup.main in a real `elimfast` process (not inside a caller's)
+# What an interruption outside a run's chunks (imports, compiling, loading the config) leaves:
+# `run` says that its output file is as it was (a user trial saw only "interrupted").
+_INTERRUPTED = ["interrupted"]
+
+
+class _Interrupted(BaseException):
+    """A signal outside a run's own handling: not a KeyboardInterrupt, which click answers with a
+    blank line on stderr before ours."""
+
+
+def _interrupt(signum, frame):
+    """Ctrl-C, SIGTERM or SIGHUP before a run's own handling (streaming.StopOnSignals) takes over:
+    one line and exit 130 (a user trial, signalling `run --resume` at start-up: SIGTERM ended it
+    silently with 143, Ctrl-C printed a blank line and 'interrupted')."""
+    raise _Interrupted
 
 
 @contextlib.contextmanager
@@ -111,6 +126,10 @@ class ElimfastGroup(click.Group):
         fast = args is None and standalone_mode and not debug
         global _COMMAND_LINE
         _COMMAND_LINE = args is None and standalone_mode
+        if _COMMAND_LINE:
+            import signal
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                signal.signal(sig, _interrupt)
         try:
             try:
                 code = super().main(args, prog_name or "elimfast", complete_var, standalone_mode=False, **extra)
@@ -119,8 +138,8 @@ class ElimfastGroup(click.Group):
                 fail(f"{one_line(err.format_message()).rstrip('.')} (see '{command} --help')", EXIT_USAGE)
             except click.ClickException as err:
                 fail(one_line(err.format_message()), EXIT_USAGE)
-            except (click.Abort, KeyboardInterrupt):
-                fail("interrupted", EXIT_INTERRUPTED)
+            except (click.Abort, KeyboardInterrupt, _Interrupted):
+                fail(_INTERRUPTED[-1], EXIT_INTERRUPTED)
             except BrokenPipeError:
                 # The reader went away (elimfast inspect ... | head): not an error of ours.
                 sys.stderr.close()
@@ -274,6 +293,9 @@ def run(config, output, overrides, overwrite, resume, quiet):
     """
     if overwrite and resume:
         raise click.UsageError("--overwrite and --resume contradict each other; give one of them")
+    target = output if output is not None else "the output file"
+    _INTERRUPTED.append(f"interrupted while starting, before any step: {target} is as it was; run the same "
+                        "command again" + (" to resume it" if resume else ""))
     with start_up():
         from elimfast.io.hdf5 import check_output_path
         from elimfast.io.safety import output_path
@@ -311,6 +333,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
         resume_command=_resume_command(config, path), origins=origins, set_overrides=set_overrides)
+    _INTERRUPTED.pop()   # the run has handled its own signals; what follows is the report
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
     return _report_run(outcome, config, path, overrides, quiet)

@@ -92,6 +92,27 @@ def test_signal_stops_at_a_chunk_boundary_and_resume_is_exact(tmp_path, referenc
     assert_equal_to_reference(path, reference)
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
+def test_a_signal_while_a_run_starts_says_the_file_is_as_it_was(tmp_path, sig):
+    """A user trial signalled `elimfast run --resume` during its start-up (imports, config, kernels):
+    SIGTERM ended it silently with 143, Ctrl-C printed a blank line and 'interrupted'. The signal
+    comes here from inside the start-up (announce_compilation), as the real one did."""
+    path = tmp_path / "run.h5"
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5",
+                                    "--quiet"]).exit_code == 0
+    before = path.read_bytes()
+    script = ("import os, signal, sys\n"
+              "import elimfast_cli.main as main\n"
+              f"main.announce_compilation = lambda: os.kill(os.getpid(), {int(sig)})\n"
+              f"sys.argv = ['elimfast', 'run', {KEPLER!r}, '-o', {str(path)!r}, '--resume', '-q']\n"
+              "main.cli()\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr == (f"error: interrupted while starting, before any step: {path} is as it was; run the same "
+                           "command again to resume it\n")
+    assert path.read_bytes() == before
+
+
 def test_kill_9_leaves_a_readable_file_and_resume_is_exact(tmp_path, reference):
     path = tmp_path / "run.h5"
     code, _, _ = start_and_signal(path, signal.SIGKILL)
