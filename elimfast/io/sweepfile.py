@@ -194,7 +194,10 @@ class SweepWriter:
         {label: stored config text} of its complete runs, returns {label: place in the edited grid}
         (it raises OutputError for an edit that would change those runs: the rule is the sweep's,
         elimfast.sweep.solver_only_edit); the file then takes the new text, ``attributes`` (the
-        grid's size, its axes) and the kept runs' new places, and ``edited`` is set."""
+        grid's size, its axes) and the kept runs' new places, and ``edited`` is set. An ensemble's
+        ``accept_edit`` (elimfast.sweep.same_trajectories) is given the stored sweep text and the
+        stored ensemble's config (None: no /ensemble yet) and raises OutputError for an edit that
+        changes the trajectories; an edit it takes (comments, description) is stored likewise."""
         ensure_not_busy(self.path)
         if consistency_flags(self.path):   # a writer killed before closing it (HDF5 refuses such a file)
             try:
@@ -224,8 +227,13 @@ class SweepWriter:
                                   f"and this is {'an ensemble' if ensemble is not None else 'a grid'} sweep: "
                                   "--resume continues the sweep that wrote the file; choose another output file, "
                                   "or pass --overwrite to replace it")
-            edited = str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text
-            if edited and (accept_edit is None or ensemble is not None):
+            stored_text = str(_plain(self._file.attrs.get("sweep", "")))
+            edited = stored_text != sweep_text
+            if ensemble is not None and accept_edit is not None:
+                # even an unedited text: its base config is a file of its own, which may have changed
+                stored = self._file[ensemblefile.GROUP].attrs.get("config") if holds_ensemble else None
+                accept_edit(stored_text, None if stored is None else str(_plain(stored)))
+            elif edited and accept_edit is None:
                 raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
                                   "differs); pass --overwrite to start again, or choose another output file")
             self._runs = self._file[RUNS_GROUP]
@@ -235,7 +243,10 @@ class SweepWriter:
                 label = str(_plain(run.get("label", "")))
                 if label and run.get("stored", False) and str(_plain(run.get("status"))) == "complete":
                     complete[label] = (name, str(_plain(run.get("config", ""))))
-            if edited:   # before anything is removed: a refused edit leaves the file as it was
+            if edited and ensemble is not None:   # an edit accepted above: the file takes the new text
+                _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
+                self.edited = True
+            elif edited:   # before anything is removed: a refused edit leaves the file as it was
                 run_index = accept_edit({label: config for label, (_, config) in complete.items()})
                 _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
                 for label, (name, _) in complete.items():   # the kept runs' places in the edited grid
