@@ -43,6 +43,7 @@ def sweep_group_name(label: str) -> str:
 RUNS_PLANNED = "runs_planned"   # root attribute: how many runs the sweep has (files of elimfast before: absent)
 RUN_INDEX = "run_index"         # a run's attribute: its place in the grid (files of elimfast before: absent)
 SHOWN_LABELS = 4                # run labels a message lists
+INTERRUPTED = "interrupted"     # in grid_sweep_runs' attributes (not stored): the writer was killed
 
 
 def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
@@ -56,10 +57,10 @@ def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
 
 def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False) -> str:
     """One line for a reader given a sweep file where it wants one run (``inspect``,
-    ``load``, ``plot``), or given a run of a sweep file whose writer was killed (``killed``:
-    HDF5 refuses the file until ``repair`` or ``--resume`` clears its flags; ``f`` is then
-    read through ``safety.open_unflagged``). Says what the file holds, how to name one run,
-    and, for a sweep that did not end, how many runs are stored and that --resume completes it.
+    ``load``, ``plot``). Says what the file holds, how to name one run, and, for a sweep that
+    did not end, how many runs are stored and that --resume completes it; a sweep whose writer
+    was killed (``killed``, or found so by ``interrupted``: HDF5 refuses such a file, which
+    safety._open reads through its unflagged view) is called interrupted.
     ``writing``: a sweep is writing the file now (read like a killed writer's: a snapshot of
     what its last flush wrote); HDF5 lets no other program open it until the sweep ends."""
     if ensemblefile.GROUP in f:
@@ -77,14 +78,20 @@ def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False)
     if writing:
         return (f"{path}: a sweep is writing it: {listing} so far; HDF5 lets other programs read it when the "
                 "sweep ends (elimfast sweep prints a line as each run is stored)")
-    if killed:
-        return (f"{path}: an interrupted sweep (its writer was killed, so HDF5 still sees it open): {listing}; "
-                f"{resume}, or run elimfast repair {path} to read the stored runs as they are (e.g. {example})")
+    if killed or interrupted(path):
+        return f"{path}: an interrupted sweep (its writer was killed): {listing}; {resume}; read one run as {example}"
     if planned and len(stored) < planned:
         return f"{path}: an incomplete sweep file, not a single run: {listing}; {resume}; read one run as {example}"
     label = stored[0] if stored else "<label>"
     return (f"{path}: a sweep file, not a single run: give one of its runs as {example} (in Python: "
             f"elimfast.load('{path}', run='{label}')); {listing}")
+
+
+def interrupted(path) -> bool:
+    """Whether a grid sweep's file was left by a writer that was killed: HDF5's open-for-writing
+    flag is still set (readers get here only for a writer that is gone: one alive holds HDF5's
+    lock, and safety._open says it is busy). It is read as it is (safety._open_interrupted_sweep)."""
+    return bool(consistency_flags(path) & 1)
 
 
 def sweep_file_source(path) -> str | None:
@@ -103,7 +110,8 @@ def sweep_file_source(path) -> str | None:
 def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
     """(root attributes, [(label, stored, status)] in the grid's order) of a grid sweep's file, or None
     for anything else (a run file, an ensemble sweep's file, a file that cannot be opened:
-    the caller's own reader says what). ``inspect`` summarises a sweep file from this."""
+    the caller's own reader says what). ``inspect`` summarises a sweep file from this. The
+    attributes hold INTERRUPTED too: its writer was killed (``interrupted``)."""
     from .safety import _open
     try:
         with _open(Path(path)) as f:
@@ -111,6 +119,7 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
                 return None
             attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
             listed = _listed_runs(f)
+        attrs[INTERRUPTED] = interrupted(path)
         # the grid's order where the file records it, else HDF5's (by name)
         listed.sort(key=lambda run: (run[3] < 0, run[3]))
         return attrs, [run[:3] for run in listed]
