@@ -524,6 +524,21 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
     assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
 
 
+def test_the_runs_a_sweep_file_message_lists_are_in_the_grid_s_order(tmp_path):
+    """A user trial: the killed-sweep message listed 'pi/240' before 'pi/30' (HDF5 lists groups by
+    name); the message names the runs, and its example, in the grid's order, as inspect does."""
+    import elimfast
+    from elimfast.io.hdf5 import NotAnElimfastFile
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(small_sweep(tmp_path, ["2*pi/60", "2*pi/400"]), out, workers=1)
+    with pytest.raises(NotAnElimfastFile) as caught:
+        elimfast.load(out)
+    assert str(caught.value).endswith("2 of 2 runs stored (2*pi/60, 2*pi/400)")
+    assert f"give one of its runs as '{out}:/runs/2*pi/60'" in str(caught.value)
+
+
 def test_labels_stored_under_one_name_are_refused_and_a_dot_label_is_found(tmp_path):
     """Labels 'a/b' and 'a|b' (a '/' is stored as '|') crashed the sweep after its runs were
     computed ('internal error: ... name already exists'); now refused when the sweep loads. A

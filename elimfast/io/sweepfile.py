@@ -47,12 +47,15 @@ INTERRUPTED = "interrupted"     # in grid_sweep_runs' attributes (not stored): t
 
 
 def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
-    """(label, stored, status, run_index or -1) of every run group of an open sweep file, in
-    HDF5's order (by name)."""
+    """(label, stored, status, run_index or -1) of every run group of an open sweep file, in the
+    grid's order where the file records it (HDF5 lists groups by name: 'pi/240' before 'pi/30'),
+    the others after them in HDF5's order."""
     runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-    return [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
-             str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
-            for name in runs]
+    listed = [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
+               str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
+              for name in runs]
+    listed.sort(key=lambda run: (run[3] < 0, run[3]))   # stable: HDF5's order among runs without an index
+    return listed
 
 
 def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False) -> str:
@@ -120,8 +123,6 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
             attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
             listed = _listed_runs(f)
         attrs[INTERRUPTED] = interrupted(path)
-        # the grid's order where the file records it, else HDF5's (by name)
-        listed.sort(key=lambda run: (run[3] < 0, run[3]))
         return attrs, [run[:3] for run in listed]
     except Exception:   # noqa: BLE001 -- damaged, busy, not HDF5: RunFile reports it
         return None
