@@ -729,7 +729,17 @@ def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
     path, out = small_sweep(tmp_path, ["2*pi/40"]), tmp_path / "sw.h5"
     result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out)])
     assert result.exit_code == 130
-    assert result.stderr == (f"error: interrupted; the finished runs (of an ensemble: its stored blocks) are in {out}; "
+    # a grid sweep's line says nothing of ensembles (a user trial: '(of an ensemble: its stored blocks)')
+    assert result.stderr == (f"error: interrupted; the finished runs are in {out}; "
+                             f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
+
+    def ensemble_interrupted(*args, on_start=None, **kwargs):   # an ensemble's sweep calls on_start
+        on_start(40)
+        raise KeyboardInterrupt
+    monkeypatch.setattr(elimfast.sweep, "run_to_file", ensemble_interrupted)
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "-q"])
+    assert result.exit_code == 130
+    assert result.stderr == (f"error: interrupted; the ensemble's stored blocks are in {out}; "
                              f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
 
 
