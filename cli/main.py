@@ -897,6 +897,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
         fail("--resume and --overwrite exclude each other: --resume keeps the runs in OUT.h5, --overwrite "
              "replaces them", EXIT_USAGE)
 
+    started_ensemble = []   # not empty once an ensemble sweep's trajectories start (on_start)
+
     def hard_stop(signal_name):
         """The line of an interrupted sweep (also after a kernel call that did not return)."""
         import shlex
@@ -904,10 +906,11 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
         if output is None:
             return f"error: interrupted{why} (no -o OUT.h5: nothing was stored)"
         command = shlex.join(["elimfast", "sweep", str(sweep_file), "-o", str(output), "--resume"])
-        return (f"error: interrupted{why}; the finished runs (of an ensemble: its stored blocks) are in {output}; "
-                f"run the rest with: {command}")
+        kept = "the ensemble's stored blocks" if started_ensemble else "the finished runs"
+        return f"error: interrupted{why}; {kept} are in {output}; run the rest with: {command}"
 
     def on_start(n_trajectories):
+        started_ensemble.append(n_trajectories)
         if not quiet:
             if scheduler:
                 where = f"the Dask cluster ({scheduler})"

@@ -474,8 +474,9 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool, str]]) -> str:
                       f"{worst:.2e} ({worst_name})" if worst >= 0 else "-", _fmt_time(seconds)])
     count = f"{len(stored)} of {planned}" if planned else f"{len(stored)}"
     row("runs", f"{count} stored" + (f", {failed} failed" if failed else ", none failed" if stored else ""))
-    if planned and len(stored) < planned:
-        row("status", f"incomplete: complete it with elimfast sweep {shlex.quote(source)} -o "
+    if attrs.get("interrupted") or (planned and len(stored) < planned):
+        state = "interrupted (its writer was killed)" if attrs.get("interrupted") else "incomplete"
+        row("status", f"{state}: complete it with elimfast sweep {shlex.quote(source)} -o "
                       f"{shlex.quote(str(path))} --resume")
     row("wall time", f"{_fmt_time(wall)} in all (the runs' own, summed)")
     lines.append("")

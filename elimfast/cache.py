@@ -1,6 +1,7 @@
 """The on-disk cache of generated problem code and its Numba compilations.
 
-Location: ``$ELIMFAST_CACHE_DIR`` if set, else ``platformdirs.user_cache_dir("elimfast")``.
+Location: ``$ELIMFAST_CACHE_DIR`` if set, else ``platformdirs.user_cache_dir("elimfast")``, or,
+where that cannot be written (a read-only home), ``$TMPDIR/elimfast-cache-<uid>`` (cache_dir).
 Layout (everything elimfast writes lives in these two folders; nothing else is touched):
 
     <cache>/problems/p_<sha256>.py        code generated from expressions (symbolic.py)
@@ -28,9 +29,11 @@ removes the key folders of the same root not used for STALE_AFTER_DAYS days.
 from __future__ import annotations
 
 import errno
+import functools
 import hashlib
 import os
 import stat
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -54,12 +57,67 @@ def _unwritable(path: Path, err: OSError) -> CacheError:
 
 
 def cache_dir() -> Path:
-    """The cache root (not created here)."""
+    """The cache root (not created here): $ELIMFAST_CACHE_DIR if set (a folder the user chose:
+    if it cannot be written, writing says so, CacheError); else the user cache folder, or,
+    where that cannot be created or written, a private temporary one (_default_cache_dir)."""
     override = os.environ.get(ENV_VAR)
     if override:
         return Path(override).expanduser()
     import platformdirs
-    return Path(platformdirs.user_cache_dir("elimfast"))
+    return _default_cache_dir(platformdirs.user_cache_dir("elimfast"))
+
+
+@functools.lru_cache(maxsize=None)
+def _default_cache_dir(default: str) -> Path:
+    """``default``, or where it cannot be written, temporary_cache_dir() with a one-line note
+    on stderr. A cluster job whose home is read-only must still run (a user trial: 'internal
+    error: ... no locator available'); it compiles once per machine, not once per job, as the
+    temporary folder is kept. The folder becomes $ELIMFAST_CACHE_DIR of this process, so that
+    its workers (a sweep's processes, a local Dask cluster) use it without a note of their own."""
+    path = Path(default)
+    reason = _why_not_writable(path)
+    if reason is None:
+        return path
+    fallback = temporary_cache_dir()
+    os.environ[ENV_VAR] = str(fallback)
+    print(f"note: cannot write the elimfast cache at {path} ({reason}); using {fallback} (set {ENV_VAR} to a "
+          "writable directory to choose where)", file=sys.stderr)
+    return fallback
+
+
+def _why_not_writable(path: Path) -> str | None:
+    """None if ``path`` is a folder this process can write or create (nothing is created
+    here); else why not."""
+    existing = path
+    while not os.path.lexists(existing) and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{existing} is not writable"
+    return None
+
+
+TEMPORARY_PREFIX = "elimfast-cache-"
+
+
+def temporary_cache_dir() -> Path:
+    """A folder of this user alone in the temporary directory ($TMPDIR, else /tmp):
+    elimfast-cache-<uid>, created mode 0700 and kept between runs; a new one for this process
+    if that name is anything else (another user's, or writable by others: Numba's cache files
+    are pickles, and loading one that others could write would run their code)."""
+    path = Path(tempfile.gettempdir()) / f"{TEMPORARY_PREFIX}{os.getuid()}"
+    try:
+        path.mkdir(mode=0o700, exist_ok=True)
+        info = os.lstat(path)
+        if stat.S_ISDIR(info.st_mode) and info.st_uid == os.getuid() and not info.st_mode & 0o022:
+            return path
+    except OSError:
+        pass
+    try:
+        return Path(tempfile.mkdtemp(prefix=TEMPORARY_PREFIX))
+    except OSError as err:
+        raise _unwritable(path, err) from None
 
 
 def _subdirectory(name: str) -> Path:

@@ -609,13 +609,13 @@ def _rebase_paths(config: dict, config_dir: Path, sweep_dir: Path) -> dict:
 # What changes the solver settings of a sweep's runs: a sweep has no --set. A grid sweep's
 # --resume takes an edited sweep file whose runs stored complete keep their configs outside
 # solver.* (solver_only_edit) and runs the failed ones with the new settings; an ensemble's
-# refuses any edit (ensemblefile.check_resumable).
+# refuses any edit of its config or ensemble: section (same_trajectories).
 # (No example setting here: it followed advice such as "no h cures this; impose other invariants"
 # with a solver setting that cannot help.)
 SWEEP_RERUN_ADVICE = ("in a sweep, make that change in the sweep file and continue it with --resume (it keeps "
                       "the runs stored complete if their configs change only in solver.*)")
 ENSEMBLE_RERUN_ADVICE = ("in an ensemble sweep, make that change in the sweep file and run it again with "
-                         "--overwrite (--resume refuses an edited ensemble)")
+                         "--overwrite (--resume refuses an edit of an ensemble's config)")
 
 
 def for_sweep(message: str, ensemble: bool = False) -> str:
@@ -665,6 +665,34 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
                                   f"changed, {why}; pass --overwrite to start again, or write the edited sweep to "
                                   "another file")
         return {run.label: index for index, run in enumerate(spec.runs)}
+
+    return accept
+
+
+def same_trajectories(spec: SweepSpec, path, config_text: str) -> Callable[[str, str | None], None]:
+    """The rule by which ``--resume`` continues an ensemble sweep's file (SweepWriter's accept_edit
+    for an ensemble): what decides the trajectories, the ensemble's resolved config ``config_text``
+    (the base with set: applied) and the ensemble: section, must be as the file stores them;
+    comments, description: and how the same values are written may change (a user trial: a comment
+    added at the top was refused as 'a different sweep file'). Called with the stored sweep text and
+    the stored ensemble's config (None: the file holds no ensemble yet); raises OutputError naming
+    the first key that differs. ensemblefile.check_resumable then compares the states bit for bit."""
+    from .config import ConfigError, parse_yaml
+    from .streaming import config_difference
+
+    def accept(stored_sweep: str, stored_config: str | None) -> None:
+        try:
+            stored = parse_yaml(stored_sweep, source=str(path))
+            stored_ensemble = _check_ensemble(str(path), stored.get("ensemble"))
+        except (ConfigError, SweepError, AttributeError):   # unreadable: it differs as a whole
+            stored_ensemble = None
+        key = _first_difference(stored_ensemble, spec.ensemble, "ensemble")
+        if key is None and stored_config is not None:
+            key = config_difference(stored_config, config_text)
+        if key is not None:
+            raise OutputError(f"{path}: {key} changed since its stored trajectories were run (the sweep file or its "
+                              "base config was edited), and --resume keeps them as they are; undo the edit, pass "
+                              "--overwrite to start again, or write the edited sweep to another file")
 
     return accept
 
@@ -1177,7 +1205,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                                  attributes={"source": spec.source, "axes": list(spec.axes) or [""],
                                              RUNS_PLANNED: len(spec.runs)},
                                  overwrite=overwrite or resume, resume=resume, ensemble=ensemble,
-                                 accept_edit=solver_only_edit(spec, path) if ensemble is None else None)
+                                 accept_edit=solver_only_edit(spec, path) if ensemble is None else
+                                 same_trajectories(spec, path, ensemble[2]))
 
     with contextlib.ExitStack() as stack:
         if scheduler is not None:

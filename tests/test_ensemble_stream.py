@@ -279,8 +279,9 @@ def test_resume_refuses_an_ensemble_file_of_another_config_or_without_the_done_r
     base.write_text(yaml.safe_dump({**BASE, "integration": {"h": 0.05, "t_end": 10}}))
     result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "--resume", "-q"])
     assert result.exit_code == 2
-    assert result.output == (f"error: {out}: its ensemble was run with another config (the base config changed "
-                             "since); pass --overwrite to start again, or choose another output file\n")
+    assert result.output == (f"error: {out}: integration.h changed since its stored trajectories were run (the sweep "
+                             "file or its base config was edited), and --resume keeps them as they are; undo the "
+                             "edit, pass --overwrite to start again, or write the edited sweep to another file\n")
 
     base.write_text(yaml.safe_dump(BASE))
     with h5py.File(out, "a") as f:
@@ -289,3 +290,31 @@ def test_resume_refuses_an_ensemble_file_of_another_config_or_without_the_done_r
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert result.output == (f"error: {out}: its ensemble was written by an elimfast without the record of stored "
                              "trajectories, so --resume cannot tell what is done; pass --overwrite to run it again\n")
+
+
+def test_resume_of_an_ensemble_takes_an_edit_of_comments_or_description_and_names_the_key_of_a_real_one(
+        tmp_path, small_blocks, monkeypatch):
+    """A user trial: a comment added to the top of an ensemble's sweep file, or a changed
+    description:, and --resume refused the file ('the stored sweep text differs'). What decides
+    the trajectories is the base config (with set: applied) and the ensemble: section; an edit of
+    those is refused naming the key, anything else is taken and the file ends as an uninterrupted
+    run of the edited sweep writes it."""
+    path = ensemble_sweep(tmp_path)
+    half = stopped_after_blocks(path, tmp_path / "half.h5", 1, monkeypatch, workers=1)
+    text = path.read_text()
+    path.write_text("# a comment\n" + text + "description: the same orbits, described\n")
+    sweeps.run_to_file(path, tmp_path / "full.h5", workers=1)
+    resumed = sweeps.run_to_file(path, half, resume=True, workers=1)
+    assert resumed.failures() == []
+    assert_same_files(tmp_path / "full.h5", half)
+
+    half = stopped_after_blocks(path, tmp_path / "half2.h5", 1, monkeypatch, workers=1)
+    for edit, key in ((("seed: 7", "seed: 8"), "ensemble.seed"), (("h: 0.1", "h: 0.05"), "integration.h"),
+                      (("description: the same", "set: {solver: {max_iter: 77}}\ndescription: the same"), "solver.max_iter")):
+        path.write_text(path.read_text().replace(*edit))
+        result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(half), "--resume", "-q"])
+        assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+        assert result.output.startswith(f"error: {half}: {key} changed since its stored trajectories were run"), \
+            result.output
+        assert "--overwrite" in result.output and result.output.count("\n") == 1
+        path.write_text(path.read_text().replace(edit[1], edit[0]))

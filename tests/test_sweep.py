@@ -524,6 +524,21 @@ def test_single_run_readers_given_a_sweep_file_name_its_runs(tmp_path):
     assert CliRunner().invoke(cli, ["inspect", f"{out}:runs/2*pi/40"]).stdout == inspected.stdout
 
 
+def test_the_runs_a_sweep_file_message_lists_are_in_the_grid_s_order(tmp_path):
+    """A user trial: the killed-sweep message listed 'pi/240' before 'pi/30' (HDF5 lists groups by
+    name); the message names the runs, and its example, in the grid's order, as inspect does."""
+    import elimfast
+    from elimfast.io.hdf5 import NotAnElimfastFile
+    from elimfast.sweep import run_to_file
+
+    out = tmp_path / "sw.h5"
+    run_to_file(small_sweep(tmp_path, ["2*pi/60", "2*pi/400"]), out, workers=1)
+    with pytest.raises(NotAnElimfastFile) as caught:
+        elimfast.load(out)
+    assert str(caught.value).endswith("2 of 2 runs stored (2*pi/60, 2*pi/400)")
+    assert f"give one of its runs as '{out}:/runs/2*pi/60'" in str(caught.value)
+
+
 def test_labels_stored_under_one_name_are_refused_and_a_dot_label_is_found(tmp_path):
     """Labels 'a/b' and 'a|b' (a '/' is stored as '|') crashed the sweep after its runs were
     computed ('internal error: ... name already exists'); now refused when the sweep loads. A
@@ -614,10 +629,11 @@ def test_a_file_with_a_path_that_is_no_run_is_not_called_missing(tmp_path):
     assert CliRunner().invoke(cli, ["inspect", str(tmp_path / "none.h5")]).stderr.endswith("none.h5: no such file\n")
 
 
-def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_completes_it(tmp_path):
+def test_a_killed_sweep_file_is_read_as_it_is_and_called_interrupted_with_the_command_that_completes_it(tmp_path):
     """kill -9 leaves a grid sweep's file (written outside SWMR mode) marked open for writing:
     HDF5 refuses it, yet every run stored before is whole and --resume completes it. Readers
-    must say so, not call it damaged and advise --overwrite (which would lose the runs)."""
+    read the stored runs (as a killed run's file is read) and say the sweep was interrupted;
+    before, inspect, load and open_datatree refused the file (exit 2) and pointed to repair."""
     import signal
     import subprocess
     import sys
@@ -640,19 +656,26 @@ def test_a_killed_sweep_file_is_called_interrupted_with_the_command_that_complet
     process.wait(timeout=120)
     assert process.returncode == -signal.SIGKILL and consistency_flags(out)
     command = f"elimfast sweep {path} -o {out} --resume"
-    for where in (str(out), f"{out}:/runs/2*pi/100"):
-        for read in (RunFile, elimfast.load):
-            with pytest.raises(OutputError) as caught:
-                read(where)
-            message = str(caught.value)
-            assert message.startswith(f"{out}: an interrupted sweep (its writer was killed, so HDF5 still sees it "
-                                      "open): ") and " of 4 runs stored (2*pi/100, " in message, message
-            assert f"complete it with {command}" in message and "--overwrite" not in message
-            assert "damaged" not in message and "\n" not in message
+    for read in (RunFile, elimfast.load):   # the file, where one run is wanted: what it holds, and how to go on
+        with pytest.raises(OutputError) as caught:
+            read(out)
+        message = str(caught.value)
+        assert message.startswith(f"{out}: an interrupted sweep (its writer was killed): ") and \
+            " of 4 runs stored (2*pi/100, " in message, message
+        assert f"complete it with {command}" in message and "--overwrite" not in message
+        assert "damaged" not in message and "repair" not in message and "\n" not in message
+    stored = elimfast.load(out, run="2*pi/100")
+    assert stored.status == "complete" and stored.steps_done > 0
     result = CliRunner().invoke(cli, ["inspect", str(out)])
-    assert result.exit_code == 2 and command in result.stderr
+    assert result.exit_code == 0, result.output
+    assert f"status       interrupted (its writer was killed): complete it with {command}" in result.stdout
+    assert "| 2*pi/100 " in result.stdout
+    assert CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/100"]).exit_code == 0
+    with elimfast.open_datatree(out) as tree:
+        np.testing.assert_array_equal(tree["runs/2*pi|100"]["y"].values, stored.y)
     assert consistency_flags(out)   # reading touched nothing
     run_to_file(path, out, resume=True, workers=1)
+    np.testing.assert_array_equal(elimfast.load(out, run="2*pi/100").y, stored.y)
     with pytest.raises(OutputError, match="4 of 4 runs stored"):
         RunFile(out)
 
@@ -706,7 +729,17 @@ def test_ctrl_c_of_a_sweep_says_how_to_resume(tmp_path, monkeypatch):
     path, out = small_sweep(tmp_path, ["2*pi/40"]), tmp_path / "sw.h5"
     result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out)])
     assert result.exit_code == 130
-    assert result.stderr == (f"error: interrupted; the finished runs (of an ensemble: its stored blocks) are in {out}; "
+    # a grid sweep's line says nothing of ensembles (a user trial: '(of an ensemble: its stored blocks)')
+    assert result.stderr == (f"error: interrupted; the finished runs are in {out}; "
+                             f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
+
+    def ensemble_interrupted(*args, on_start=None, **kwargs):   # an ensemble's sweep calls on_start
+        on_start(40)
+        raise KeyboardInterrupt
+    monkeypatch.setattr(elimfast.sweep, "run_to_file", ensemble_interrupted)
+    result = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(out), "-q"])
+    assert result.exit_code == 130
+    assert result.stderr == (f"error: interrupted; the ensemble's stored blocks are in {out}; "
                              f"run the rest with: elimfast sweep {path} -o {out} --resume\n")
 
 

@@ -672,12 +672,45 @@ def _open(path) -> h5py.File:
     if _held_exclusively(path):
         raise FileBusyError(f"{path}: is open for writing in another process (a run finishing, or another HDF5 "
                             "program); try again when it is done") from None
+    interrupted = _open_interrupted_sweep(path)
+    if interrupted is not None:
+        return interrupted
     if consistency_flags(path) or (recorded_end(path) or 0) > path.stat().st_size:
         # a writer killed (or a write cut off) before it closed the file: what repair undoes
         raise _damaged(path, "its start (HDF5 cannot open it)", first,
                        f"its writer did not close it: run {REPAIR_HINT.format(path=path)}, or {_DAMAGE_ADVICE}") \
             from None
     raise _damaged(path, "its start (HDF5 cannot open it)", first) from None
+
+
+def _open_interrupted_sweep(path: Path) -> h5py.File | None:
+    """A grid sweep's file whose writer was killed, read through _UnflaggedView (the file is not
+    touched), or None for any other file. A grid sweep writes outside SWMR mode (it creates a
+    group per run, which SWMR forbids), so HDF5 refuses its file after a kill; yet each run was
+    flushed before it was marked stored, and metadata checksums and fletcher32 make a torn write
+    visible, so its stored runs are read as a killed run's file is (a user trial: inspect, load
+    and open_datatree refused such a file). Readers say it was interrupted (sweepfile)."""
+    from .layout import SWEEP_FORMAT
+    if consistency_flags(path) & 0b101 != 1:   # open for writing, not SWMR writing (a run's, an ensemble's)
+        return None
+    try:
+        view = _UnflaggedView(path)
+    except (OSError, OutputError):
+        return None
+    try:
+        f = h5py.File(view, "r")
+    except OSError:
+        view.close()
+        return None
+    try:
+        ours = _plain(f.attrs.get("format", "")) == SWEEP_FORMAT
+    except (OSError, RuntimeError):
+        ours = False
+    if not ours:
+        f.close()
+        view.close()
+        return None
+    return f   # the view is closed with the last reference to it (h5py's file-object driver holds it)
 
 
 class _UnflaggedView(io.FileIO):

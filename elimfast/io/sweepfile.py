@@ -43,23 +43,27 @@ def sweep_group_name(label: str) -> str:
 RUNS_PLANNED = "runs_planned"   # root attribute: how many runs the sweep has (files of elimfast before: absent)
 RUN_INDEX = "run_index"         # a run's attribute: its place in the grid (files of elimfast before: absent)
 SHOWN_LABELS = 4                # run labels a message lists
+INTERRUPTED = "interrupted"     # in grid_sweep_runs' attributes (not stored): the writer was killed
 
 
 def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
-    """(label, stored, status, run_index or -1) of every run group of an open sweep file, in
-    HDF5's order (by name)."""
+    """(label, stored, status, run_index or -1) of every run group of an open sweep file, in the
+    grid's order where the file records it (HDF5 lists groups by name: 'pi/240' before 'pi/30'),
+    the others after them in HDF5's order."""
     runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-    return [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
-             str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
-            for name in runs]
+    listed = [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
+               str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
+              for name in runs]
+    listed.sort(key=lambda run: (run[3] < 0, run[3]))   # stable: HDF5's order among runs without an index
+    return listed
 
 
 def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False) -> str:
     """One line for a reader given a sweep file where it wants one run (``inspect``,
-    ``load``, ``plot``), or given a run of a sweep file whose writer was killed (``killed``:
-    HDF5 refuses the file until ``repair`` or ``--resume`` clears its flags; ``f`` is then
-    read through ``safety.open_unflagged``). Says what the file holds, how to name one run,
-    and, for a sweep that did not end, how many runs are stored and that --resume completes it.
+    ``load``, ``plot``). Says what the file holds, how to name one run, and, for a sweep that
+    did not end, how many runs are stored and that --resume completes it; a sweep whose writer
+    was killed (``killed``, or found so by ``interrupted``: HDF5 refuses such a file, which
+    safety._open reads through its unflagged view) is called interrupted.
     ``writing``: a sweep is writing the file now (read like a killed writer's: a snapshot of
     what its last flush wrote); HDF5 lets no other program open it until the sweep ends."""
     if ensemblefile.GROUP in f:
@@ -77,14 +81,20 @@ def describe_sweep_file(path, f, *, killed: bool = False, writing: bool = False)
     if writing:
         return (f"{path}: a sweep is writing it: {listing} so far; HDF5 lets other programs read it when the "
                 "sweep ends (elimfast sweep prints a line as each run is stored)")
-    if killed:
-        return (f"{path}: an interrupted sweep (its writer was killed, so HDF5 still sees it open): {listing}; "
-                f"{resume}, or run elimfast repair {path} to read the stored runs as they are (e.g. {example})")
+    if killed or interrupted(path):
+        return f"{path}: an interrupted sweep (its writer was killed): {listing}; {resume}; read one run as {example}"
     if planned and len(stored) < planned:
         return f"{path}: an incomplete sweep file, not a single run: {listing}; {resume}; read one run as {example}"
     label = stored[0] if stored else "<label>"
     return (f"{path}: a sweep file, not a single run: give one of its runs as {example} (in Python: "
             f"elimfast.load('{path}', run='{label}')); {listing}")
+
+
+def interrupted(path) -> bool:
+    """Whether a grid sweep's file was left by a writer that was killed: HDF5's open-for-writing
+    flag is still set (readers get here only for a writer that is gone: one alive holds HDF5's
+    lock, and safety._open says it is busy). It is read as it is (safety._open_interrupted_sweep)."""
+    return bool(consistency_flags(path) & 1)
 
 
 def sweep_file_source(path) -> str | None:
@@ -103,7 +113,8 @@ def sweep_file_source(path) -> str | None:
 def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
     """(root attributes, [(label, stored, status)] in the grid's order) of a grid sweep's file, or None
     for anything else (a run file, an ensemble sweep's file, a file that cannot be opened:
-    the caller's own reader says what). ``inspect`` summarises a sweep file from this."""
+    the caller's own reader says what). ``inspect`` summarises a sweep file from this. The
+    attributes hold INTERRUPTED too: its writer was killed (``interrupted``)."""
     from .safety import _open
     try:
         with _open(Path(path)) as f:
@@ -111,8 +122,7 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
                 return None
             attrs = {key: _plain(value) for key, value in f.attrs.items() if key != "sweep"}
             listed = _listed_runs(f)
-        # the grid's order where the file records it, else HDF5's (by name)
-        listed.sort(key=lambda run: (run[3] < 0, run[3]))
+        attrs[INTERRUPTED] = interrupted(path)
         return attrs, [run[:3] for run in listed]
     except Exception:   # noqa: BLE001 -- damaged, busy, not HDF5: RunFile reports it
         return None
@@ -194,7 +204,10 @@ class SweepWriter:
         {label: stored config text} of its complete runs, returns {label: place in the edited grid}
         (it raises OutputError for an edit that would change those runs: the rule is the sweep's,
         elimfast.sweep.solver_only_edit); the file then takes the new text, ``attributes`` (the
-        grid's size, its axes) and the kept runs' new places, and ``edited`` is set."""
+        grid's size, its axes) and the kept runs' new places, and ``edited`` is set. An ensemble's
+        ``accept_edit`` (elimfast.sweep.same_trajectories) is given the stored sweep text and the
+        stored ensemble's config (None: no /ensemble yet) and raises OutputError for an edit that
+        changes the trajectories; an edit it takes (comments, description) is stored likewise."""
         ensure_not_busy(self.path)
         if consistency_flags(self.path):   # a writer killed before closing it (HDF5 refuses such a file)
             try:
@@ -224,8 +237,13 @@ class SweepWriter:
                                   f"and this is {'an ensemble' if ensemble is not None else 'a grid'} sweep: "
                                   "--resume continues the sweep that wrote the file; choose another output file, "
                                   "or pass --overwrite to replace it")
-            edited = str(_plain(self._file.attrs.get("sweep", ""))) != sweep_text
-            if edited and (accept_edit is None or ensemble is not None):
+            stored_text = str(_plain(self._file.attrs.get("sweep", "")))
+            edited = stored_text != sweep_text
+            if ensemble is not None and accept_edit is not None:
+                # even an unedited text: its base config is a file of its own, which may have changed
+                stored = self._file[ensemblefile.GROUP].attrs.get("config") if holds_ensemble else None
+                accept_edit(stored_text, None if stored is None else str(_plain(stored)))
+            elif edited and accept_edit is None:
                 raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
                                   "differs); pass --overwrite to start again, or choose another output file")
             self._runs = self._file[RUNS_GROUP]
@@ -235,7 +253,10 @@ class SweepWriter:
                 label = str(_plain(run.get("label", "")))
                 if label and run.get("stored", False) and str(_plain(run.get("status"))) == "complete":
                     complete[label] = (name, str(_plain(run.get("config", ""))))
-            if edited:   # before anything is removed: a refused edit leaves the file as it was
+            if edited and ensemble is not None:   # an edit accepted above: the file takes the new text
+                _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
+                self.edited = True
+            elif edited:   # before anything is removed: a refused edit leaves the file as it was
                 run_index = accept_edit({label: config for label, (_, config) in complete.items()})
                 _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
                 for label, (name, _) in complete.items():   # the kept runs' places in the edited grid

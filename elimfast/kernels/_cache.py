@@ -28,7 +28,7 @@ from numba.core import caching
 from numba.core import codegen as numba_codegen
 from numba.core import compiler as numba_compiler
 
-from ..cache import ENV_VAR
+from ..cache import ENV_VAR, CacheError
 
 KERNELS_DIR = Path(__file__).resolve().parent
 PACKAGE_DIR = KERNELS_DIR.parent
@@ -98,11 +98,17 @@ class KeyedCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLoc
 def _writable_root(py_file: str, *settings) -> Path | None:
     """The keyed root under which the functions of py_file are cached, or None for a file
     that is not elimfast's: for the package's own modules the package's folder, else (an
-    installed package may not be writable) elimfast's cache. Once per file and cache
+    installed package may not be writable) elimfast's cache (cache.cache_dir: a private
+    temporary folder where the default one cannot be written). Once per file and cache
     settings (``settings``: the two environment variables that move the cache), not once
     per function: a kernel module defines up to 20 cached functions, and resolving the
     file's place and test-writing its folder took ~0.4 ms a function, 57 functions in a
-    warm `elimfast run`."""
+    warm `elimfast run`.
+
+    An elimfast file with no writable root raises CacheError naming the folder and the
+    setting to change: returning None there let Numba's own locators take the file, which
+    wrote unkeyed cache files into the package (stale after a kernel edit) or failed with
+    'RuntimeError: no locator available' (a user trial, both)."""
     place = _place(py_file)
     if place is None or not os.path.exists(py_file):
         return None
@@ -112,10 +118,14 @@ def _writable_root(py_file: str, *settings) -> Path | None:
         probe._cache_path = str(root / KeyedCacheLocator.get_suitable_cache_subpath(py_file))
         try:
             probe.ensure_cache_path()   # Numba's check: the folder exists and takes a file
-        except OSError:
+        except OSError as err:
+            failure = err
             continue
         return root
-    return None
+    # the last root tried is the one a setting moves: $NUMBA_CACHE_DIR's, else elimfast's cache
+    fix = ("set NUMBA_CACHE_DIR to a writable directory, or unset it" if os.environ.get("NUMBA_CACHE_DIR") else
+           f"set {ENV_VAR} to a writable directory")
+    raise CacheError(f"cannot write the compiled-code cache at {root} ({failure.strerror or failure}); {fix}")
 
 
 _NUMBA_LOAD_OVERLOAD = caching.Cache.load_overload
