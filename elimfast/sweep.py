@@ -806,6 +806,7 @@ def _worker_init(parent: int | None = None) -> None:
         signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)   # the parent stops on it (StopOnSignals); a worker need not
     if parent is not None:
         with contextlib.suppress(OSError, AttributeError):
             import ctypes
