@@ -227,7 +227,7 @@ def test_resume_refuses_a_file_of_another_sweep(tmp_path):
     other = grid_sweep(tmp_path, steps=["2*pi/80"], name="other.yaml")
     result = CliRunner().invoke(cli, ["sweep", str(other), "-o", str(out), "--resume"])
     assert result.exit_code == 2
-    assert result.output.strip() == (f"error: {out}: the sweep file was edited, and the run 'EHBVM/2*pi/40', stored "
+    assert result.output.strip() == (f"error: {out}: the sweep (its file or a config it names) was edited, and the run 'EHBVM/2*pi/40', stored "
                                       "complete, is no longer in it: --resume keeps every stored run; pass --overwrite "
                                       "to start again, or write the edited sweep to another file")
     after = contents(out)

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
+from elimfast.io.hdf5 import OutputError
+
 from elimfast import paper
 from elimfast.sweep import SweepError, load_sweep, orders_of, errors_of, run_sweep, table_rows, format_table
 
@@ -403,6 +405,29 @@ def test_resume_runs_the_failed_runs_of_a_sweep_again_with_an_edited_solver_sect
     assert resumed.table() == fresh.table()   # (no step of the kept run was split: max_halvings did not matter)
 
 
+def test_resume_refuses_a_base_config_file_edited_under_an_unedited_sweep_file(tmp_path):
+    """A sweep's base: may be a config file of its own. Edited after some runs were stored, with
+    the sweep file's text unchanged, --resume compared only that text: the kept runs and the new
+    ones came from different configs without a word. Now the stored runs are checked as for an
+    edit of the sweep file."""
+    from elimfast import sweep as sweeps
+    base = tmp_path / "base.yaml"
+    base.write_text(yaml.safe_dump(EDIT_BASE))
+    path = write_sweep(tmp_path, {"base": "base.yaml", "grid": EDIT_GRID, "error": {"exact": "initial"}})
+    out = tmp_path / "out.h5"
+    first = sweeps.run_to_file(path, out, workers=1)
+    assert [o.status.split(":")[0] for o in first.outcomes] == ["failed", "complete"]
+    before = out.read_bytes()
+    base.write_text(yaml.safe_dump({**EDIT_BASE, "integration": {**EDIT_BASE["integration"], "t_end": "4*pi"}}))
+    with pytest.raises(OutputError, match=r"the sweep \(its file or a config it names\) was edited: "
+                                          r"integration.t_end of the run 'pi/30', stored complete, changed"):
+        sweeps.run_to_file(path, out, resume=True, workers=1)
+    assert out.read_bytes() == before
+    base.write_text(yaml.safe_dump({**EDIT_BASE, "solver": {"max_halvings": 8}}))   # solver.* is taken
+    resumed = sweeps.run_to_file(path, out, resume=True, workers=1)
+    assert [o.status for o in resumed.outcomes] == ["complete", "complete"]
+
+
 def test_resume_refuses_an_edit_that_would_change_a_stored_run_and_leaves_the_file_as_it_was(tmp_path):
     from elimfast import sweep as sweeps
     from elimfast.io.safety import OutputError
@@ -414,17 +439,17 @@ def test_resume_refuses_an_edit_that_would_change_a_stored_run_and_leaves_the_fi
     before = contents(out)
     for change, message in [
             ({"base": {**EDIT_BASE, "conserve": ["lrl_y"]}, "grid": EDIT_GRID},
-             f"{out}: the sweep file was edited: conserve of the run 'pi/30', stored complete, changed, and --resume "
+             f"{out}: the sweep (its file or a config it names) was edited: conserve of the run 'pi/30', stored complete, changed, and --resume "
              "may change only solver.* of stored runs (their steps are kept); pass --overwrite to start again, or "
              "write the edited sweep to another file"),
             ({"base": EDIT_BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/4"]}]},
-             f"{out}: the sweep file was edited, and the run 'pi/30', stored complete, is no longer in it: --resume "
+             f"{out}: the sweep (its file or a config it names) was edited, and the run 'pi/30', stored complete, is no longer in it: --resume "
              "keeps every stored run; pass --overwrite to start again, or write the edited sweep to another file"),
             ({"base": {**EDIT_BASE, "method": {"name": "ehbvm", "k": 12, "s": 3, "r": 2}}, "grid": EDIT_GRID},
-             f"{out}: the sweep file was edited, and the stored run 'pi/30' no longer loads: "),
+             f"{out}: the sweep (its file or a config it names) was edited, and the stored run 'pi/30' no longer loads: "),
             # the user changed t_end; n_steps follows from it and was named instead (a user trial)
             ({"base": {**EDIT_BASE, "integration": {"h": "pi/30", "t_end": "4*pi"}}, "grid": EDIT_GRID},
-             f"{out}: the sweep file was edited: integration.t_end of the run 'pi/30', stored complete, changed")]:
+             f"{out}: the sweep (its file or a config it names) was edited: integration.t_end of the run 'pi/30', stored complete, changed")]:
         with pytest.raises(OutputError) as caught:
             sweeps.run_to_file(write_sweep(tmp_path, change), out, resume=True, workers=1)
         assert str(caught.value).startswith(message), str(caught.value)

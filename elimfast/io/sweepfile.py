@@ -256,12 +256,16 @@ class SweepWriter:
             if edited and ensemble is not None:   # an edit accepted above: the file takes the new text
                 _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
                 self.edited = True
-            elif edited:   # before anything is removed: a refused edit leaves the file as it was
+            elif ensemble is None and (edited or accept_edit is not None):
+                # Before anything is removed: a refused edit leaves the file as it was. An unedited
+                # text too: a config it names is a file of its own, which may have changed, and the
+                # kept runs and the new ones would then come from different configs unsaid.
                 run_index = accept_edit({label: config for label, (_, config) in complete.items()})
-                _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
-                for label, (name, _) in complete.items():   # the kept runs' places in the edited grid
-                    _replace_attributes(self._runs[name], {RUN_INDEX: int(run_index[label])})
-                self.edited = True
+                if edited:
+                    _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
+                    for label, (name, _) in complete.items():   # the kept runs' places in the edited grid
+                        _replace_attributes(self._runs[name], {RUN_INDEX: int(run_index[label])})
+                    self.edited = True
             for name in list(self._runs):
                 if name not in {group for group, _ in complete.values()}:
                     del self._runs[name]
