@@ -893,3 +893,18 @@ def test_a_sweep_takes_the_short_forms_of_a_run_config(tmp_path):
     bad = write_sweep(tmp_path, {"base": {**BASE, "method": {"name": "EHBVM(12"}}}, "bad.yaml")
     with pytest.raises(SweepError, match=r"bad.yaml: base.method.name: 'EHBVM\(12' is cut off"):
         load_sweep(bad)
+
+
+def test_an_adaptive_runs_row_counts_the_iterations_its_grad_H_evaluations_count(tmp_path):
+    """A user trial: a sweep row of adaptive EHBVM(8,4) showed 2495 iterations beside 22,952 grad H
+    evaluations, 9.2 per iteration for k = 8: the iterations were the accepted steps' record, the
+    evaluations counted the rejected steps' iterations too. Both count every iteration now, and a
+    fixed-step row is as before (its record holds every iteration)."""
+    from elimfast.sweep import run_to_file
+    outcome = run_to_file(adaptive_sweep(tmp_path), None, workers=1, keep_results=True)
+    rows = {o.label: o for o in outcome.outcomes}
+    adaptive = rows["rtol"]
+    assert adaptive.result.stats["iterations"] > adaptive.result.iterations.sum()   # rejected steps' too
+    assert adaptive.grad_H_evaluations == 12 * adaptive.iterations_total   # EHBVM(12,3): k per iteration
+    assert adaptive.iterations_total == adaptive.result.stats["iterations"]
+    assert rows["fixed"].iterations_total == int(rows["fixed"].result.iterations.sum())
