@@ -97,9 +97,9 @@ def test_e09_fewer_gradient_evaluations_than_fixed_steps_at_equal_error():
     final error over 10 periods (over the issue's 1000 periods the same, 7.5-8.6x by median
     errors over 5 starts, until both reach the rounding floor: bench/adaptive_vs_fixed.py; too
     long for a test).
-    The issue asks for 15x; measured 8.1x (9.3x before the predictor carried gamma_s over,
+    The issue asks for 15x; measured 8.7x (9.3x before the predictor carried gamma_s over,
     7x before the midpoint Jacobian): the fixed steps are small enough that simplified Newton
-    needs 2.48 iterations per step, the adaptive ones 5.68 (the spec's 22x compared
+    needs 2.42 iterations per step, the adaptive ones 5.1 (the spec's 22x compared
     fixed steps solved by the fixed point). The smallest fixed run at or below the
     adaptive error is found on a grid of step counts (its error is not monotone in h)."""
     p = kepler(0.9)
