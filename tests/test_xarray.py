@@ -422,3 +422,100 @@ def test_open_datatree_says_in_one_line_what_it_cannot_open(tmp_path, sweep_file
     with pytest.raises(elimfast.ElimfastError, match=r"old\.h5:/y: an axis without a dimension scale; read the "
                                                      r"run with elimfast\.load$"):
         elimfast.open_datatree(old)
+
+
+# --- netCDF compatibility of the attributes (a user trial) -------------------------------------------
+ADAPTIVE_WITH_EVENT = ("problem: {builtin: kepler, parameters: {eccentricity: 0.9}}\n"
+                       "conserve: [angular_momentum]\nmethod: {name: ehbvm, s: 4}\n"
+                       "integration: {rtol: 1e-10, t_end: 4*pi, verify: true}\noutput: {every: 10}\n"
+                       "events: {pericentre: {expression: 'q1*p1 + q2*p2', direction: 1, terminal: false}}\n")
+# The yes/no attributes of a run file, by the object that carries them (FLAG: the flag's name).
+FLAGS = {"invariants/angular_momentum": "imposed", "invariants/lrl_x": "imposed", "/": "verify",
+         "events/pericentre": "terminal"}
+
+
+def invoke_cli(*args):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.fixture(scope="module")
+def cli_files(tmp_path_factory):
+    """A fixed-step run and an adaptive run (step doubling) with an event, written by `elimfast run`."""
+    directory = tmp_path_factory.mktemp("cli_files")
+    config = directory / "adaptive.yaml"
+    config.write_text(ADAPTIVE_WITH_EVENT)
+    fixed, adaptive = directory / "fixed.h5", directory / "adaptive.h5"
+    invoke_cli("run", KEPLER, "-o", fixed, "--set", "integration.t_end=2")
+    invoke_cli("run", config, "-o", adaptive)
+    return fixed, adaptive
+
+
+def netcdf_engines() -> list[str]:
+    try:
+        import netCDF4  # noqa: F401
+    except ImportError:
+        return ["h5netcdf"]
+    return ["h5netcdf", "netcdf4"]
+
+
+def test_run_files_go_through_xarray_to_netcdf_and_back(cli_files, tmp_path):
+    """netCDF has no boolean type: the HDF5 booleans imposed, verify and terminal made to_netcdf
+    of every run file fail ('boolean dtypes are not a supported NetCDF feature'; netCDF4: 'illegal
+    data type for attribute'), and netCDF-C dropped them. They are int8 0/1 now, and a tree
+    written back reads back with them."""
+    fixed, adaptive = cli_files
+    for path in (fixed, adaptive):
+        with h5py.File(path, "r") as f:
+            flags = {where: f[where].attrs[name] for where, name in FLAGS.items()
+                     if where in f and name in f[where].attrs}
+        for engine in netcdf_engines():
+            copy = tmp_path / f"{path.stem}_{engine}.nc"
+            with xr.open_datatree(path, engine="h5netcdf") as tree:
+                tree.to_netcdf(copy, engine=engine)
+            with xr.open_datatree(copy, engine=engine) as back:   # netCDF-C dropped the booleans
+                assert back["invariants"]["angular_momentum"].attrs["imposed"] == 1
+                assert back["invariants"]["lrl_x"].attrs["imposed"] == 0
+                if path == adaptive:
+                    assert back.attrs["verify"] == 1 and back["events/pericentre"].attrs["terminal"] == 0
+            with xr.open_dataset(path, engine="h5netcdf") as ds:
+                ds.to_netcdf(tmp_path / f"{path.stem}_{engine}_root.nc", engine=engine)
+            with elimfast.open_datatree(path) as ours:
+                ours.to_netcdf(tmp_path / f"{path.stem}_{engine}_ours.nc", engine=engine)
+        assert all(np.asarray(value).dtype == np.int8 for value in flags.values()), flags
+    assert set(flags) == set(FLAGS)   # the adaptive file has every one of them
+
+
+def test_readers_take_the_boolean_flags_of_files_written_before(cli_files, sweep_file, tmp_path):
+    """Files written before the flags were int8 hold HDF5 booleans: elimfast's readers (load,
+    inspect, open_datatree, a sweep's list of stored runs) read them as they read the new ones."""
+    import shutil
+
+    from elimfast.io.runfile import RunFile
+    from elimfast.io.sweepfile import grid_sweep_runs
+    _, adaptive = cli_files
+    old = tmp_path / "old.h5"
+    shutil.copy(adaptive, old)
+    with h5py.File(old, "r+") as f:
+        for where, name in FLAGS.items():
+            f[where].attrs[name] = bool(f[where].attrs[name])
+        assert f.attrs["verify"].dtype == np.bool_
+    with RunFile(old) as before, RunFile(adaptive) as now:
+        assert before.imposed == now.imposed == {"H": False, "angular_momentum": True, "lrl_x": False,
+                                                  "lrl_y": False}
+    assert elimfast.load(old).conserve == ("angular_momentum",)
+    assert "step doubling" in invoke_cli("inspect", adaptive)
+    assert invoke_cli("inspect", old).replace(str(old), "FILE") == invoke_cli("inspect", adaptive).replace(
+        str(adaptive), "FILE")
+    with elimfast.open_datatree(old) as tree:
+        assert bool(tree["invariants"]["angular_momentum"].attrs["imposed"])
+    old_sweep = tmp_path / "old_sweep.h5"
+    shutil.copy(sweep_file[0], old_sweep)
+    with h5py.File(old_sweep, "r+") as f:
+        for run in f["runs"].values():
+            run.attrs["stored"] = bool(run.attrs["stored"])
+    listed = grid_sweep_runs(old_sweep)[1]
+    assert listed == grid_sweep_runs(sweep_file[0])[1] and all(stored for _, stored, _ in listed)

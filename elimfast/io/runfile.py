@@ -55,7 +55,7 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATS_PREFIX,
-                     STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
+                     STATUS_RUNNING, VALUE_AT_T0, read_flag, VERIFY_BLOCK_BYTES, _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
                      RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
@@ -766,7 +766,7 @@ class RunFile:
             self.coordinate_names = component_names(f)
         with self._reading("/invariants"):
             self.invariant_names = [str(n) for n in _plain(f["invariants"].attrs["order"])]
-            self.imposed = {name: bool(f["invariants"][name].attrs.get("imposed", False))
+            self.imposed = {name: read_flag(f["invariants"][name].attrs, "imposed")
                             for name in self.invariant_names}
         with self._reading("/steps"):
             self.multiplier_name = next(iter(multiplier_datasets(f["steps"])), None)
