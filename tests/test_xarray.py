@@ -269,6 +269,27 @@ def test_an_event_whose_xarray_names_are_taken_is_refused():
     assert r.to_xarray()["step_t"].dims == ("step",)
 
 
+def test_an_event_named_as_a_coordinate_every_group_inherits_is_refused(tmp_path, kepler_file):
+    """/events/<name> is a group below the run's root, whose coordinates t and component xarray's
+    DataTree passes down: an event named t or component ran, and then every DataTree reader
+    (h5netcdf, netCDF4, elimfast.open_datatree) failed on the file with 'parent events already
+    contains a variable named t'. Refused as an event 'step' is, in Python and in configs."""
+    from elimfast.config import load_run
+    from elimfast.errors import ElimfastError, ParameterError
+    from elimfast.io.layout import INHERITED_COORDINATES
+    with xr.open_datatree(kepler_file[1], engine="h5netcdf") as tree:   # the names the rule keeps free
+        assert set(INHERITED_COORDINATES) == set(tree.coords)
+    for name in INHERITED_COORDINATES:
+        with pytest.raises(ParameterError, match=rf"^events\.{name} .*give the event another name"):
+            elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=1.0, rtol=1e-10,
+                               events={name: {"expression": "q2"}})
+        config = tmp_path / f"{name}.yaml"
+        config.write_text("problem: {builtin: kepler}\nmethod: {name: ehbvm, k: 8, s: 4}\n"
+                          f"integration: {{rtol: 1e-10, t_end: 1}}\nevents: {{{name}: q2}}\n")
+        with pytest.raises(ElimfastError, match=rf"{name}.yaml:4: events\.{name}: .*give the event another name"):
+            load_run(str(config))
+
+
 GHBVM_80 = "GHBVM/2*pi/80"        # a run of the sweep_file fixture, and its group (sweepfile.sweep_group_name)
 GHBVM_80_GROUP = "runs/GHBVM|2*pi|80"
 
