@@ -540,3 +540,18 @@ def test_readers_take_the_boolean_flags_of_files_written_before(cli_files, sweep
             run.attrs["stored"] = bool(run.attrs["stored"])
     listed = grid_sweep_runs(old_sweep)[1]
     assert listed == grid_sweep_runs(sweep_file[0])[1] and all(stored for _, stored, _ in listed)
+
+
+def test_open_datatree_of_a_file_with_an_event_named_t_says_why_in_one_line(cli_files, tmp_path):
+    """A file written before such names were refused: a raw KeyError traceback before."""
+    import shutil
+
+    from elimfast.io.safety import OutputError
+    path = tmp_path / "event_t.h5"
+    shutil.copy(cli_files[1], path)
+    with h5py.File(path, "r+") as f:
+        f.move("events/pericentre", "events/t")
+        f["events"].attrs["order"] = ["t"]
+    with pytest.raises(OutputError, match=r"event_t.h5: its group events/t .*an event named 't'.*; read the run with elimfast.load$"):
+        elimfast.open_datatree(path)
+    np.testing.assert_array_equal(elimfast.load(path).events["t"].t, elimfast.load(cli_files[1]).events["pericentre"].t)

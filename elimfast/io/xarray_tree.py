@@ -29,6 +29,7 @@ scales: ``elimfast.load`` reads them.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import h5py
@@ -300,6 +301,16 @@ class ElimfastBackend(BackendEntrypoint):
         groups = self._groups(filename_or_obj, group, drop_variables, _decoders(locals()), recursive=True)
         try:
             tree = xr.DataTree.from_dict(groups)
+        except KeyError as err:
+            groups["/"].close()
+            clash = re.fullmatch(r"parent (.*) already contains a variable named (.*)", str(err.args[0]))
+            if clash is None:
+                raise
+            parent, name = clash.groups()
+            # written before events named as an inherited coordinate were refused (adaptive._check_event_name)
+            raise OutputError(f"{filename_or_obj}: its group {parent}/{name} has the name of a coordinate of "
+                              f"{parent}, which an xarray DataTree cannot hold (an event named {name!r}, which "
+                              "elimfast now refuses); read the run with elimfast.load") from None
         except ValueError as err:
             groups["/"].close()
             if "not aligned" not in str(err):
