@@ -555,3 +555,28 @@ def test_open_datatree_of_a_file_with_an_event_named_t_says_why_in_one_line(cli_
     with pytest.raises(OutputError, match=r"event_t.h5: its group events/t .*an event named 't'.*; read the run with elimfast.load$"):
         elimfast.open_datatree(path)
     np.testing.assert_array_equal(elimfast.load(path).events["t"].t, elimfast.load(cli_files[1]).events["pericentre"].t)
+
+
+def test_open_datatree_with_chunks_gives_the_hdf5_chunks(tmp_path):
+    """chunks={} asks a backend for its preferred chunks, as xarray's own backends give them: the
+    HDF5 chunks (h5netcdf does). elimfast.open_datatree gave one dask chunk per variable."""
+    pytest.importorskip("dask")
+    path = tmp_path / "long.h5"
+    run_file(path, overrides=["integration.t_end=120", "output.every=1"])   # 1201 samples, 1200 steps
+    with h5py.File(path, "r") as f:
+        on_disk = {}
+        f.visititems(lambda name, item: on_disk.update({name: (item.shape, item.chunks)})
+                     if isinstance(item, h5py.Dataset) and item.chunks and item.size else None)
+    assert on_disk["y"][0][0] > on_disk["y"][1][0]   # more rows than one chunk holds
+    compared = 0
+    with elimfast.open_datatree(path, chunks={}) as tree:
+        for name, (shape, chunks) in on_disk.items():
+            node, _, variable = name.rpartition("/")
+            dataset = tree[node or "/"].to_dataset(inherit=False)
+            if variable not in dataset.variables or variable in dataset.indexes:
+                continue   # a dimension without values, or an index (xarray loads those)
+            expected = tuple(tuple([size] * (length // size) + ([length % size] if length % size else []))
+                             for length, size in zip(shape, chunks))
+            assert dataset[variable].chunks == expected, name
+            compared += 1
+    assert compared >= 5   # y, H and the invariants, iterations, substeps, alpha
