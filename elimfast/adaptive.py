@@ -619,9 +619,10 @@ class AdaptiveIntegration:
             return self.t_eval[1:] if self.t_eval.size > 1 else np.array([np.inf])
         return self.t_eval
 
-    def stats(self) -> dict:
-        """What users compare methods by: steps, rejections and evaluations (docs/adaptive.md)."""
-        stats = counted_stats(self.counters)
+    def stats(self, counters=None) -> dict:
+        """What users compare methods by: steps, rejections and evaluations (docs/adaptive.md), of
+        the run's counters or of ``counters`` (a saved state's: what its file holds)."""
+        stats = counted_stats(self.counters if counters is None else counters)
         per_grad_H, per_grad_L = self.method.evaluations_per_iteration(len(self.conserve), self.solver.rhs == "stable")
         ordered = {}
         for key, value in stats.items():   # the evaluations follow the iterations they count

@@ -580,3 +580,33 @@ def test_open_datatree_with_chunks_gives_the_hdf5_chunks(tmp_path):
             assert dataset[variable].chunks == expected, name
             compared += 1
     assert compared >= 5   # y, H and the invariants, iterations, substeps, alpha
+
+
+def test_an_adaptive_run_file_has_the_stats_of_its_result_as_root_attributes(tmp_path):
+    """A run file had only /state/counters, an unlabelled vector, where a sweep run has stats_*
+    attributes and Result.to_xarray the counts: a plain h5py or xarray reader found no rejected
+    steps, side steps or grad H evaluations. The root carries stats_<name> = Result.stats now."""
+    from elimfast.adaptive import counted_stats
+    from elimfast.io.layout import STATS_PREFIX
+    path = tmp_path / "adaptive.h5"
+    config = tmp_path / "adaptive.yaml"
+    config.write_text(ADAPTIVE_WITH_EVENT)
+    spec, outcome = run_file(path, config=config)
+    assert outcome.status == "complete"
+    direct = elimfast.integrate(spec.problem, spec.method, t_end=spec.t_end, rtol=spec.step_control.rtol,
+                                verify=True, conserve=spec.conserve, store_every=spec.output_every,
+                                events={"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1}})
+    with h5py.File(path, "r") as f:
+        stored = {key[len(STATS_PREFIX):]: int(value) for key, value in f.attrs.items()
+                  if key.startswith(STATS_PREFIX)}
+        counted = counted_stats(f["state/counters"][()])
+    assert stored == direct.stats and stored["grad_H_evaluations"] > 0
+    assert {key: stored[key] for key in counted} == counted
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        assert ds.attrs["stats_rejected_steps"] == direct.stats["rejected_steps"]
+    # a resumed run drops them until it ends: a file killed meanwhile claims no stats of an earlier end
+    from elimfast.io.runfile import RunWriter
+    writer, _ = RunWriter.resume(path)
+    writer.close()   # as a killed writer leaves it: status running
+    with h5py.File(path, "r", swmr=True) as f:
+        assert f.attrs["status"] == "running" and not any(key.startswith(STATS_PREFIX) for key in f.attrs)

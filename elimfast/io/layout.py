@@ -152,9 +152,14 @@ class _Growing:
 
 
 VALUE_AT_T0 = "value_at_t0"   # attribute of /invariants/<name>: I(t0), the reference of the invariant errors
-# Attributes stats_<name> of a sweep run: Result.stats of a run through the adaptive kernel
-# (steps, rejections, evaluations; a run file keeps /state/counters instead, from which they follow).
+# Attributes stats_<name> of a run through the adaptive kernel (run file root, sweep run): its
+# Result.stats (steps, rejections, evaluations), labelled where /state/counters is a bare vector.
 STATS_PREFIX = "stats_"
+
+
+def stats_attributes(stats: dict) -> dict:
+    """{stats_<name>: count} of a run's Result.stats (STATS_PREFIX)."""
+    return {STATS_PREFIX + key: int(value) for key, value in stats.items()}
 
 # The per-step datasets of /steps that are not multipliers (adaptive runs add h and t).
 PER_STEP_RECORDS = ("iterations", "substeps", "h", "t")

@@ -24,9 +24,9 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
-from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _replace_attributes,
+from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _replace_attributes,
                      _set_attributes, append_rows, RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes,
-                     flag_attribute, read_flag, version_attributes)
+                     flag_attribute, read_flag, stats_attributes, version_attributes)
 from .runfile import _now
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, no_room, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
@@ -389,7 +389,7 @@ class SweepWriter:
             **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=n_steps,
                                            t_end=t_end, output_every=int(output.get("every", 1)),
                                            conserve=result.conserve),
-            **file_attributes, **{STATS_PREFIX + key: int(value) for key, value in result.stats.items()},
+            **file_attributes, **stats_attributes(result.stats),
             "steps_done": result.steps_done})
         names = ("H",) + tuple(result.problem.invariant_names)
         done = result.steps_done
