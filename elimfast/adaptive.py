@@ -239,6 +239,22 @@ def _positive(name: str, value) -> float:
     return number
 
 
+def _check_event_name(name: str, problem: Problem) -> None:
+    """ParameterError for an event name that readers of the run would see clash with other data."""
+    from .io.layout import INHERITED_COORDINATES   # (here, not at the top: h5py only when events are given)
+    # The file's group /events/<name> sits below the run's coordinates t and component, which
+    # xarray's DataTree passes down to it: an event 't' made every DataTree reader of the file fail.
+    if name in INHERITED_COORDINATES:
+        raise ParameterError(f"events.{name}", f"'{name}' is a coordinate of the run's file, which xarray passes "
+                                               "down to the group of each event; give the event another name")
+    # Result.to_xarray names an event's times and states <name>_t and <name>_y, beside
+    # the step times step_t, step_h and the invariants: an event 'step' replaced step_t
+    taken = {f"{name}_t", f"{name}_y"} & {"step_t", *problem.invariant_names}
+    if taken:
+        raise ParameterError(f"events.{name}", f"its times or states would be {min(taken)}, the name of "
+                                               "other data of the run in xarray; give the event another name")
+
+
 @dataclass(frozen=True)
 class EventSpec:
     """Events g(y) = 0 of a run: names, expressions, directions (+1 up, -1 down, 0 both),
@@ -259,12 +275,7 @@ class EventSpec:
         for name, entry in events.items():
             if not isinstance(name, str) or not name.isidentifier():
                 raise ParameterError("events", f"event names must be identifiers, got {name!r}")
-            # Result.to_xarray names an event's times and states <name>_t and <name>_y, beside
-            # the step times step_t, step_h and the invariants: an event 'step' replaced step_t
-            taken = {f"{name}_t", f"{name}_y"} & {"step_t", *problem.invariant_names}
-            if taken:
-                raise ParameterError(f"events.{name}", f"its times or states would be {min(taken)}, the name of "
-                                                       "other data of the run in xarray; give the event another name")
+            _check_event_name(name, problem)
             if isinstance(entry, str):
                 entry = {"expression": entry}
             if not isinstance(entry, Mapping) or "expression" not in entry:
@@ -608,9 +619,10 @@ class AdaptiveIntegration:
             return self.t_eval[1:] if self.t_eval.size > 1 else np.array([np.inf])
         return self.t_eval
 
-    def stats(self) -> dict:
-        """What users compare methods by: steps, rejections and evaluations (docs/adaptive.md)."""
-        stats = counted_stats(self.counters)
+    def stats(self, counters=None) -> dict:
+        """What users compare methods by: steps, rejections and evaluations (docs/adaptive.md), of
+        the run's counters or of ``counters`` (a saved state's: what its file holds)."""
+        stats = counted_stats(self.counters if counters is None else counters)
         per_grad_H, per_grad_L = self.method.evaluations_per_iteration(len(self.conserve), self.solver.rhs == "stable")
         ordered = {}
         for key, value in stats.items():   # the evaluations follow the iterations they count

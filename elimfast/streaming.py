@@ -454,7 +454,8 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     steps_done = writer.saved["steps_done"] if stopped is not None else integration.steps_done
     if not writer.abandoned:
         try:
-            writer.finish(status, steps_done=steps_done, wall_time_s=wall, kernel_time_s=kernel_offset + kernel_s)
+            writer.finish(status, steps_done=steps_done, wall_time_s=wall, kernel_time_s=kernel_offset + kernel_s,
+                          stats=saved_stats(integration, writer))
         except (OSError, RuntimeError) as err:   # DiskFullError included: leave it as a killed writer would
             writer.abandon()
             if stopped is None:
@@ -495,6 +496,15 @@ def _write_failed(writer, err, resume_command) -> tuple[str, str]:
     return (f"write failed at step {done + 1}",
             f"cannot write {writer.path} at step {done + 1} ({type(err).__name__}: {detail}); the {done} steps "
             f"before it are in the file; check the disk, then continue with: {_continue_with(resume_command)}")
+
+
+def saved_stats(integration, writer) -> dict | None:
+    """Result.stats of what the file holds (the writer's last saved state, which a run stopped
+    short is cut back to), or None for a run without counters (the fixed-step kernel)."""
+    counters = writer.saved.get("counters")
+    if counters is None or not getattr(integration, "adaptive_kernel", False):
+        return None
+    return integration.stats(counters)
 
 
 def _save_steps_before_raise(integration, before_state: dict, n: int, writer, stop, wall_s: float,

@@ -269,6 +269,27 @@ def test_an_event_whose_xarray_names_are_taken_is_refused():
     assert r.to_xarray()["step_t"].dims == ("step",)
 
 
+def test_an_event_named_as_a_coordinate_every_group_inherits_is_refused(tmp_path, kepler_file):
+    """/events/<name> is a group below the run's root, whose coordinates t and component xarray's
+    DataTree passes down: an event named t or component ran, and then every DataTree reader
+    (h5netcdf, netCDF4, elimfast.open_datatree) failed on the file with 'parent events already
+    contains a variable named t'. Refused as an event 'step' is, in Python and in configs."""
+    from elimfast.config import load_run
+    from elimfast.errors import ElimfastError, ParameterError
+    from elimfast.io.layout import INHERITED_COORDINATES
+    with xr.open_datatree(kepler_file[1], engine="h5netcdf") as tree:   # the names the rule keeps free
+        assert set(INHERITED_COORDINATES) == set(tree.coords)
+    for name in INHERITED_COORDINATES:
+        with pytest.raises(ParameterError, match=rf"^events\.{name} .*give the event another name"):
+            elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=1.0, rtol=1e-10,
+                               events={name: {"expression": "q2"}})
+        config = tmp_path / f"{name}.yaml"
+        config.write_text("problem: {builtin: kepler}\nmethod: {name: ehbvm, k: 8, s: 4}\n"
+                          f"integration: {{rtol: 1e-10, t_end: 1}}\nevents: {{{name}: q2}}\n")
+        with pytest.raises(ElimfastError, match=rf"{name}.yaml:4: events\.{name}: .*give the event another name"):
+            load_run(str(config))
+
+
 GHBVM_80 = "GHBVM/2*pi/80"        # a run of the sweep_file fixture, and its group (sweepfile.sweep_group_name)
 GHBVM_80_GROUP = "runs/GHBVM|2*pi|80"
 
@@ -422,3 +443,170 @@ def test_open_datatree_says_in_one_line_what_it_cannot_open(tmp_path, sweep_file
     with pytest.raises(elimfast.ElimfastError, match=r"old\.h5:/y: an axis without a dimension scale; read the "
                                                      r"run with elimfast\.load$"):
         elimfast.open_datatree(old)
+
+
+# --- netCDF compatibility of the attributes (a user trial) -------------------------------------------
+ADAPTIVE_WITH_EVENT = ("problem: {builtin: kepler, parameters: {eccentricity: 0.9}}\n"
+                       "conserve: [angular_momentum]\nmethod: {name: ehbvm, s: 4}\n"
+                       "integration: {rtol: 1e-10, t_end: 4*pi, verify: true}\noutput: {every: 10}\n"
+                       "events: {pericentre: {expression: 'q1*p1 + q2*p2', direction: 1, terminal: false}}\n")
+# The yes/no attributes of a run file, by the object that carries them (FLAG: the flag's name).
+FLAGS = {"invariants/angular_momentum": "imposed", "invariants/lrl_x": "imposed", "/": "verify",
+         "events/pericentre": "terminal"}
+
+
+def invoke_cli(*args):
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.fixture(scope="module")
+def cli_files(tmp_path_factory):
+    """A fixed-step run and an adaptive run (step doubling) with an event, written by `elimfast run`."""
+    directory = tmp_path_factory.mktemp("cli_files")
+    config = directory / "adaptive.yaml"
+    config.write_text(ADAPTIVE_WITH_EVENT)
+    fixed, adaptive = directory / "fixed.h5", directory / "adaptive.h5"
+    invoke_cli("run", KEPLER, "-o", fixed, "--set", "integration.t_end=2")
+    invoke_cli("run", config, "-o", adaptive)
+    return fixed, adaptive
+
+
+def netcdf_engines() -> list[str]:
+    try:
+        import netCDF4  # noqa: F401
+    except ImportError:
+        return ["h5netcdf"]
+    return ["h5netcdf", "netcdf4"]
+
+
+def test_run_files_go_through_xarray_to_netcdf_and_back(cli_files, tmp_path):
+    """netCDF has no boolean type: the HDF5 booleans imposed, verify and terminal made to_netcdf
+    of every run file fail ('boolean dtypes are not a supported NetCDF feature'; netCDF4: 'illegal
+    data type for attribute'), and netCDF-C dropped them. They are int8 0/1 now, and a tree
+    written back reads back with them."""
+    fixed, adaptive = cli_files
+    for path in (fixed, adaptive):
+        with h5py.File(path, "r") as f:
+            flags = {where: f[where].attrs[name] for where, name in FLAGS.items()
+                     if where in f and name in f[where].attrs}
+        for engine in netcdf_engines():
+            copy = tmp_path / f"{path.stem}_{engine}.nc"
+            with xr.open_datatree(path, engine="h5netcdf") as tree:
+                tree.to_netcdf(copy, engine=engine)
+            with xr.open_datatree(copy, engine=engine) as back:   # netCDF-C dropped the booleans
+                assert back["invariants"]["angular_momentum"].attrs["imposed"] == 1
+                assert back["invariants"]["lrl_x"].attrs["imposed"] == 0
+                if path == adaptive:
+                    assert back.attrs["verify"] == 1 and back["events/pericentre"].attrs["terminal"] == 0
+            with xr.open_dataset(path, engine="h5netcdf") as ds:
+                ds.to_netcdf(tmp_path / f"{path.stem}_{engine}_root.nc", engine=engine)
+            with elimfast.open_datatree(path) as ours:
+                ours.to_netcdf(tmp_path / f"{path.stem}_{engine}_ours.nc", engine=engine)
+        assert all(np.asarray(value).dtype == np.int8 for value in flags.values()), flags
+    assert set(flags) == set(FLAGS)   # the adaptive file has every one of them
+
+
+def test_readers_take_the_boolean_flags_of_files_written_before(cli_files, sweep_file, tmp_path):
+    """Files written before the flags were int8 hold HDF5 booleans: elimfast's readers (load,
+    inspect, open_datatree, a sweep's list of stored runs) read them as they read the new ones."""
+    import shutil
+
+    from elimfast.io.runfile import RunFile
+    from elimfast.io.sweepfile import grid_sweep_runs
+    _, adaptive = cli_files
+    old = tmp_path / "old.h5"
+    shutil.copy(adaptive, old)
+    with h5py.File(old, "r+") as f:
+        for where, name in FLAGS.items():
+            f[where].attrs[name] = bool(f[where].attrs[name])
+        assert f.attrs["verify"].dtype == np.bool_
+    with RunFile(old) as before, RunFile(adaptive) as now:
+        assert before.imposed == now.imposed == {"H": False, "angular_momentum": True, "lrl_x": False,
+                                                  "lrl_y": False}
+    assert elimfast.load(old).conserve == ("angular_momentum",)
+    assert "step doubling" in invoke_cli("inspect", adaptive)
+    assert invoke_cli("inspect", old).replace(str(old), "FILE") == invoke_cli("inspect", adaptive).replace(
+        str(adaptive), "FILE")
+    with elimfast.open_datatree(old) as tree:
+        assert bool(tree["invariants"]["angular_momentum"].attrs["imposed"])
+    old_sweep = tmp_path / "old_sweep.h5"
+    shutil.copy(sweep_file[0], old_sweep)
+    with h5py.File(old_sweep, "r+") as f:
+        for run in f["runs"].values():
+            run.attrs["stored"] = bool(run.attrs["stored"])
+    listed = grid_sweep_runs(old_sweep)[1]
+    assert listed == grid_sweep_runs(sweep_file[0])[1] and all(stored for _, stored, _ in listed)
+
+
+def test_open_datatree_of_a_file_with_an_event_named_t_says_why_in_one_line(cli_files, tmp_path):
+    """A file written before such names were refused: a raw KeyError traceback before."""
+    import shutil
+
+    from elimfast.io.safety import OutputError
+    path = tmp_path / "event_t.h5"
+    shutil.copy(cli_files[1], path)
+    with h5py.File(path, "r+") as f:
+        f.move("events/pericentre", "events/t")
+        f["events"].attrs["order"] = ["t"]
+    with pytest.raises(OutputError, match=r"event_t.h5: its group events/t .*an event named 't'.*; read the run with elimfast.load$"):
+        elimfast.open_datatree(path)
+    np.testing.assert_array_equal(elimfast.load(path).events["t"].t, elimfast.load(cli_files[1]).events["pericentre"].t)
+
+
+def test_open_datatree_with_chunks_gives_the_hdf5_chunks(tmp_path):
+    """chunks={} asks a backend for its preferred chunks, as xarray's own backends give them: the
+    HDF5 chunks (h5netcdf does). elimfast.open_datatree gave one dask chunk per variable."""
+    pytest.importorskip("dask")
+    path = tmp_path / "long.h5"
+    run_file(path, overrides=["integration.t_end=120", "output.every=1"])   # 1201 samples, 1200 steps
+    with h5py.File(path, "r") as f:
+        on_disk = {}
+        f.visititems(lambda name, item: on_disk.update({name: (item.shape, item.chunks)})
+                     if isinstance(item, h5py.Dataset) and item.chunks and item.size else None)
+    assert on_disk["y"][0][0] > on_disk["y"][1][0]   # more rows than one chunk holds
+    compared = 0
+    with elimfast.open_datatree(path, chunks={}) as tree:
+        for name, (shape, chunks) in on_disk.items():
+            node, _, variable = name.rpartition("/")
+            dataset = tree[node or "/"].to_dataset(inherit=False)
+            if variable not in dataset.variables or variable in dataset.indexes:
+                continue   # a dimension without values, or an index (xarray loads those)
+            expected = tuple(tuple([size] * (length // size) + ([length % size] if length % size else []))
+                             for length, size in zip(shape, chunks))
+            assert dataset[variable].chunks == expected, name
+            compared += 1
+    assert compared >= 5   # y, H and the invariants, iterations, substeps, alpha
+
+
+def test_an_adaptive_run_file_has_the_stats_of_its_result_as_root_attributes(tmp_path):
+    """A run file had only /state/counters, an unlabelled vector, where a sweep run has stats_*
+    attributes and Result.to_xarray the counts: a plain h5py or xarray reader found no rejected
+    steps, side steps or grad H evaluations. The root carries stats_<name> = Result.stats now."""
+    from elimfast.adaptive import counted_stats
+    from elimfast.io.layout import STATS_PREFIX
+    path = tmp_path / "adaptive.h5"
+    config = tmp_path / "adaptive.yaml"
+    config.write_text(ADAPTIVE_WITH_EVENT)
+    spec, outcome = run_file(path, config=config)
+    assert outcome.status == "complete"
+    direct = elimfast.integrate(spec.problem, spec.method, t_end=spec.t_end, rtol=spec.step_control.rtol,
+                                verify=True, conserve=spec.conserve, store_every=spec.output_every,
+                                events={"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1}})
+    with h5py.File(path, "r") as f:
+        stored = {key[len(STATS_PREFIX):]: int(value) for key, value in f.attrs.items()
+                  if key.startswith(STATS_PREFIX)}
+        counted = counted_stats(f["state/counters"][()])
+    assert stored == direct.stats and stored["grad_H_evaluations"] > 0
+    assert {key: stored[key] for key in counted} == counted
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        assert ds.attrs["stats_rejected_steps"] == direct.stats["rejected_steps"]
+    # a resumed run drops them until it ends: a file killed meanwhile claims no stats of an earlier end
+    from elimfast.io.runfile import RunWriter
+    writer, _ = RunWriter.resume(path)
+    writer.close()   # as a killed writer leaves it: status running
+    with h5py.File(path, "r", swmr=True) as f:
+        assert f.attrs["status"] == "running" and not any(key.startswith(STATS_PREFIX) for key in f.attrs)

@@ -36,7 +36,8 @@ built-in solar system: AU, days, solar masses; also the group attributes
 
 Format history: 1 (no checksums), 2 (fletcher32, /state/record; the component names as
 an attribute of /y named ``coordinates``, which CF reserves: still read), 3 (dimension
-scales, ``component``, long_name and units).
+scales, ``component``, long_name and units). Yes/no attributes became int8 0/1 within format 3
+(flag_attribute; read_flag reads both): readers took them by truth value before too, so no new version.
 """
 from __future__ import annotations
 
@@ -82,6 +83,10 @@ LONG_NAMES = {"t": "time", "component": "state component (positions q, then mome
               "alpha": "ELIM multiplier alpha per step (NaN: a substep not imposed)",
               "lambda": "LIM multiplier lambda per step", "invariant": "invariant of each multiplier column",
               "step_t": "time at the end of each step", "step_h": "size of each step"}
+# The run group's dimension scales t and component (create_run_group), which xarray's DataTree
+# passes down to every group below it: a child group of that name (an event 't') made every
+# DataTree reader fail ("parent events already contains a variable named t").
+INHERITED_COORDINATES = ("t", "component")
 
 
 def _chunk_rows(row_bytes: int) -> int:
@@ -147,9 +152,14 @@ class _Growing:
 
 
 VALUE_AT_T0 = "value_at_t0"   # attribute of /invariants/<name>: I(t0), the reference of the invariant errors
-# Attributes stats_<name> of a sweep run: Result.stats of a run through the adaptive kernel
-# (steps, rejections, evaluations; a run file keeps /state/counters instead, from which they follow).
+# Attributes stats_<name> of a run through the adaptive kernel (run file root, sweep run): its
+# Result.stats (steps, rejections, evaluations), labelled where /state/counters is a bare vector.
 STATS_PREFIX = "stats_"
+
+
+def stats_attributes(stats: dict) -> dict:
+    """{stats_<name>: count} of a run's Result.stats (STATS_PREFIX)."""
+    return {STATS_PREFIX + key: int(value) for key, value in stats.items()}
 
 # The per-step datasets of /steps that are not multipliers (adaptive runs add h and t).
 PER_STEP_RECORDS = ("iterations", "substeps", "h", "t")
@@ -248,9 +258,23 @@ def _replace_attributes(obj, values: dict) -> None:
     _set_attributes(obj, values)
 
 
+def flag_attribute(value) -> np.int8:
+    """A yes/no attribute (imposed, verify, terminal, stored) as written: int8 0 or 1. netCDF has
+    no boolean type: xarray's to_netcdf refused HDF5 booleans and netCDF-C dropped them."""
+    return np.int8(1 if value else 0)
+
+
+def read_flag(attrs, name: str, default: bool = False) -> bool:
+    """A yes/no attribute: int8 0/1 (flag_attribute), or an HDF5 boolean (files written before)."""
+    return bool(_plain(attrs.get(name, default)))
+
+
 def _set_attributes(obj, values: dict) -> None:
-    """Create attributes through h5py's low-level API (numbers, strings, lists of strings, arrays)."""
+    """Create attributes through h5py's low-level API (numbers, strings, lists of strings, arrays;
+    booleans as flag_attribute)."""
     for name, value in values.items():
+        if isinstance(value, (bool, np.bool_)):
+            value = flag_attribute(value)
         if isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)):
             data = np.array(value, dtype=h5py.string_dtype())
         else:

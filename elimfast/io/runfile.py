@@ -55,7 +55,7 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATS_PREFIX,
-                     STATUS_RUNNING, VALUE_AT_T0, VERIFY_BLOCK_BYTES, _Growing, _plain,
+                     STATUS_RUNNING, VALUE_AT_T0, read_flag, stats_attributes, VERIFY_BLOCK_BYTES, _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
                      RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
@@ -344,7 +344,8 @@ class RunWriter:
             writer = cls(path, f, datasets, guard=guard, sequence=1)
             writer.opened_as = temporary
             writer.append(integration.initial_chunk())
-            writer.saved = {"steps_done": run.steps_done, "n_samples": 1, "t": run.t}
+            writer.saved = {"steps_done": run.steps_done, "n_samples": 1, "t": run.t,
+                            "counters": initial.get("counters")}
             f.swmr_mode = True   # flushes: from here on the file on disk is always consistent
             _publish(temporary, path, overwrite)
             return writer
@@ -462,7 +463,9 @@ class RunWriter:
             stored_sets = set_overrides_attribute(set_overrides)
             if stored_sets and stored_sets[SET_OVERRIDES] != attrs.get(SET_OVERRIDES):
                 _replace_attributes(f, stored_sets)
-            for key in ("failed_step_iterations",):
+            # stats_*: those of the end before; gone while the run goes on, so that a file killed
+            # now claims none (finish writes the new ones, as it writes steps_done)
+            for key in ["failed_step_iterations", *(key for key in f.attrs if key.startswith(STATS_PREFIX))]:
                 if key in f.attrs:
                     del f.attrs[key]
             _mark_writer(f["state"])
@@ -479,7 +482,7 @@ class RunWriter:
             raise
         writer = cls._from_file(path, f, guard, saved.get("sequence", 1))
         writer.saved = {"steps_done": saved["steps_done"], "n_samples": saved["n_samples"],
-                        "t": float(saved["clock"][0])}
+                        "t": float(saved["clock"][0]), "counters": saved.get("counters")}
         saved["attrs"] = attrs
         return writer, saved
 
@@ -541,13 +544,15 @@ class RunWriter:
             dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
         self._file.flush()
         self.saved = {"steps_done": int(state["steps_done"]), "n_samples": n_samples,
-                      "t": float(np.asarray(state["clock"])[0])}
+                      "t": float(np.asarray(state["clock"])[0]), "counters": state.get("counters")}
 
-    def finish(self, status: str, *, steps_done: int, wall_time_s: float, kernel_time_s: float) -> None:
+    def finish(self, status: str, *, steps_done: int, wall_time_s: float, kernel_time_s: float,
+               stats: dict | None = None) -> None:
         """Close the SWMR session, then write the final root attributes in a normal session.
 
         Rows appended after the last saved state (a chunk cut short) are dropped first, so
-        the datasets end where the saved state says.
+        the datasets end where the saved state says. ``stats``: Result.stats of the saved state
+        (``saved["counters"]``), written as stats_<name> (layout.stats_attributes).
         """
         if self.abandoned:
             return
@@ -566,6 +571,8 @@ class RunWriter:
                 f.attrs["kernel_time_s"] = kernel_time_s
                 if self.failed_step_iterations is not None:
                     f.attrs["failed_step_iterations"] = self.failed_step_iterations
+                if stats:
+                    _replace_attributes(f, stats_attributes(stats))
         finally:
             if self._guard is not None:
                 self._guard.close()
@@ -766,7 +773,7 @@ class RunFile:
             self.coordinate_names = component_names(f)
         with self._reading("/invariants"):
             self.invariant_names = [str(n) for n in _plain(f["invariants"].attrs["order"])]
-            self.imposed = {name: bool(f["invariants"][name].attrs.get("imposed", False))
+            self.imposed = {name: read_flag(f["invariants"][name].attrs, "imposed")
                             for name in self.invariant_names}
         with self._reading("/steps"):
             self.multiplier_name = next(iter(multiplier_datasets(f["steps"])), None)
@@ -958,8 +965,8 @@ class RunFile:
                     np.array(self._root["events"][name]["y"][:count]))
 
     def stored_stats(self) -> dict:
-        """Result.stats of an adaptive run of a sweep file, stored as its attributes (a run
-        file has none: its stats follow from its saved counters, adaptive.counted_stats)."""
+        """Result.stats of an adaptive run as stored in its attributes stats_<name> (a sweep run;
+        a run file's root since they were written there, when the run ended: none while it runs)."""
         return {key[len(STATS_PREFIX):]: int(value) for key, value in self.attrs.items()
                 if key.startswith(STATS_PREFIX)}
 

@@ -24,9 +24,9 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
-from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, STATS_PREFIX, _replace_attributes,
+from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _replace_attributes,
                      _set_attributes, append_rows, RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes,
-                     version_attributes)
+                     flag_attribute, read_flag, stats_attributes, version_attributes)
 from .runfile import _now
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, no_room, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
@@ -51,7 +51,7 @@ def _listed_runs(f) -> list[tuple[str, bool, str, int]]:
     grid's order where the file records it (HDF5 lists groups by name: 'pi/240' before 'pi/30'),
     the others after them in HDF5's order."""
     runs = f[RUNS_GROUP] if RUNS_GROUP in f else {}
-    listed = [(str(_plain(runs[name].attrs.get("label", name))), bool(runs[name].attrs.get("stored", False)),
+    listed = [(str(_plain(runs[name].attrs.get("label", name))), read_flag(runs[name].attrs, "stored"),
                str(_plain(runs[name].attrs.get("status", "?"))), int(runs[name].attrs.get(RUN_INDEX, -1)))
               for name in runs]
     listed.sort(key=lambda run: (run[3] < 0, run[3]))   # stable: HDF5's order among runs without an index
@@ -251,7 +251,7 @@ class SweepWriter:
             for name in self._runs:
                 run = self._runs[name].attrs
                 label = str(_plain(run.get("label", "")))
-                if label and run.get("stored", False) and str(_plain(run.get("status"))) == "complete":
+                if label and read_flag(run, "stored") and str(_plain(run.get("status"))) == "complete":
                     complete[label] = (name, str(_plain(run.get("config", ""))))
             if edited and ensemble is not None:   # an edit accepted above: the file takes the new text
                 _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
@@ -389,7 +389,7 @@ class SweepWriter:
             **attributes, **run_attributes(result.problem, result.method, h=result.h, t0=t0, n_steps=n_steps,
                                            t_end=t_end, output_every=int(output.get("every", 1)),
                                            conserve=result.conserve),
-            **file_attributes, **{STATS_PREFIX + key: int(value) for key, value in result.stats.items()},
+            **file_attributes, **stats_attributes(result.stats),
             "steps_done": result.steps_done})
         names = ("H",) + tuple(result.problem.invariant_names)
         done = result.steps_done
@@ -402,7 +402,7 @@ class SweepWriter:
             group.attrs["failed_step_iterations"] = int(result.iterations[done])
         self._file.flush()
         # Written only once the run's data are on disk: --resume keeps the runs marked so.
-        group.attrs["stored"] = True
+        group.attrs["stored"] = flag_attribute(True)
         self._file.flush()
 
     def close(self) -> None:

@@ -22,13 +22,14 @@ The tree is the one h5netcdf gives: the same nodes, variables, dimensions, coord
 attributes (without netCDF's own: CLASS, NAME, REFERENCE_LIST, DIMENSION_LIST, ...),
 decoded by xarray (the decode_* options of ``xr.open_datatree``, which also takes ``chunks``
 and ``cache``). Numeric data are read when used (``.load()`` reads them into memory);
-string variables (the component names) are read at once. Encodings (chunk sizes,
-compression) are not filled in. Files of elimfast's format 1 and 2 have no dimension
+string variables (the component names) are read at once. Encodings: only the HDF5 chunks, as
+``preferred_chunks`` (what ``chunks={}`` uses); compression is not filled in. Files of elimfast's format 1 and 2 have no dimension
 scales: ``elimfast.load`` reads them.
 """
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import h5py
@@ -186,10 +187,13 @@ class _Walk:
             if name in self.drop:
                 continue
             path = f"{location.rstrip('/')}/{name}"
-            variables[name] = xr.Variable(self.dimensions(path, member, attrs, keys, scale, scales),
-                                          self.data(member, path),
+            dims = self.dimensions(path, member, attrs, keys, scale, scales)
+            # chunks={} takes a backend's preferred chunks (as h5netcdf's): the HDF5 chunks, which a
+            # dask chunk reads whole; without them each variable was one dask chunk
+            encoding = {"preferred_chunks": dict(zip(dims, member.chunks))} if member.chunks else {}
+            variables[name] = xr.Variable(dims, self.data(member, path),
                                           {key: _attribute(attrs[key]) for key in keys
-                                           if key not in HIDDEN_ATTRIBUTES})
+                                           if key not in HIDDEN_ATTRIBUTES}, encoding)
         group = self.f[location]
         attributes = {key: _attribute(value) for key, value in group.attrs.items() if key not in HIDDEN_ATTRIBUTES}
         return xr.Dataset(variables, attrs=attributes)
@@ -300,6 +304,16 @@ class ElimfastBackend(BackendEntrypoint):
         groups = self._groups(filename_or_obj, group, drop_variables, _decoders(locals()), recursive=True)
         try:
             tree = xr.DataTree.from_dict(groups)
+        except KeyError as err:
+            groups["/"].close()
+            clash = re.fullmatch(r"parent (.*) already contains a variable named (.*)", str(err.args[0]))
+            if clash is None:
+                raise
+            parent, name = clash.groups()
+            # written before events named as an inherited coordinate were refused (adaptive._check_event_name)
+            raise OutputError(f"{filename_or_obj}: its group {parent}/{name} has the name of a coordinate of "
+                              f"{parent}, which an xarray DataTree cannot hold (an event named {name!r}, which "
+                              "elimfast now refuses); read the run with elimfast.load") from None
         except ValueError as err:
             groups["/"].close()
             if "not aligned" not in str(err):

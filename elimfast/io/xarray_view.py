@@ -30,7 +30,7 @@ def result_dataset(result):
     data = {"y": (("t", "component"), np.asarray(result.y), {"long_name": LONG_NAMES["y"]})}
     at_t0, scales = result.initial_invariants(), result.invariant_scales()
     for name, values in result.invariants.items():
-        # imposed as 0/1, where a run file has a boolean: netCDF (Dataset.to_netcdf) has no boolean attributes
+        # imposed as 0/1, as a run file has it (layout.flag_attribute): netCDF has no boolean attributes
         data[name] = ("t", np.asarray(values), {"long_name": LONG_NAMES["H"] if name == "H" else f"invariant {name}",
                                                 "imposed": int(name in result.conserve),
                                                 **({"scale": float(scales[name])} if name in scales else {}),
