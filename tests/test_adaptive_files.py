@@ -441,3 +441,26 @@ def test_a_file_written_before_the_values_at_t0_were_stored_says_which_reference
             "(the file predates storing I(t0))") in inspected.stdout
     plotted = CliRunner().invoke(cli, ["plot", str(out), "-o", str(tmp_path / "i.png")])
     assert plotted.exit_code == 0, plotted.output
+
+
+def test_a_run_stopped_short_keeps_no_event_found_after_its_saved_state(tmp_path):
+    """A run stopped short (a problem function raising, a disk full) is cut back to its last saved
+    state by RunWriter.finish: samples and steps were, the events found after it were not (the
+    writer's record of the saved state had no event counts), so the file kept events of steps
+    it no longer held (found by reading the code, helper-37)."""
+    from elimfast.io.hdf5 import RunWriter
+    spec = load_run(write_config(tmp_path))
+    run = Integration.from_spec(spec)
+    path = tmp_path / "short.h5"
+    writer = RunWriter.create(path, run, config_text="{}", t_end=spec.t_end)
+    writer.append(run.advance(200))
+    writer.save_state(run.state(), wall_time_s=0.0, kernel_time_s=0.0)
+    saved_steps, saved_events = run.steps_done, int(run.event_counts.sum())
+    chunk = run.advance(400)        # appended, never saved: a chunk cut short
+    assert chunk.event_t.size > 0
+    writer.append(chunk)
+    writer.finish("stopped: test", steps_done=run.steps_done, wall_time_s=0.0, kernel_time_s=0.0)
+    with h5py.File(path, "r") as f:
+        assert f["steps/iterations"].shape[0] == saved_steps
+        assert sum(f["events"][name]["t"].shape[0] for name in f["events"]) == saved_events
+        assert all(f["events"][name]["y"].shape[0] == f["events"][name]["t"].shape[0] for name in f["events"])

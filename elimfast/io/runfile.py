@@ -259,7 +259,8 @@ class RunWriter:
         self.abandoned = False
         self.no_room = None          # why fit_steps found no room (safety.NoRoom)
         self.opened_as = path        # the name HDF5 knows the file by (a new file's temporary name)
-        self.saved = {"steps_done": 0, "n_samples": 0, "t": math.nan}
+        self.saved = {"steps_done": 0, "n_samples": 0, "t": math.nan,
+                      "event_counts": np.zeros(len(_event_names(file)), np.int64)}
 
     @classmethod
     def _from_file(cls, path: Path, f: h5py.File, guard, sequence: int) -> "RunWriter":
@@ -544,14 +545,15 @@ class RunWriter:
             dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
         self._file.flush()
         self.saved = {"steps_done": int(state["steps_done"]), "n_samples": n_samples,
-                      "t": float(np.asarray(state["clock"])[0]), "counters": state.get("counters")}
+                      "t": float(np.asarray(state["clock"])[0]), "counters": state.get("counters"),
+                      "event_counts": np.array(state.get("event_counts", ()), np.int64)}
 
     def finish(self, status: str, *, steps_done: int, wall_time_s: float, kernel_time_s: float,
                stats: dict | None = None) -> None:
         """Close the SWMR session, then write the final root attributes in a normal session.
 
-        Rows appended after the last saved state (a chunk cut short) are dropped first, so
-        the datasets end where the saved state says. ``stats``: Result.stats of the saved state
+        Rows and events appended after the last saved state (a chunk cut short) are dropped
+        first: the datasets end where the saved state says. ``stats``: Result.stats of the saved state
         (``saved["counters"]``), written as stats_<name> (layout.stats_attributes).
         """
         if self.abandoned:
@@ -559,12 +561,10 @@ class RunWriter:
         if self._guard is not None:
             self._guard.reserve(SPACE_BASE)
         saved_samples, saved_steps = self.saved["n_samples"], self.saved["steps_done"]
-        cut_short = self._t.rows > saved_samples or self._iterations.rows > saved_steps
         self._file.close()
         try:
             with h5py.File(self.path, "r+", libver=LIBVER) as f:
-                if cut_short:
-                    _cut_back(f, saved_samples, saved_steps, self.saved.get("event_counts", ()))
+                _cut_back(f, saved_samples, saved_steps, self.saved["event_counts"])
                 f.attrs["status"] = status
                 f.attrs["steps_done"] = min(steps_done, saved_steps)
                 f.attrs["wall_time_s"] = wall_time_s
