@@ -336,7 +336,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
     _INTERRUPTED.pop()   # the run has handled its own signals; what follows is the report
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
-    return _report_run(outcome, config, path, overrides, quiet)
+    return _report_run(outcome, config, path, quiet)
 
 
 def _refuse_resuming_a_sweep(path) -> None:
@@ -463,7 +463,7 @@ def _merge_sets(stored, given) -> list[str]:
     return [item for item in stored if not replaced(item)] + list(given)
 
 
-def _report_run(outcome, config, path, overrides, quiet) -> int:
+def _report_run(outcome, config, path, quiet) -> int:
     from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX
     from elimfast.streaming import interrupted_line
 
