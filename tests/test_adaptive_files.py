@@ -464,3 +464,8 @@ def test_a_run_stopped_short_keeps_no_event_found_after_its_saved_state(tmp_path
         assert f["steps/iterations"].shape[0] == saved_steps
         assert sum(f["events"][name]["t"].shape[0] for name in f["events"]) == saved_events
         assert all(f["events"][name]["y"].shape[0] == f["events"][name]["t"].shape[0] for name in f["events"])
+    # a writer reopened by --resume (or just created) knows its saved events too, before any chunk
+    writer, saved = RunWriter.resume(path)
+    writer.finish("stopped: test", steps_done=saved["steps_done"], wall_time_s=0.0, kernel_time_s=0.0)
+    with h5py.File(path, "r") as f:
+        assert sum(f["events"][name]["t"].shape[0] for name in f["events"]) == saved_events

@@ -124,6 +124,14 @@ def _sweep_run_group(path: Path, f, label: str):
     raise OutputError(f"{path}: has no run {label!r}; its runs: {shown or 'none'}")
 
 
+def _saved_record(state: dict, n_samples: int) -> dict:
+    """A writer's record of its last saved state (create, resume, save_state): where finish
+    cuts a run stopped short back to, its events too."""
+    return {"steps_done": int(state["steps_done"]), "n_samples": int(n_samples),
+            "t": float(np.asarray(state["clock"])[0]), "counters": state.get("counters"),
+            "event_counts": np.array(state.get("event_counts", ()), np.int64)}
+
+
 def _cut_back(f, n_samples: int, steps_done: int, event_counts=()) -> None:
     """Drop the rows written after the saved state: samples, steps, and events found."""
     for d in _sample_datasets(f):
@@ -345,8 +353,7 @@ class RunWriter:
             writer = cls(path, f, datasets, guard=guard, sequence=1)
             writer.opened_as = temporary
             writer.append(integration.initial_chunk())
-            writer.saved = {"steps_done": run.steps_done, "n_samples": 1, "t": run.t,
-                            "counters": initial.get("counters")}
+            writer.saved = _saved_record(initial, 1)
             f.swmr_mode = True   # flushes: from here on the file on disk is always consistent
             _publish(temporary, path, overwrite)
             return writer
@@ -482,8 +489,7 @@ class RunWriter:
             _close_quietly(f, guard, None)
             raise
         writer = cls._from_file(path, f, guard, saved.get("sequence", 1))
-        writer.saved = {"steps_done": saved["steps_done"], "n_samples": saved["n_samples"],
-                        "t": float(saved["clock"][0]), "counters": saved.get("counters")}
+        writer.saved = _saved_record(saved, saved["n_samples"])
         saved["attrs"] = attrs
         return writer, saved
 
@@ -544,9 +550,7 @@ class RunWriter:
                 continue            # coef_extra: one written before the predictor kept it
             dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, np.ascontiguousarray(value, dtype=dataset.dtype))
         self._file.flush()
-        self.saved = {"steps_done": int(state["steps_done"]), "n_samples": n_samples,
-                      "t": float(np.asarray(state["clock"])[0]), "counters": state.get("counters"),
-                      "event_counts": np.array(state.get("event_counts", ()), np.int64)}
+        self.saved = _saved_record(state, n_samples)
 
     def finish(self, status: str, *, steps_done: int, wall_time_s: float, kernel_time_s: float,
                stats: dict | None = None) -> None:
