@@ -372,7 +372,7 @@ def _stored_spec(path, overrides, config):
     from elimfast.io.hdf5 import RunFile
     from elimfast.io.layout import stored_set_overrides
     from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences,
-                                    resume_refusal)
+                                    keys_overlap, resume_refusal)
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
@@ -381,14 +381,12 @@ def _stored_spec(path, overrides, config):
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
     given = parse_yaml(_resolved_yaml(_load(config, set_overrides)), str(config))
-    set_keys = {_set_key(item) for item in overrides}
-    if set_keys & {"integration.t_end", "integration.n_steps"}:   # either one decides the other
-        set_keys |= {"integration.t_end", "integration.n_steps"}
+    set_keys = _given_keys(overrides)
     changes, from_config, origins = [], [], {}
     for key, value in config_differences(data, given):
         if key == "output.path":
             continue
-        by_set = any(key == k or key.startswith(k + ".") or k.startswith(key + ".") for k in set_keys)
+        by_set = any(keys_overlap(key, k) for k in set_keys)
         if not by_set:
             origins[key] = str(config)
         if value is ABSENT:   # a key CONFIG leaves out, as --set KEY=null leaves it out
@@ -453,14 +451,17 @@ def _resume_command(config, path) -> str:
 def _merge_sets(stored, given) -> list[str]:
     """The --set values a run goes on with: the stored ones, less those a given one replaces (the
     same key, a key under it or above it; t_end and n_steps decide each other), then the given."""
-    keys = {_set_key(item) for item in given}
+    from elimfast.streaming import keys_overlap
+    keys = _given_keys(given)
+    return [item for item in stored if not any(keys_overlap(_set_key(item), k) for k in keys)] + list(given)
+
+
+def _given_keys(overrides) -> set[str]:
+    """The keys of --set values; t_end and n_steps decide each other, so either one gives both."""
+    keys = {_set_key(item) for item in overrides}
     if keys & {"integration.t_end", "integration.n_steps"}:
         keys |= {"integration.t_end", "integration.n_steps"}
-
-    def replaced(item) -> bool:
-        key = _set_key(item)
-        return any(key == k or key.startswith(k + ".") or k.startswith(key + ".") for k in keys)
-    return [item for item in stored if not replaced(item)] + list(given)
+    return keys
 
 
 def _report_run(outcome, config, path, quiet) -> int:

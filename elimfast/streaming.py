@@ -584,12 +584,16 @@ def resume_refusal(path, key: str, prefix: str = "", configs=(), origins=None) -
     a terminal event from one that is not (``change_effect``). ``origins``: {dotted key: the
     file that changes it} for changes not given with --set (the CONFIG of the command line),
     so that a change the user did not type names where it comes from."""
-    origin = next((where for changed, where in (origins or {}).items()
-                   if key == changed or key.startswith(changed + ".") or changed.startswith(key + ".")), None)
+    origin = next((where for changed, where in (origins or {}).items() if keys_overlap(key, changed)), None)
     label = f"{key} (in {origin})" if origin else key
     return OutputError(f"{path}: {prefix}only {'/'.join(s + '.*' for s in SOLVER_SECTIONS)} may change on --resume; "
                        f"{change_effect(key, configs, label)}: start a new run (-o NEW.h5), or replace this one with "
                        "--overwrite")
+
+
+def keys_overlap(key: str, other: str) -> bool:
+    """Whether two dotted config keys name the same setting, or one holds the other."""
+    return key == other or key.startswith(other + ".") or other.startswith(key + ".")
 
 
 def change_effect(key: str, configs=(), label: str | None = None) -> str:
