@@ -645,25 +645,24 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
 
     def accept(stored: dict[str, str]) -> dict[str, int]:
         runs = {run.label: run for run in spec.runs}
+        edited = f"{path}: the sweep (its file or a config it names) was edited"
         for label, config_text in stored.items():
             if label not in runs:
-                raise OutputError(f"{path}: the sweep (its file or a config it names) was edited, and the run {label!r}, stored complete, is no "
-                                  "longer in it: --resume keeps every stored run; pass --overwrite to start again, "
-                                  "or write the edited sweep to another file")
+                raise OutputError(f"{edited}, and the run {label!r}, stored complete, is no longer in it: --resume "
+                                  "keeps every stored run; pass --overwrite to start again, or write the edited sweep "
+                                  "to another file")
             try:
                 current = _config_text(_load_point(spec.source, label, runs[label].config).resolved)
             except ElimfastError as error:
-                raise OutputError(f"{path}: the sweep (its file or a config it names) was edited, and the stored run {label!r} no longer loads: "
-                                  f"{error}") from None
+                raise OutputError(f"{edited}, and the stored run {label!r} no longer loads: {error}") from None
             key = (config_difference(config_text, current, ignore=SOLVER_SECTIONS, ignore_keys=LOAD_ONLY_KEYS)
                    or step_solver_change(config_text, current))   # solver.lim_metric changes the steps too
             if key is not None:
                 why = ("which changes the steps themselves, and --resume keeps the stored runs' steps"
                        if key.startswith("solver.") else
                        "and --resume may change only solver.* of stored runs (their steps are kept)")
-                raise OutputError(f"{path}: the sweep (its file or a config it names) was edited: {key} of the run {label!r}, stored complete, "
-                                  f"changed, {why}; pass --overwrite to start again, or write the edited sweep to "
-                                  "another file")
+                raise OutputError(f"{edited}: {key} of the run {label!r}, stored complete, changed, {why}; pass "
+                                  "--overwrite to start again, or write the edited sweep to another file")
         return {run.label: index for index, run in enumerate(spec.runs)}
 
     return accept
