@@ -469,3 +469,36 @@ def test_a_run_stopped_short_keeps_no_event_found_after_its_saved_state(tmp_path
     writer.finish("stopped: test", steps_done=saved["steps_done"], wall_time_s=0.0, kernel_time_s=0.0)
     with h5py.File(path, "r") as f:
         assert sum(f["events"][name]["t"].shape[0] for name in f["events"]) == saved_events
+
+
+def test_repair_cuts_a_killed_runs_events_back_to_its_saved_state(tmp_path):
+    """A writer killed between flushing a chunk and saving its state leaves the chunk's rows on disk;
+    repair cut samples and steps back to the saved state but kept the chunk's events (as finish did)."""
+    config = write_config(tmp_path)
+    path = tmp_path / "killed.h5"
+    script = f"""
+import os
+import numpy as np
+from elimfast.config import load_run
+from elimfast.integrate import Integration
+from elimfast.io.hdf5 import RunWriter
+spec = load_run({str(config)!r})
+run = Integration.from_spec(spec)
+writer = RunWriter.create({str(path)!r}, run, config_text="{{}}", t_end=spec.t_end)
+writer.append(run.advance(200))
+writer.save_state(run.state(), wall_time_s=0.0, kernel_time_s=0.0)
+print(int(run.steps_done), int(run.event_counts.sum()))
+chunk = run.advance(400)
+assert chunk.event_t.size > 0
+writer.append(chunk)
+writer._file.flush()        # the chunk is on disk, its state is not: then the writer dies
+os._exit(0)
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    saved_steps, saved_events = map(int, done.stdout.split())
+    from elimfast.io.repair import repair
+    repair(path)
+    with h5py.File(path, "r") as f:
+        assert f.attrs["steps_done"] == f["steps/iterations"].shape[0] == saved_steps
+        assert sum(f["events"][name]["t"].shape[0] for name in f["events"]) == saved_events

@@ -51,7 +51,7 @@ def repair(path) -> str:
             try:
                 with h5py.File(path, "r+", libver=LIBVER) as f:
                     if saved is not None:
-                        _cut_back(f, saved["n_samples"], saved["steps_done"])
+                        _cut_back(f, saved["n_samples"], saved["steps_done"], saved.get("event_counts", ()))
                         f.attrs["status"] = STATUS_KILLED
                         f.attrs["steps_done"] = saved["steps_done"]
                         f.attrs["wall_time_s"] = float(saved["wall_time_s"])
