@@ -14,7 +14,10 @@ Runs (the issue's acceptance):
 - a user's Lennard-Jones trimer (tests/data/lj_trimer.py, one member of its ensemble),
   EHBVM(8,4) imposing its angular momentum, h = 0.01, 4x10^6 steps: it stopped at
   t = 393.92 until a substep could be taken without imposing (docs/solver.md#a-substep-without-imposing);
-  the imposed L <= 1e-11 relative (the state is chaotic; H is k's: not checked).
+  the imposed L <= 3e-11 relative (the state is chaotic; H is k's: not checked). L's error is a random
+  walk of rounding: on an Intel Xeon, 1.3e-14 rms per 1000 steps (L = 0.169), so 4e6 steps reach
+  about 5e-12 relative at one sigma and its largest excursion about twice that (1.0e-11 measured;
+  6.4e-12 in an earlier session's run); 3e-11 is five sigma.
 
 Errors are max over samples of |I(t) - I(0)|, relative to |I(0)| where the spec asks so.
 """
@@ -64,7 +67,7 @@ def lennard_jones_cases():
     from elimfast.problems import problem_from_file
     problem = problem_from_file(ROOT / "tests" / "data" / "lj_trimer.py").with_initial(np.array(LJ_TRIMER_Y0))
     yield ("Lennard-Jones trimer, EHBVM(8,4) angular_momentum, h = 0.01, 4e6 steps", problem, ehbvm(8, 4), 0.01,
-           {"n_steps": 4 * 10 ** 6}, (L1,), (L1,), 1e-11, True, False)
+           {"n_steps": 4 * 10 ** 6}, (L1,), (L1,), 3e-11, True, False)
 
 
 def run_case(label, problem, method, h, span, conserve, checked, bound, relative, check_H=True):
