@@ -139,6 +139,14 @@ def run_notes(run_file) -> list[str]:
     warning = energy_note(run_file)
     if warning:
         notes.append(warning)
+    if run_file.steps_done > 0:
+        undefined = [name for name, value in run_file.invariant_drift().items() if math.isnan(value)]
+        if undefined:
+            # a user trial: H NaN in a third of the samples (log(x) with x < 0 on the orbit, the check off)
+            # completed without a word
+            notes.append(f"{', '.join(undefined)} {'is' if len(undefined) == 1 else 'are'} NaN or infinite in some "
+                         "samples: the problem's function gave it there, where the state is finite, so it is not "
+                         "defined on the whole orbit (elimfast check CONFIG tests the problem's functions)")
     h = (config_of(run_file).get("integration") or {}).get("h")
     if run_file.attrs.get("step_control") == "time_scale" and h is not None:
         notes.append(unused_h_note(h, run_file.attrs.get("h_first")))
@@ -285,9 +293,15 @@ def summary(run_file, integrity: dict | None = None) -> str:
     scales = run_file.invariant_scales()
     if not any(math.isfinite(value) for value in drift.values()):
         # integrate.invariant_drift: no step done, no figure (0 would read as a perfect result)
-        why = "the run failed at its first step" if str(run_file.status).startswith("failed") else "no step done yet"
+        if run_file.steps_done > 0:
+            # a user trial: an H that was NaN in every sample read "no step done yet" after 100 steps
+            rows.append(f"invariants   no figures: after {run_file.steps_done:,} steps, the invariants are NaN or "
+                        "infinite in some or all of the samples (the problem's functions gave them there; the state "
+                        "itself stayed finite)")
+        else:
+            why = "the run failed at its first step" if str(run_file.status).startswith("failed") else "no step done yet"
+            rows.append(f"invariants   no figures: {why}, so no state after t0 to compare with I(t0)")
         drift = {}
-        rows.append(f"invariants   no figures: {why}, so no state after t0 to compare with I(t0)")
     else:
         span = " before the failure" if str(run_file.status).startswith("failed") else ""
         span += _samples_end(run_file)

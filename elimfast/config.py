@@ -62,7 +62,8 @@ import yaml
 from .cache import CacheError, content_hash
 from . import methods
 from .errors import ElimfastError, ParameterError
-from .integrate import SolverSettings, resolve_conserve, resolve_steps, resolve_store_every, suggest
+from .integrate import (SolverSettings, resolve_conserve, resolve_initial_state, resolve_steps, resolve_store_every,
+                        suggest)
 from .integrate import compact_number as _count
 from .integrate import compact_number
 from .methods import Method
@@ -206,7 +207,7 @@ PARAMETER_KEYS = {
     "rtol": ("integration", "rtol"), "atol": ("integration", "atol"), "step_control": ("integration", "step_control"),
     "epsilon": ("integration", "epsilon"), "verify": ("integration", "verify"), "h_max": ("integration", "h_max"),
     "method": ("method",), "t_eval": ("output", "times"), "events": ("events",),
-    "time_scale": ("problem", "time_scale"),
+    "time_scale": ("problem", "time_scale"), "y0": ("problem", "initial"),
 }
 
 
@@ -624,6 +625,7 @@ class _Builder:
 
         problem, resolved_problem = self.problem(config.problem)
         try:
+            resolve_initial_state(problem)
             conserve = resolve_conserve(problem, method, config.conserve, problem.y0)[0]
             if step_control is not None:
                 step_control.check_problem(problem)

@@ -659,13 +659,28 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
 
 
 def resolve_initial_state(problem: Problem, y0=None) -> np.ndarray:
-    """The run's initial state: y0, or the problem's; 2m finite real numbers (a fresh copy),
-    else a ParameterError naming y0."""
+    """The run's initial state: y0, or the problem's; 2m finite real numbers (a fresh copy)
+    where H and the problem's invariants are finite, else a ParameterError naming y0.
+
+    H itself is checked, not only its gradient: an expression H = p^2/2 + log(x) at x = -1
+    has the finite gradient 1/x, so the steps are taken (for log|x|), while H, the one number
+    the method keeps, was NaN in every sample of a run that said "complete" (a user trial;
+    a python: file's H was refused at load already)."""
     n = 2 * problem.degrees_of_freedom
     y = real_state(problem.y0 if y0 is None else y0)
     if y.shape != (n,) or not np.all(np.isfinite(y)):
         raise ParameterError("y0", f"must be {n} finite numbers ({', '.join(problem.coordinate_names)}), "
                                    f"got {y!r}")
+    try:
+        with np.errstate(all="ignore"):
+            values = problem.invariant_values(y)
+    except ArithmeticError:   # 1/0 under Numba's default error model (a python: file's own functions)
+        values = {"H": math.nan}
+    for name, value in values.items():
+        if not math.isfinite(value):
+            what = "H" if name == "H" else f"the invariant {name!r}"
+            raise ParameterError("y0", f"gives {what} = {value} at the initial state {y.tolist()}: it is not "
+                                       "defined there; choose an initial state away from its singularities")
     return y
 
 

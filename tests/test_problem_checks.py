@@ -296,8 +296,9 @@ def test_elimfast_check_with_check_false_names_the_config_and_gives_no_advice_it
         "initial: {q1: 1 - ecc,", "check: false\n  initial: {q1: 0,"))
     result = CliRunner().invoke(cli, ["check", str(singular)])
     assert result.exit_code == 2 and "Traceback" not in result.output
-    assert result.stderr.startswith(f"error: {singular}: problem.initial: problem 'kepler_expressions': grad_H is not "
-                                    "finite at the initial state"), result.stderr
+    # the run's own check of the initial state comes first: H itself is not defined there
+    assert result.stderr.startswith(f"error: {singular}:13: problem.initial: gives H = -inf at the initial state "
+                                    "[0.0, 0.0, 0.0, 2.0]: it is not defined there"), result.stderr
 
 
 def test_elimfast_check_prints_the_derivative_check_and_the_hessians_source(cache_root):
@@ -492,3 +493,66 @@ def test_limits_of_the_expression_problem_are_one_line_errors(cache_root, monkey
                                               r"\d+ terms, \d+ with the others") as info:
         problem_from_expressions({"q": ["q"], "p": ["p"]}, "p**2/2 + sin(q)*cos(q)*exp(q)", initial={"q": 0, "p": 1})
     assert info.value.key == "hamiltonian"
+
+
+# --- what the checks must not refuse, and what every run refuses --------------------------------
+
+def test_a_hessian_entry_below_what_differences_resolve_passes_where_the_gradient_cancels(cache_root):
+    """A user trial: a correct hess_H of a Lennard-Jones hexagon was refused with 'relative error inf'
+    for an entry of 7e-15 (an atom 1e-16 off the axis) that central differences of grad_H give as 0:
+    that component of grad_H is 1e-15 from forces of ~100 that cancel, so its rounding is eps times
+    those, not eps times 1e-15. tests/data/cancelling_forces.py builds the same case: D's y-forces from
+    B and C cancel and d2H/dyD dxA = -8e-16. A wrong entry of that Hessian still fails."""
+    path = ROOT / "tests" / "data" / "cancelling_forces.py"
+    problem = problem_from_file(path)
+    assert problem.hessian(problem.y0)[3, 0] == pytest.approx(-8e-16, rel=1e-12)   # d2H/dq4dq1
+    assert all(report.ok for report in require_derivatives(problem))
+    wrong = path.read_text().replace("out[i, i] = 1.0", "out[i, i] = 1.5")
+    with pytest.raises(DerivativeCheckError, match=r"hess_H .* d2H/dp\d+dp\d+ = 1\.5"):
+        require_derivatives(problem_from_file(write_problem(Path(cache_root.parent), wrong)))
+
+
+def test_an_initial_state_where_H_is_not_defined_is_refused_by_check_run_and_integrate(cache_root, tmp_path):
+    """A user trial: H = (px^2 + py^2)/2 + log(x) at x = -1 has the finite gradient 1/x, so
+    'check' passed and 'run' said 'complete' (exit 0) with H NaN in every sample, which inspect
+    reported as 'no step done yet'; a python: file's H was refused at load already."""
+    import elimfast
+    from elimfast.errors import ParameterError
+    from elimfast.methods import hbvm
+
+    config = tmp_path / "log.yaml"
+    config.write_text("problem:\n  coordinates: {q: [x, y], p: [px, py]}\n"
+                      "  hamiltonian: \"(px**2 + py**2)/2 + log(x)\"\n"
+                      "  initial: {x: -1, y: 0.1, px: 0.49, py: 0}\n"
+                      "method: {name: hbvm, k: 6, s: 3}\nintegration: {h: 0.1, t_end: 1}\n")
+    expected = (f"error: {config}:4: problem.initial: gives H = nan at the initial state [-1.0, 0.1, 0.49, 0.0]: it "
+                "is not defined there; choose an initial state away from its singularities\n")
+    for command in (["check", str(config)], ["run", str(config), "-o", str(tmp_path / "log.h5")]):
+        result = CliRunner().invoke(cli, command)
+        assert (result.exit_code, result.stderr) == (2, expected)
+    assert not (tmp_path / "log.h5").exists()
+    problem = problem_from_expressions(coordinates={"q": ["x", "y"], "p": ["px", "py"]},
+                                       hamiltonian="(px**2 + py**2)/2 + log(x)",
+                                       initial={"x": 1, "y": 0.1, "px": 0.49, "py": 0})
+    with pytest.raises(ParameterError, match=r"^y0 gives H = nan at the initial state \[-1\.0"):
+        elimfast.integrate(problem, hbvm(6, 3), 0.1, n_steps=2, y0=[-1.0, 0.1, 0.49, 0.0])
+
+
+def test_a_run_whose_H_is_not_defined_on_part_of_its_orbit_says_so(cache_root, tmp_path):
+    """The same trial with problem.check: false and an H that is NaN only for q < -0.5 (its
+    grad_H finite everywhere): the run completed without a word and inspect said 'no step done yet'
+    after 100 steps."""
+    write_problem(tmp_path, "import math\nY0 = [1.0, 0.0]\n\ndef H(y, params):\n    if y[0] < -0.5:\n"
+                            "        return math.nan\n    return 0.5 * y[1] ** 2 + 0.5 * y[0] ** 2\n\n"
+                            "def grad_H(y, params, out):\n    out[0] = y[0]\n    out[1] = y[1]\n")
+    config = tmp_path / "run.yaml"
+    config.write_text("problem: {python: problem.py, check: false}\nmethod: {name: hbvm, k: 6, s: 3}\n"
+                      "integration: {h: 0.1, t_end: 10}\n")
+    out = tmp_path / "run.h5"
+    result = CliRunner().invoke(cli, ["run", str(config), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert ("note: H is NaN or infinite in some samples: the problem's function gave it there, where the state is "
+            "finite") in result.stderr
+    report = CliRunner().invoke(cli, ["inspect", str(out)]).stdout
+    assert "no step done" not in report
+    assert "invariants   no figures: after 100 steps, the invariants are NaN or infinite in some or all" in report
