@@ -136,6 +136,10 @@ def run_notes(run_file) -> list[str]:
                      "solver could not converge them whole; every invariant is kept there too")
     if substeps.get("unimposed"):
         notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done))
+    spikes = run_file.alpha_spikes()
+    if spikes:
+        from elimfast.integrate import alpha_spike_note
+        notes.append(alpha_spike_note(spikes, run_file.steps_done))
     warning = energy_note(run_file)
     if warning:
         notes.append(warning)
@@ -370,6 +374,10 @@ def summary(run_file, integrity: dict | None = None) -> str:
         symbol = run_file.multiplier_name
         text = ", ".join(f"{v:.3e} ({label.split('[', 1)[1].rstrip(']')})" for v, label in zip(maxima, labels))
         row(f"max |{symbol}|", text if done else "no steps yet")
+        spikes = run_file.alpha_spikes()
+        if spikes:
+            from elimfast.integrate import alpha_spike_note
+            row("", alpha_spike_note(spikes, run_file.steps_done))
     if integrity is not None:
         checked = (f"{integrity['chunks']} data chunks read back, fletcher32 checksums verified"
                    if integrity["checksummed"] else

@@ -590,6 +590,48 @@ def test_result_repr_is_a_short_summary():
     assert text.startswith("<Result HBVM(6,3) on kepler") and len(text) < 300 and "\n" not in text
 
 
+def test_steps_next_to_a_zero_of_gamma_are_counted_where_elim_loses_its_accuracy(tmp_path):
+    """docs/solver.md#when-gamma-passes-through-zero. A user trial: a 7-atom Lennard-Jones cluster
+    imposing L_z, h = 0.005: one step took alpha = 0.194 between -3.3e-4 and 3.9e-4 (a pole of
+    alpha where the 1 x 1 Gamma passes through zero), and the error at t = 2 jumped 15x at that step
+    to 10x HBVM's, without a word. Such steps are counted (an alpha 30x above both neighbours', over
+    h^2), in Result, the end-of-run line and inspect; Kepler's runs have none."""
+    from click.testing import CliRunner
+
+    from elimfast.integrate import count_alpha_spikes
+    from elimfast.problems import problem_from_file
+    from elimfast_cli.main import cli
+
+    cluster = problem_from_file(ROOT / "tests" / "data" / "lj7_cluster.py")
+    reference_run = elimfast.integrate(cluster, gauss(6), 0.0005, t_end=2.0, store_every=10 ** 6)
+    elim = elimfast.integrate(cluster, ehbvm(12, 3), 0.005, t_end=2.0, conserve=["Lz"], store_every=1)
+    plain = elimfast.integrate(cluster, hbvm(12, 3), 0.005, t_end=2.0, store_every=10 ** 6)
+    assert elim.alpha_spikes == 2 and plain.alpha_spikes == 0
+    spike = int(np.argmax(np.abs(elim.alpha[:, 0])))
+    assert abs(elim.alpha[spike, 0]) > 100 * max(abs(elim.alpha[spike - 1, 0]), abs(elim.alpha[spike + 1, 0]))
+    # the accuracy it costs: 10x HBVM's error at t = 2 (1.1e-11 against 1.1e-12)
+    assert (np.max(np.abs(elim.y_final - reference_run.y_final))
+            > 5 * np.max(np.abs(plain.y_final - reference_run.y_final)))
+    # counted the same over the blocks a run file is read in, whatever their boundaries
+    for size in (1, 2, 3, 7, 398):
+        blocks = [(elim.alpha[i:i + size], 0.005) for i in range(0, elim.steps_done, size)]
+        assert count_alpha_spikes(blocks) == 2, size
+    adaptive = elimfast.integrate(cluster, ehbvm(12, 3), t_end=5.0, rtol=1e-10, conserve=["Lz"], store_every=10 ** 6)
+    blocks = [(adaptive.alpha[i:i + 5], adaptive.step_h[i:i + 5]) for i in range(0, adaptive.steps_done, 5)]
+    assert count_alpha_spikes(blocks) == adaptive.alpha_spikes
+    assert elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, t_end=1000.0, conserve=[L1, AY],
+                              store_every=10 ** 6).alpha_spikes == 0
+
+    config = tmp_path / "cluster.yaml"
+    config.write_text(f"problem: {{python: {ROOT / 'tests' / 'data' / 'lj7_cluster.py'}}}\nconserve: [Lz]\n"
+                      "method: {name: ehbvm, k: 12, s: 3}\nintegration: {h: 0.005, t_end: 2}\n")
+    out = tmp_path / "cluster.h5"
+    result = CliRunner().invoke(cli, ["run", str(config), "-o", str(out)])
+    expected = "2 of 400 steps have an alpha more than 30x that of both neighbouring steps: Gamma passes through zero"
+    assert result.exit_code == 0 and f"note: {expected}" in result.stderr, result.output
+    assert expected in CliRunner().invoke(cli, ["inspect", str(out)]).stdout
+
+
 # --- long runs that used to abort (docs/solver.md; the issue's acceptance) -----------------------------
 @pytest.mark.slow
 def test_kepler_e06_million_steps_completes_at_round_off():

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import itertools
 import math
 import os
 import socket
@@ -1094,6 +1095,15 @@ class RunFile:
             for block in self._blocks(f"steps/{self.multiplier_name}", self.steps_done):
                 unimposed += int(np.count_nonzero(np.isnan(block).any(axis=1)))
         return {"split": split, "max": largest, "unimposed": unimposed, "total": total}
+
+    def alpha_spikes(self) -> int:
+        """integrate.count_alpha_spikes over /steps/alpha, read in blocks (0 without alpha)."""
+        from ..integrate import count_alpha_spikes
+        if self.multiplier_name != "alpha":
+            return 0
+        sizes = (self._blocks("steps/h", self.steps_done) if "h" in self._root["steps"]
+                 else itertools.repeat(float(self.attrs["h"])))
+        return count_alpha_spikes(zip(self._blocks("steps/alpha", self.steps_done), sizes))
 
     def max_abs_multipliers(self) -> list[float]:
         if self.multiplier_name is None:
