@@ -118,6 +118,23 @@ def test_a_time_scale_run_records_its_first_step_and_says_h_is_not_used(tmp_path
         assert f.attrs["h_first"] == f.attrs["h"] == first
 
 
+def test_inspect_does_not_take_the_step_cut_to_land_on_t_end_for_the_smallest(tmp_path):
+    """A user trial: on a near-circular orbit every time-scale step was 0.085-0.092, and inspect's
+    'h min' read 5.2e-3, the last step, cut to land on t_end."""
+    config = {"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.05}},
+              "method": {"name": "hbvm", "s": 4},
+              "integration": {"step_control": "time_scale", "epsilon": 0.05, "t_end": 10.005}}
+    out = tmp_path / "circular.h5"
+    assert CliRunner().invoke(cli, ["run", str(write_config(tmp_path, config)), "-o", str(out), "-q"]).exit_code == 0
+    with h5py.File(out, "r") as f:
+        sizes = f["steps/h"][:]
+    assert sizes[-1] < 0.5 * sizes[:-1].min()
+    line = next(line for line in CliRunner().invoke(cli, ["inspect", str(out)]).stdout.splitlines()
+                if line.startswith("h "))
+    assert line == (f"h            min {sizes[:-1].min():.3e}, median {np.median(sizes[:-1]):.3e}, max "
+                    f"{sizes.max():.3e}; the last, cut to land on t_end, {sizes[-1]:.3e}")
+
+
 def test_adaptive_run_file_layout_and_inspect(tmp_path, reference):
     config = write_config(tmp_path)
     out = tmp_path / "run.h5"
