@@ -362,6 +362,7 @@ class Result:
                            {name: errors[name] for name in names},
                            adaptive=self.step_control is not None, s=self.method.s,
                            degree=self.problem.hamiltonian_degree, steps=steps,
+                           hand_written=self.problem.source_file is not None,
                            roundoff={name: roundoff_allowance(steps, initial[name], scales.get(name, 0.0))
                                      for name in names},
                            tol=self.solver.tol if self.solver is not None else None)
@@ -495,7 +496,7 @@ def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
 
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
                 s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0,
-                tol: float | None = None) -> str | None:
+                tol: float | None = None, hand_written: bool = False) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -518,7 +519,14 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     ``tol``: the solver's; one loosened above LOOSE_TOL accepts iterates that far from the
     solution, and the invariants are kept only to about that: the note names it first (a user
     trial: solver.tol = 1e-8 lost H to 1.3e-8 with k = 12 and with k = 24, and the note said to
-    raise k)."""
+    raise k).
+
+    The quadrature advice adds what else a loss that a larger k leaves unchanged is: round-off
+    where H's terms grow far beyond their size at t0, which the rounding allowance cannot see (a
+    user trial: the Pythagorean three-body problem lost 1e-8 at a close encounter, r = 4e-4, with
+    k 8 to 16 and epsilon 0.02 to 0.005 alike), and, for ``hand_written`` gradients (a python:
+    file's), a grad_H that is not H's gradient (another: a 1% error in grad_H with the check off
+    lost 7.7e-6 whatever k and h)."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
@@ -559,8 +567,12 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     where = (f"at h = {h:g}; raise {nodes} or reduce h" if not adaptive
              else f"at the largest steps the step control allows; raise {nodes}, tighten rtol (or epsilon) or "
                   "set h_max")
+    otherwise = ("; if a larger k leaves it unchanged, it is not quadrature but round-off where H's terms grow far "
+                 "beyond their size at t0 (a close encounter)"
+                 + (", or a grad_H that is not the gradient of H (elimfast check compares them)" if hand_written
+                    else ""))
     return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off: {method_name} keeps "
-            f"{', '.join(kept)} {where}")
+            f"{', '.join(kept)} {where}{otherwise}")
 
 
 def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str],

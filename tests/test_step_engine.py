@@ -486,6 +486,34 @@ def test_energy_warning_of_an_adaptive_run_speaks_of_rtol_not_of_its_first_step(
     assert tight.energy_warning() is None
 
 
+def test_energy_note_says_what_a_loss_that_a_larger_k_leaves_unchanged_is(tmp_path):
+    """Two user trials: the note said 'raise k or reduce h' where neither helps: the Pythagorean
+    three-body problem lost 1e-8 of H to round-off at a close encounter (its terms 1e4 times their
+    size at t0), and a python: file whose grad_H was 1% off (problem.check: false) lost 7.7e-6
+    whatever k and h. The quadrature advice now says what else such a loss is; it names grad_H for a
+    python: file's hand-written gradient."""
+    from click.testing import CliRunner
+
+    from elimfast.integrate import energy_note
+    from elimfast_cli.main import cli
+
+    closing = ("; if a larger k leaves it unchanged, it is not quadrature but round-off where H's terms grow far "
+               "beyond their size at t0 (a close encounter)")
+    note = energy_note("HBVM(8,4)", 8, 8, 0.1, {"H": 1e-9}, False, s=4)
+    assert note.endswith("raise k or reduce h" + closing), note
+    assert energy_note("HBVM(8,4)", 8, 8, 0.1, {"H": 1e-9}, False, s=4, hand_written=True).endswith(
+        closing + ", or a grad_H that is not the gradient of H (elimfast check compares them)")
+    (tmp_path / "oscillator.py").write_text("Y0 = [1.0, 0.0]\n\ndef H(y, params):\n    return 0.5 * (y[0] ** 2 + "
+                                            "y[1] ** 2)\n\ndef grad_H(y, params, out):\n    out[0] = 1.01 * y[0]\n"
+                                            "    out[1] = y[1]\n")
+    config = tmp_path / "run.yaml"
+    config.write_text("problem: {python: oscillator.py, check: false}\nmethod: {name: hbvm, k: 6, s: 3}\n"
+                      "integration: {h: 0.1, t_end: 10}\n")
+    result = CliRunner().invoke(cli, ["run", str(config), "-o", str(tmp_path / "run.h5")])
+    assert result.exit_code == 0 and "or a grad_H that is not the gradient of H (elimfast check" in result.stderr, (
+        result.output)
+
+
 def test_energy_note_blames_round_off_where_the_quadrature_of_a_polynomial_H_is_exact():
     """configs/fpu_beta.yaml run 100x longer lost H to 3e-11 (its ring drifts: the positions
     grow while H depends on their differences) and the note said to raise k, which cannot help:
