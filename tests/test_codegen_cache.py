@@ -302,6 +302,17 @@ def test_python_file_may_declare_the_degree_of_its_polynomial_H(cache_root, tmp_
     quartic.write_text("Y0 = [1.0, 0.5]\nHAMILTONIAN_DEGREE = 4\n\ndef H(y, params):\n    return 0.5 * y[1] ** 2 + "
                        "0.25 * y[0] ** 4\n\ndef grad_H(y, params, out):\n    out[0] = y[0] ** 3\n    out[1] = y[1]\n")
     assert problem_from_file(quartic).hamiltonian_degree == 4
+    # a degree that H exceeds is refused, not taken on trust (a user trial: a Lennard-Jones H declared of
+    # degree 4 made check say it was kept to round-off); a higher bound is true and taken
+    quartic.write_text(quartic.read_text().replace("HAMILTONIAN_DEGREE = 4", "HAMILTONIAN_DEGREE = 3"))
+    with pytest.raises(UserProblemError, match=r"HAMILTONIAN_DEGREE = 3, but H is not a polynomial of degree <= 3: "
+                                               r"along a line through the initial state its difference of order 4"):
+        problem_from_file(quartic)
+    quartic.write_text(quartic.read_text().replace("HAMILTONIAN_DEGREE = 3", "HAMILTONIAN_DEGREE = 6"))
+    assert problem_from_file(quartic).hamiltonian_degree == 6
+    path.write_text(KEPLER_FILE.replace("Y0 = [0.4, 0.0, 0.0, 2.0]", "Y0 = [0.4, 0.0, 0.0, 2.0]\nHAMILTONIAN_DEGREE = 8"))
+    with pytest.raises(UserProblemError, match="HAMILTONIAN_DEGREE = 8, but H is not a polynomial"):
+        problem_from_file(path)
 
 
 def test_python_file_at_a_singular_initial_state_says_so(cache_root, tmp_path):

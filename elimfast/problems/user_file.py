@@ -205,6 +205,8 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
     if degree is not None and (isinstance(degree, bool) or not isinstance(degree, int) or degree < 0):
         raise UserProblemError(f"{label}: HAMILTONIAN_DEGREE must be a whole number >= 0 (the total degree of H as a "
                                f"polynomial in y), got {degree!r}; leave it out if H is not a polynomial", key="python")
+    if degree is not None:
+        _require_degree(label, functions["H"], y0, params, degree)
     return Problem(
         name=name or str(get("NAME", path.stem)), q_names=q_names, p_names=p_names,
         H=compiled["H"], grad_H=compiled["grad_H"], hess_H=compiled["hess_H"], hessian_source=hessian_source,
@@ -215,6 +217,38 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
         description=str(get("DESCRIPTION", doc[0] if doc else f"python problem {path.name}")),
         hamiltonian_degree=degree,
     )
+
+
+# The declared degree is tested on this many seeded lines through y0 (_require_degree).
+DEGREE_LINES = 3
+
+
+def _require_degree(label, H, y0, params, degree: int) -> None:
+    """HAMILTONIAN_DEGREE = d is taken only if H is a polynomial of degree <= d along DEGREE_LINES
+    seeded lines through y0: the (d+1)-th difference of H(y0 + j delta v), j = 0..d+1, vanishes up to
+    the rounding of its 2^(d+1) terms (a user trial: a Lennard-Jones H declared of degree 4 made
+    'check' say it was kept to round-off; the energy note then hid its quadrature error)."""
+    from math import comb
+
+    H = getattr(H, "py_func", H)
+    rng = np.random.default_rng(20141)
+    step = 0.25 * max(1.0, float(np.max(np.abs(y0))))
+    for _ in range(DEGREE_LINES):
+        direction = rng.standard_normal(y0.size)
+        direction /= np.linalg.norm(direction)
+        with np.errstate(all="ignore"):
+            try:
+                values = np.array([float(H(y0 + j * step * direction, params)) for j in range(degree + 2)])
+            except ArithmeticError:
+                values = np.array([np.nan])
+        difference = sum((-1) ** (degree + 1 - j) * comb(degree + 1, j) * value for j, value in enumerate(values))
+        allowed = 1e3 * 2.0 ** (degree + 1) * np.finfo(float).eps * float(np.max(np.abs(values)))
+        if not (abs(difference) <= allowed):
+            raise UserProblemError(
+                f"{label}: HAMILTONIAN_DEGREE = {degree}, but H is not a polynomial of degree <= {degree}: along a "
+                f"line through the initial state its difference of order {degree + 1} is {difference:.3g}, where "
+                f"rounding allows {allowed:.1e}; give H's true degree, or leave HAMILTONIAN_DEGREE out if H is not a "
+                "polynomial", key="python")
 
 
 def _number(value, what, key) -> float:
