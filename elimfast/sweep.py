@@ -33,6 +33,13 @@ paper's Table 1); ``reference`` runs the base with the given overrides once and
 compares every run's final state with it, so every run must have the reference's
 problem (parameters, initial state) and interval (a sweep that varies them is refused).
 
+Orders: ``order_axis`` names a plain axis of positive numbers; the order column gives
+log(e1/e2)/log(x1/x2) between each run and the one before it on that axis (the other
+axes equal), x the value of the axis's key as the run resolved it: the order in h for
+an axis of integration.h (column ``order``), in epsilon or rtol for those (column
+``order in <axis>``: error ~ epsilon^6 for a sixth-order method under the time-scale
+controller). An axis of variants, or a value that is no positive number, is refused.
+
 Short forms of a run config work here too (``method: EHBVM(12,3)``, ``problem: kepler``;
 config.write_out_shorthands). ``--resume`` (run_to_file) keeps the runs a file holds complete
 and runs the rest; the sweep file may have been edited meanwhile where the edit leaves those
@@ -412,9 +419,30 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     order_axis = data.get("order_axis")
     if order_axis is not None and order_axis not in axis_names:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
+    if order_axis is not None:
+        _check_order_axis(source, order_axis, axes[axis_names.index(order_axis)], axis_names.index(order_axis))
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+def _check_order_axis(source: str, name: str, axis: dict, index: int) -> None:
+    """The observed order log(e1/e2)/log(x1/x2) is taken along the values x of the axis
+    ``name``: refuse an axis without sizes (variants) or with a value that is no positive number."""
+    why = "the observed order log(e1/e2)/log(x1/x2) needs a positive number x at each point of the axis"
+    if "key" not in axis:
+        _fail(source, "order_axis", f"the axis {name!r} is a list of variants (label and set), which have no size; "
+                                    f"{why}: name a plain axis (name, key, values), such as h with key integration.h")
+    from .problems.expressions import ExpressionError, evaluate_number
+    for j, value in enumerate(axis["values"]):
+        try:
+            number = evaluate_number(value, what=f"grid[{index}].values[{j}]")
+        except (ExpressionError, ValueError, TypeError):
+            number = None
+        if number is None or not number > 0:
+            _fail(source, "order_axis", f"the axis {name!r} has the value {value!r} (grid[{index}].values[{j}]), "
+                                        f"not a positive number; {why}; give order_axis an axis of such numbers, "
+                                        "or leave it out")
 
 
 AXIS_KEYS = ("name", "key", "values", "labels")
@@ -967,7 +995,10 @@ def errors_of(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome
 
 
 def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, float]) -> dict[str, float]:
-    """Observed order log(e1/e2)/log(h1/h2) between successive points of order_axis."""
+    """Observed order log(e1/e2)/log(x1/x2) between successive points of order_axis, x the
+    axis's value in each run (order_axis_value: h for an h axis, epsilon for an epsilon axis).
+    It was always taken in the runs' h, which an epsilon axis leaves unset: a user trial's
+    order column was empty where the errors fell 64x per halving of epsilon."""
     orders = {o.label: math.nan for o in outcomes}
     if spec.order_axis is None:
         return orders
@@ -975,12 +1006,36 @@ def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, flo
     for outcome in outcomes:
         key = tuple((a, outcome.coordinates[a]) for a in spec.axes if a != spec.order_axis)
         groups.setdefault(key, []).append(outcome)
+    written = {run.label: run.config for run in spec.runs}
     for members in groups.values():
         for previous, current in zip(members, members[1:]):
             e0, e1 = errors[previous.label], errors[current.label]
-            if previous.ok and current.ok and e0 > 0 and e1 > 0 and previous.h != current.h:
-                orders[current.label] = math.log(e0 / e1) / math.log(previous.h / current.h)
+            x0, x1 = (order_axis_value(spec, o, written.get(o.label)) for o in (previous, current))
+            if previous.ok and current.ok and e0 > 0 and e1 > 0 and x0 > 0 and x1 > 0 and x0 != x1:
+                orders[current.label] = math.log(e0 / e1) / math.log(x0 / x1)
     return orders
+
+
+def order_axis_value(spec: SweepSpec, outcome: RunOutcome, config: dict | None) -> float:
+    """The value of the order axis's key in a run: as the run resolved it (the h it took, which
+    fits the interval), else as the sweep file wrote it (``config``, the run's); nan if neither
+    is a number."""
+    from .problems.expressions import evaluate_number
+    key = spec.axis_keys.get(spec.order_axis)
+    if key is None:
+        return math.nan
+    for source in (outcome.resolved, config):
+        value = _axis_value(source, key) if source else None
+        try:
+            return evaluate_number(value)
+        except Exception:   # noqa: BLE001 -- not a number here (None, a mapping): try the next
+            continue
+    return math.nan
+
+
+def order_column(spec: SweepSpec) -> str:
+    """The table's order column: 'order' along h (the usual sense), 'order in <axis>' otherwise."""
+    return "order" if spec.axis_keys.get(spec.order_axis) == "integration.h" else f"order in {spec.order_axis}"
 
 
 def _axis_value(resolved: dict, dotted: str):
@@ -1021,7 +1076,7 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
     for axis in spec.axes:
         header += [axis, f"{axis}_expression"] + ([f"{axis}_label"] if axis in labelled else []) \
             if axis in expanded else [axis]
-    header += (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
+    header += (["error"] if spec.error_mode else []) + ([order_column(spec)] if spec.order_axis else []) \
         + ["steps", "iterations", "grad H evals", "max |alpha|/|lambda|"]
     for name in invariant_names:
         header += [f"max err {name}", f"max rel err {name}"]

@@ -53,6 +53,13 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "a", "set": {}}]}]},
      "same label"),
     ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
+    # the order is taken along the axis's values: an axis without sizes is refused, not left empty
+    ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "b", "set": {}}]}],
+      "order_axis": "m"}, "order_axis: the axis 'm' is a list of variants"),
+    ({"base": BASE, "grid": [{"name": "m", "key": "method.name", "values": ["ehbvm", "ghbvm"]}], "order_axis": "m"},
+     r"order_axis: the axis 'm' has the value 'ehbvm' \(grid\[0\]\.values\[0\]\), not a positive number"),
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30", "-pi/60"]}], "order_axis": "h"},
+     r"order_axis: the axis 'h' has the value '-pi/60' \(grid\[0\]\.values\[1\]\), not a positive number"),
     ({"base": BASE, "error": {"exact": "period"}}, "error.exact"),
     # a misspelt axis key failed every run alike (one line each, exit 1), as if the integrations had failed
     ({"base": BASE, "grid": [{"name": "h", "key": "integration.hh", "values": ["pi/30"]}]},
@@ -96,6 +103,35 @@ def test_sweep_runs_in_parallel_give_the_same_numbers_and_orders(tmp_path):
     assert markdown.count("\n") == 2 + len(rows)
     csv_text = format_table(header, rows, "csv")
     assert csv_text.splitlines()[0].startswith("h,error,order")
+
+
+def test_the_observed_order_is_taken_along_any_axis_of_numbers_and_named_after_it(tmp_path):
+    """A user trial: order_axis: epsilon (the time-scale controller's) was accepted, and the order
+    column came out empty, though the errors fell 64x per halving of epsilon (order 6): orders
+    were taken in each run's h, which a time-scale run does not have. They are taken in the axis's
+    values now, log(e1/e2)/log(x1/x2), in a column 'order in epsilon' (an axis of variants, or of
+    values that are no positive numbers, is refused at load: test_bad_sweep_files_give_one_line_errors)."""
+    base = {**BASE, "method": {"name": "gauss", "s": 3}, "conserve": [],
+            "integration": {"step_control": "time_scale", "t_end": "2*pi"}}
+    epsilons = [0.2, 0.1, 0.05]
+    path = write_sweep(tmp_path, {"base": base, "grid": [
+        {"name": "epsilon", "key": "integration.epsilon", "values": epsilons}],
+        "error": {"exact": "initial"}, "order_axis": "epsilon"})
+    spec = load_sweep(path)
+    outcomes, _ = run_sweep(spec, workers=1)
+    errors = errors_of(spec, outcomes, None)
+    orders = orders_of(spec, outcomes, errors)
+    for (e0, previous), (e1, current) in zip(zip(epsilons, outcomes), zip(epsilons[1:], outcomes[1:])):
+        expected = math.log(errors[previous.label] / errors[current.label]) / math.log(e0 / e1)
+        assert orders[current.label] == pytest.approx(expected, rel=1e-14)
+        assert abs(orders[current.label] - 6.0) < 0.1, orders   # GAUSS3: error ~ epsilon^6
+    assert math.isnan(orders[outcomes[0].label])
+    header, rows = table_rows(spec, outcomes, None)
+    assert header[:3] == ["epsilon", "error", "order in epsilon"]
+    assert rows[0][2] == "" and all(float(row[2]) > 5 for row in rows[1:])
+    csv_header, csv_rows = table_rows(spec, outcomes, None, "csv")
+    column = csv_header.index("order in epsilon")
+    assert [float(row[column]) for row in csv_rows[1:]] == [orders[o.label] for o in outcomes[1:]]
 
 
 def test_a_failing_run_does_not_stop_the_others(tmp_path):
