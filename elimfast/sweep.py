@@ -32,6 +32,10 @@ Errors: ``exact: initial`` compares each run's final state with its initial stat
 paper's Table 1); ``reference`` runs the base with the given overrides once and
 compares every run's final state with it, so every run must have the reference's
 problem (parameters, initial state) and interval (a sweep that varies them is refused).
+The reference's ``set`` merges as the sweep-wide one does (``integration: {h: 0.001}``
+keeps the t_end), except ``method``, which replaces the base's as in a variant
+(``{name: gauss, s: 6}`` is GAUSS(6), with no k from an EHBVM base). Its config is loaded
+with the sweep file: one that does not load is refused before any run.
 
 Orders: ``order_axis`` names a plain axis of positive numbers; the order column gives
 log(e1/e2)/log(x1/x2) between each run and the one before it on that axis (the other
@@ -289,7 +293,8 @@ def _check_same_problem(source: str, runs: list[SweepRun], reference: dict) -> N
 
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
     """Read and expand a sweep file (see the module docstring). Runs are validated later,
-    each by the config loader, so that one bad point fails alone with its reason."""
+    each by the config loader, so that one bad point fails alone with its reason; the
+    reference run, which every error needs, is loaded here (SweepError)."""
     path = Path(path)
     source = str(path)
     data = _read_yaml(path, "sweep file")
@@ -413,7 +418,8 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             ref = error["reference"]
             if not isinstance(ref, dict) or not isinstance(ref.get("set", {}), dict):
                 _fail(source, "error.reference", "must be {set: {overrides of the base}}")
-            reference = _deep_merge(copy.deepcopy(base), ref.get("set", {}))
+            reference_set = _written_out(source, "error.reference.set.", ref.get("set") or {})
+            reference = _reference_config(base, reference_set)
             error_mode = "reference"
             _check_same_problem(source, runs, reference)
     order_axis = data.get("order_axis")
@@ -421,9 +427,41 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
     if order_axis is not None:
         _check_order_axis(source, order_axis, axes[axis_names.index(order_axis)], axis_names.index(order_axis))
+    if reference is not None:
+        # Every error is taken against the reference run, which runs with the grid: a config it
+        # could not load was reported after the whole grid had run (hours of a real sweep).
+        try:
+            _load_point(source, REFERENCE_LABEL, reference)
+        except ElimfastError as failure:
+            raise SweepError(_reference_failure(source, failure, reference_set)) from None
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+def _reference_config(base: dict, overrides: dict) -> dict:
+    """The reference run's config: error.reference.set merged into the base as the sweep-wide set
+    is (integration: {h: 0.001} keeps the base's t_end), except that a method replaces the base's
+    method mapping, as a variant's does. A method's parameters are its family's: a user trial's
+    {name: gauss, s: 6} kept the base's k = 12 and failed with 'method.k: does not apply: gauss(s)
+    takes no k; remove it', a key the sweep file did not have."""
+    reference = copy.deepcopy(base)
+    for key, value in overrides.items():
+        if key == "method":
+            reference[key] = copy.deepcopy(value)
+        else:
+            _deep_merge(reference, {key: value})
+    return reference
+
+
+def _reference_failure(source: str, failure: ElimfastError, reference_set: dict) -> str:
+    """The one line of a reference run whose config does not load: at error.reference.set where
+    the key at fault is in a section the set gives, else as the base's (a python: file they share)."""
+    text = str(failure).removeprefix(f"{run_source(source, REFERENCE_LABEL)}: ")
+    key = getattr(failure, "key", None)
+    if key and key.split(".")[0] in reference_set:
+        return f"{source}: error.reference.set: {text}"
+    return f"{source}: error.reference: the reference run (the base with error.reference.set) does not load: {text}"
 
 
 def _check_order_axis(source: str, name: str, axis: dict, index: int) -> None:
@@ -652,12 +690,20 @@ def for_sweep(message: str, ensemble: bool = False) -> str:
     return f"{message}; {ENSEMBLE_RERUN_ADVICE if ensemble else SWEEP_RERUN_ADVICE}"
 
 
+def run_source(source: str, label: str) -> str:
+    """How messages name the run ``label`` of the sweep file ``source``: ``SWEEP [label]``, and
+    ``SWEEP: error.reference`` for the reference run, whose label (REFERENCE_LABEL, with a NUL)
+    is never printed (a user trial's terminal showed '[ reference]', and grep called the
+    output a binary file)."""
+    return f"{source}: error.reference" if label == REFERENCE_LABEL else f"{source} [{label}]"
+
+
 def _load_point(source: str, label: str, config: dict):
     """The RunSpec of the grid point ``label`` of the sweep file ``source`` (its errors name both;
     its python: paths were made relative to the sweep file's folder, _rebase_paths): how _execute
     loads a run, and how --resume compares a stored run with the edited sweep's."""
     from .config import load_run_from_dict  # in a worker: keeps the parent light
-    return load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]", base_dir=Path(source).parent)
+    return load_run_from_dict(copy.deepcopy(config), source=run_source(source, label), base_dir=Path(source).parent)
 
 
 def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[str, int]]:
@@ -746,9 +792,10 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     needed = 2 * run_bytes(run)    # the chunks, then their concatenation
     available = memory_available()
     if available is not None and needed > MEMORY_FRACTION * available:
-        outcome.status = (f"failed: {source} [{label}]: the run's {spec.n_steps:,} steps would need {_size(needed)} of "
-                          f"memory in a sweep, which keeps every step; {_size(available)} are available: raise "
-                          "output.every, shorten the run, or run it alone with elimfast run (which streams to disk)")
+        outcome.status = (f"failed: {run_source(source, label)}: the run's {spec.n_steps:,} steps would need "
+                          f"{_size(needed)} of memory in a sweep, which keeps every step; {_size(available)} are "
+                          "available: raise output.every, shorten the run, or run it alone with elimfast run (which "
+                          "streams to disk)")
         return outcome
     outcome.y_initial = run.y.copy()
     chunks = [run.initial_chunk()]

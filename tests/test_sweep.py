@@ -174,6 +174,52 @@ def test_a_reference_error_refuses_runs_of_another_problem_or_interval(tmp_path,
         load_sweep(same)   # 60 steps of pi/60: half the interval
 
 
+def test_a_reference_set_replaces_the_method_and_a_reference_that_does_not_load_is_refused_before_any_run(tmp_path):
+    """A user trial (a Lennard-Jones sweep): error.reference.set's method {name: gauss, s: 6}
+    merged into the base's {name: ehbvm, k: 12, s: 3}, kept its k, and failed with 'method.k: does
+    not apply: gauss(s) takes no k; remove it', a key the sweep file did not have; that was found
+    after all 16 grid runs had run (exit 1), and the message held a NUL byte ('[\\0reference]'). The
+    reference's method replaces the base's, as a variant's does (the rest still merges); its config
+    is loaded with the sweep file (exit 2, no run); no message names the run by its internal label."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    from elimfast import sweep as sweeps
+
+    reference_set = {"method": {"name": "gauss", "s": 6}, "conserve": [], "integration": {"h": "2*pi/200"}}
+    grid = [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/80"]}]
+    path = write_sweep(tmp_path, {"base": BASE, "grid": grid, "error": {"reference": {"set": reference_set}}})
+    spec = load_sweep(path)
+    assert spec.reference["method"] == {"name": "gauss", "s": 6}
+    assert spec.reference["integration"] == {"h": "2*pi/200", "t_end": "2*pi"}   # merged, as before
+    outcomes, reference = run_sweep(spec, workers=1)
+    assert reference.ok and reference.resolved["method"] == {"name": "gauss", "s": 6}
+    assert all(0 < error < 1e-4 for error in errors_of(spec, outcomes, reference).values())
+
+    # a reference that does not load: one line naming the sweep file and the key, before any run
+    bad_set = {**reference_set, "method": {"name": "gauss", "s": 6, "k": 12}}
+    bad = write_sweep(tmp_path, {"base": BASE, "grid": grid, "error": {"reference": {"set": bad_set}}}, "bad.yaml")
+    with pytest.raises(SweepError) as caught:
+        load_sweep(bad)
+    assert str(caught.value).startswith(f"{bad}: error.reference.set: method.k: does not apply: gauss(s) takes no k")
+    out = tmp_path / "bad.h5"
+    result = CliRunner().invoke(cli, ["sweep", str(bad), "-o", str(out), "--workers", "1"])
+    assert result.exit_code == 2, result.output
+    assert result.stderr == f"error: {caught.value}\n" and result.stdout == ""   # no run started, no table
+    assert not out.exists()
+    # the workers name the reference run so too (a python: file edited after the sweep was loaded)
+    status = sweeps._execute(sweeps.REFERENCE_LABEL, {}, spec.reference | {"method": bad_set["method"]},
+                             str(path), False).status
+    assert status.startswith(f"failed: {path}: error.reference: method.k: ")
+    assert not any(ord(c) < 32 for c in status + result.stderr.rstrip("\n"))
+    # a fault of the base (a python: file the runs share) is the reference's too, said as the base's
+    (tmp_path / "broken.py").write_text("def H(y, params):\n    return (\n")
+    shared = write_sweep(tmp_path, {"base": {**BASE, "problem": {"python": "broken.py"}, "conserve": []},
+                                    "grid": grid, "error": {"reference": {"set": reference_set}}}, "shared.yaml")
+    with pytest.raises(SweepError, match=r"shared\.yaml: error\.reference: the reference run \(the base with "
+                                         r"error\.reference\.set\) does not load: problem\.python: .*broken\.py"):
+        load_sweep(shared)
+
+
 def test_a_run_that_failed_at_its_first_step_shows_no_figures_never_zero_errors(tmp_path):
     """A run failing at step 1 kept only samples of its initial state, and the table showed
     0.000e+00 for every invariant error: a failed run read as a perfect one."""
