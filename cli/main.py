@@ -860,7 +860,8 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     SWEEP.yaml names a base config and the axes of the grid (see elimfast/sweep.py or the
     README): each point is one run, labelled by its coordinates. Errors are taken against
     the exact solution (error: {exact: initial}, a periodic orbit over whole periods) or a
-    reference run named in the sweep file; orders between successive values of order_axis.
+    reference run named in the sweep file; orders between successive values of order_axis
+    (a plain axis of numbers: h, or epsilon, rtol, ... for the order in those).
     A failed run does not stop the others: it is marked with its reason (its figures read
     'failed': they would cover only the steps before the failure) and the exit code is 1.
 

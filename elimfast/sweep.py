@@ -32,6 +32,17 @@ Errors: ``exact: initial`` compares each run's final state with its initial stat
 paper's Table 1); ``reference`` runs the base with the given overrides once and
 compares every run's final state with it, so every run must have the reference's
 problem (parameters, initial state) and interval (a sweep that varies them is refused).
+The reference's ``set`` merges as the sweep-wide one does (``integration: {h: 0.001}``
+keeps the t_end), except ``method``, which replaces the base's as in a variant
+(``{name: gauss, s: 6}`` is GAUSS(6), with no k from an EHBVM base). Its config is loaded
+with the sweep file: one that does not load is refused before any run.
+
+Orders: ``order_axis`` names a plain axis of positive numbers; the order column gives
+log(e1/e2)/log(x1/x2) between each run and the one before it on that axis (the other
+axes equal), x the value of the axis's key as the run resolved it: the order in h for
+an axis of integration.h (column ``order``), in epsilon or rtol for those (column
+``order in <axis>``: error ~ epsilon^6 for a sixth-order method under the time-scale
+controller). An axis of variants, or a value that is no positive number, is refused.
 
 Short forms of a run config work here too (``method: EHBVM(12,3)``, ``problem: kepler``;
 config.write_out_shorthands). ``--resume`` (run_to_file) keeps the runs a file holds complete
@@ -282,7 +293,8 @@ def _check_same_problem(source: str, runs: list[SweepRun], reference: dict) -> N
 
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
     """Read and expand a sweep file (see the module docstring). Runs are validated later,
-    each by the config loader, so that one bad point fails alone with its reason."""
+    each by the config loader, so that one bad point fails alone with its reason; the
+    reference run, which every error needs, is loaded here (SweepError)."""
     path = Path(path)
     source = str(path)
     data = _read_yaml(path, "sweep file")
@@ -406,15 +418,69 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             ref = error["reference"]
             if not isinstance(ref, dict) or not isinstance(ref.get("set", {}), dict):
                 _fail(source, "error.reference", "must be {set: {overrides of the base}}")
-            reference = _deep_merge(copy.deepcopy(base), ref.get("set", {}))
+            reference_set = _written_out(source, "error.reference.set.", ref.get("set") or {})
+            reference = _reference_config(base, reference_set)
             error_mode = "reference"
             _check_same_problem(source, runs, reference)
     order_axis = data.get("order_axis")
     if order_axis is not None and order_axis not in axis_names:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
+    if order_axis is not None:
+        _check_order_axis(source, order_axis, axes[axis_names.index(order_axis)], axis_names.index(order_axis))
+    if reference is not None:
+        # Every error is taken against the reference run, which runs with the grid: a config it
+        # could not load was reported after the whole grid had run (hours of a real sweep).
+        try:
+            _load_point(source, REFERENCE_LABEL, reference)
+        except ElimfastError as failure:
+            raise SweepError(_reference_failure(source, failure, reference_set)) from None
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+
+
+def _reference_config(base: dict, overrides: dict) -> dict:
+    """The reference run's config: error.reference.set merged into the base as the sweep-wide set
+    is (integration: {h: 0.001} keeps the base's t_end), except that a method replaces the base's
+    method mapping, as a variant's does. A method's parameters are its family's: a user trial's
+    {name: gauss, s: 6} kept the base's k = 12 and failed with 'method.k: does not apply: gauss(s)
+    takes no k; remove it', a key the sweep file did not have."""
+    reference = copy.deepcopy(base)
+    for key, value in overrides.items():
+        if key == "method":
+            reference[key] = copy.deepcopy(value)
+        else:
+            _deep_merge(reference, {key: value})
+    return reference
+
+
+def _reference_failure(source: str, failure: ElimfastError, reference_set: dict) -> str:
+    """The one line of a reference run whose config does not load: at error.reference.set where
+    the key at fault is in a section the set gives, else as the base's (a python: file they share)."""
+    text = str(failure).removeprefix(f"{run_source(source, REFERENCE_LABEL)}: ")
+    key = getattr(failure, "key", None)
+    if key and key.split(".")[0] in reference_set:
+        return f"{source}: error.reference.set: {text}"
+    return f"{source}: error.reference: the reference run (the base with error.reference.set) does not load: {text}"
+
+
+def _check_order_axis(source: str, name: str, axis: dict, index: int) -> None:
+    """The observed order log(e1/e2)/log(x1/x2) is taken along the values x of the axis
+    ``name``: refuse an axis without sizes (variants) or with a value that is no positive number."""
+    why = "the observed order log(e1/e2)/log(x1/x2) needs a positive number x at each point of the axis"
+    if "key" not in axis:
+        _fail(source, "order_axis", f"the axis {name!r} is a list of variants (label and set), which have no size; "
+                                    f"{why}: name a plain axis (name, key, values), such as h with key integration.h")
+    from .problems.expressions import ExpressionError, evaluate_number
+    for j, value in enumerate(axis["values"]):
+        try:
+            number = evaluate_number(value, what=f"grid[{index}].values[{j}]")
+        except (ExpressionError, ValueError, TypeError):
+            number = None
+        if number is None or not number > 0:
+            _fail(source, "order_axis", f"the axis {name!r} has the value {value!r} (grid[{index}].values[{j}]), "
+                                        f"not a positive number; {why}; give order_axis an axis of such numbers, "
+                                        "or leave it out")
 
 
 AXIS_KEYS = ("name", "key", "values", "labels")
@@ -624,12 +690,20 @@ def for_sweep(message: str, ensemble: bool = False) -> str:
     return f"{message}; {ENSEMBLE_RERUN_ADVICE if ensemble else SWEEP_RERUN_ADVICE}"
 
 
+def run_source(source: str, label: str) -> str:
+    """How messages name the run ``label`` of the sweep file ``source``: ``SWEEP [label]``, and
+    ``SWEEP: error.reference`` for the reference run, whose label (REFERENCE_LABEL, with a NUL)
+    is never printed (a user trial's terminal showed '[ reference]', and grep called the
+    output a binary file)."""
+    return f"{source}: error.reference" if label == REFERENCE_LABEL else f"{source} [{label}]"
+
+
 def _load_point(source: str, label: str, config: dict):
     """The RunSpec of the grid point ``label`` of the sweep file ``source`` (its errors name both;
     its python: paths were made relative to the sweep file's folder, _rebase_paths): how _execute
     loads a run, and how --resume compares a stored run with the edited sweep's."""
     from .config import load_run_from_dict  # in a worker: keeps the parent light
-    return load_run_from_dict(copy.deepcopy(config), source=f"{source} [{label}]", base_dir=Path(source).parent)
+    return load_run_from_dict(copy.deepcopy(config), source=run_source(source, label), base_dir=Path(source).parent)
 
 
 def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[str, int]]:
@@ -718,9 +792,10 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     needed = 2 * run_bytes(run)    # the chunks, then their concatenation
     available = memory_available()
     if available is not None and needed > MEMORY_FRACTION * available:
-        outcome.status = (f"failed: {source} [{label}]: the run's {spec.n_steps:,} steps would need {_size(needed)} of "
-                          f"memory in a sweep, which keeps every step; {_size(available)} are available: raise "
-                          "output.every, shorten the run, or run it alone with elimfast run (which streams to disk)")
+        outcome.status = (f"failed: {run_source(source, label)}: the run's {spec.n_steps:,} steps would need "
+                          f"{_size(needed)} of memory in a sweep, which keeps every step; {_size(available)} are "
+                          "available: raise output.every, shorten the run, or run it alone with elimfast run (which "
+                          "streams to disk)")
         return outcome
     outcome.y_initial = run.y.copy()
     chunks = [run.initial_chunk()]
@@ -967,7 +1042,10 @@ def errors_of(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome
 
 
 def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, float]) -> dict[str, float]:
-    """Observed order log(e1/e2)/log(h1/h2) between successive points of order_axis."""
+    """Observed order log(e1/e2)/log(x1/x2) between successive points of order_axis, x the
+    axis's value in each run (order_axis_value: h for an h axis, epsilon for an epsilon axis).
+    It was always taken in the runs' h, which an epsilon axis leaves unset: a user trial's
+    order column was empty where the errors fell 64x per halving of epsilon."""
     orders = {o.label: math.nan for o in outcomes}
     if spec.order_axis is None:
         return orders
@@ -975,12 +1053,36 @@ def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, flo
     for outcome in outcomes:
         key = tuple((a, outcome.coordinates[a]) for a in spec.axes if a != spec.order_axis)
         groups.setdefault(key, []).append(outcome)
+    written = {run.label: run.config for run in spec.runs}
     for members in groups.values():
         for previous, current in zip(members, members[1:]):
             e0, e1 = errors[previous.label], errors[current.label]
-            if previous.ok and current.ok and e0 > 0 and e1 > 0 and previous.h != current.h:
-                orders[current.label] = math.log(e0 / e1) / math.log(previous.h / current.h)
+            x0, x1 = (order_axis_value(spec, o, written.get(o.label)) for o in (previous, current))
+            if previous.ok and current.ok and e0 > 0 and e1 > 0 and x0 > 0 and x1 > 0 and x0 != x1:
+                orders[current.label] = math.log(e0 / e1) / math.log(x0 / x1)
     return orders
+
+
+def order_axis_value(spec: SweepSpec, outcome: RunOutcome, config: dict | None) -> float:
+    """The value of the order axis's key in a run: as the run resolved it (the h it took, which
+    fits the interval), else as the sweep file wrote it (``config``, the run's); nan if neither
+    is a number."""
+    from .problems.expressions import evaluate_number
+    key = spec.axis_keys.get(spec.order_axis)
+    if key is None:
+        return math.nan
+    for source in (outcome.resolved, config):
+        value = _axis_value(source, key) if source else None
+        try:
+            return evaluate_number(value)
+        except Exception:   # noqa: BLE001 -- not a number here (None, a mapping): try the next
+            continue
+    return math.nan
+
+
+def order_column(spec: SweepSpec) -> str:
+    """The table's order column: 'order' along h (the usual sense), 'order in <axis>' otherwise."""
+    return "order" if spec.axis_keys.get(spec.order_axis) == "integration.h" else f"order in {spec.order_axis}"
 
 
 def _axis_value(resolved: dict, dotted: str):
@@ -1021,7 +1123,7 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
     for axis in spec.axes:
         header += [axis, f"{axis}_expression"] + ([f"{axis}_label"] if axis in labelled else []) \
             if axis in expanded else [axis]
-    header += (["error"] if spec.error_mode else []) + (["order"] if spec.order_axis else []) \
+    header += (["error"] if spec.error_mode else []) + ([order_column(spec)] if spec.order_axis else []) \
         + ["steps", "iterations", "grad H evals", "max |alpha|/|lambda|"]
     for name in invariant_names:
         header += [f"max err {name}", f"max rel err {name}"]

@@ -53,6 +53,13 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "a", "set": {}}]}]},
      "same label"),
     ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
+    # the order is taken along the axis's values: an axis without sizes is refused, not left empty
+    ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "b", "set": {}}]}],
+      "order_axis": "m"}, "order_axis: the axis 'm' is a list of variants"),
+    ({"base": BASE, "grid": [{"name": "m", "key": "method.name", "values": ["ehbvm", "ghbvm"]}], "order_axis": "m"},
+     r"order_axis: the axis 'm' has the value 'ehbvm' \(grid\[0\]\.values\[0\]\), not a positive number"),
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30", "-pi/60"]}], "order_axis": "h"},
+     r"order_axis: the axis 'h' has the value '-pi/60' \(grid\[0\]\.values\[1\]\), not a positive number"),
     ({"base": BASE, "error": {"exact": "period"}}, "error.exact"),
     # a misspelt axis key failed every run alike (one line each, exit 1), as if the integrations had failed
     ({"base": BASE, "grid": [{"name": "h", "key": "integration.hh", "values": ["pi/30"]}]},
@@ -98,6 +105,35 @@ def test_sweep_runs_in_parallel_give_the_same_numbers_and_orders(tmp_path):
     assert csv_text.splitlines()[0].startswith("h,error,order")
 
 
+def test_the_observed_order_is_taken_along_any_axis_of_numbers_and_named_after_it(tmp_path):
+    """A user trial: order_axis: epsilon (the time-scale controller's) was accepted, and the order
+    column came out empty, though the errors fell 64x per halving of epsilon (order 6): orders
+    were taken in each run's h, which a time-scale run does not have. They are taken in the axis's
+    values now, log(e1/e2)/log(x1/x2), in a column 'order in epsilon' (an axis of variants, or of
+    values that are no positive numbers, is refused at load: test_bad_sweep_files_give_one_line_errors)."""
+    base = {**BASE, "method": {"name": "gauss", "s": 3}, "conserve": [],
+            "integration": {"step_control": "time_scale", "t_end": "2*pi"}}
+    epsilons = [0.2, 0.1, 0.05]
+    path = write_sweep(tmp_path, {"base": base, "grid": [
+        {"name": "epsilon", "key": "integration.epsilon", "values": epsilons}],
+        "error": {"exact": "initial"}, "order_axis": "epsilon"})
+    spec = load_sweep(path)
+    outcomes, _ = run_sweep(spec, workers=1)
+    errors = errors_of(spec, outcomes, None)
+    orders = orders_of(spec, outcomes, errors)
+    for (e0, previous), (e1, current) in zip(zip(epsilons, outcomes), zip(epsilons[1:], outcomes[1:])):
+        expected = math.log(errors[previous.label] / errors[current.label]) / math.log(e0 / e1)
+        assert orders[current.label] == pytest.approx(expected, rel=1e-14)
+        assert abs(orders[current.label] - 6.0) < 0.1, orders   # GAUSS3: error ~ epsilon^6
+    assert math.isnan(orders[outcomes[0].label])
+    header, rows = table_rows(spec, outcomes, None)
+    assert header[:3] == ["epsilon", "error", "order in epsilon"]
+    assert rows[0][2] == "" and all(float(row[2]) > 5 for row in rows[1:])
+    csv_header, csv_rows = table_rows(spec, outcomes, None, "csv")
+    column = csv_header.index("order in epsilon")
+    assert [float(row[column]) for row in csv_rows[1:]] == [orders[o.label] for o in outcomes[1:]]
+
+
 def test_a_failing_run_does_not_stop_the_others(tmp_path):
     path = write_sweep(tmp_path, {
         "base": {**BASE, "solver": {"max_iter": 30, "method": "fixed_point", "max_halvings": 0}},
@@ -136,6 +172,52 @@ def test_a_reference_error_refuses_runs_of_another_problem_or_interval(tmp_path,
                              "same.yaml")
     with pytest.raises(SweepError, match="run '60/pi/60' differs from the reference run in integration"):
         load_sweep(same)   # 60 steps of pi/60: half the interval
+
+
+def test_a_reference_set_replaces_the_method_and_a_reference_that_does_not_load_is_refused_before_any_run(tmp_path):
+    """A user trial (a Lennard-Jones sweep): error.reference.set's method {name: gauss, s: 6}
+    merged into the base's {name: ehbvm, k: 12, s: 3}, kept its k, and failed with 'method.k: does
+    not apply: gauss(s) takes no k; remove it', a key the sweep file did not have; that was found
+    after all 16 grid runs had run (exit 1), and the message held a NUL byte ('[\\0reference]'). The
+    reference's method replaces the base's, as a variant's does (the rest still merges); its config
+    is loaded with the sweep file (exit 2, no run); no message names the run by its internal label."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    from elimfast import sweep as sweeps
+
+    reference_set = {"method": {"name": "gauss", "s": 6}, "conserve": [], "integration": {"h": "2*pi/200"}}
+    grid = [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/80"]}]
+    path = write_sweep(tmp_path, {"base": BASE, "grid": grid, "error": {"reference": {"set": reference_set}}})
+    spec = load_sweep(path)
+    assert spec.reference["method"] == {"name": "gauss", "s": 6}
+    assert spec.reference["integration"] == {"h": "2*pi/200", "t_end": "2*pi"}   # merged, as before
+    outcomes, reference = run_sweep(spec, workers=1)
+    assert reference.ok and reference.resolved["method"] == {"name": "gauss", "s": 6}
+    assert all(0 < error < 1e-4 for error in errors_of(spec, outcomes, reference).values())
+
+    # a reference that does not load: one line naming the sweep file and the key, before any run
+    bad_set = {**reference_set, "method": {"name": "gauss", "s": 6, "k": 12}}
+    bad = write_sweep(tmp_path, {"base": BASE, "grid": grid, "error": {"reference": {"set": bad_set}}}, "bad.yaml")
+    with pytest.raises(SweepError) as caught:
+        load_sweep(bad)
+    assert str(caught.value).startswith(f"{bad}: error.reference.set: method.k: does not apply: gauss(s) takes no k")
+    out = tmp_path / "bad.h5"
+    result = CliRunner().invoke(cli, ["sweep", str(bad), "-o", str(out), "--workers", "1"])
+    assert result.exit_code == 2, result.output
+    assert result.stderr == f"error: {caught.value}\n" and result.stdout == ""   # no run started, no table
+    assert not out.exists()
+    # the workers name the reference run so too (a python: file edited after the sweep was loaded)
+    status = sweeps._execute(sweeps.REFERENCE_LABEL, {}, spec.reference | {"method": bad_set["method"]},
+                             str(path), False).status
+    assert status.startswith(f"failed: {path}: error.reference: method.k: ")
+    assert not any(ord(c) < 32 for c in status + result.stderr.rstrip("\n"))
+    # a fault of the base (a python: file the runs share) is the reference's too, said as the base's
+    (tmp_path / "broken.py").write_text("def H(y, params):\n    return (\n")
+    shared = write_sweep(tmp_path, {"base": {**BASE, "problem": {"python": "broken.py"}, "conserve": []},
+                                    "grid": grid, "error": {"reference": {"set": reference_set}}}, "shared.yaml")
+    with pytest.raises(SweepError, match=r"shared\.yaml: error\.reference: the reference run \(the base with "
+                                         r"error\.reference\.set\) does not load: problem\.python: .*broken\.py"):
+        load_sweep(shared)
 
 
 def test_a_run_that_failed_at_its_first_step_shows_no_figures_never_zero_errors(tmp_path):
