@@ -725,6 +725,39 @@ def test_a_config_may_name_its_method_as_the_paper_does_and_its_problem_by_name(
         assert str(caught.value).startswith(f"{path.parent}/{message}"), str(caught.value)
 
 
+def test_a_method_whose_parentheses_do_not_make_the_notation_is_called_so_not_a_yaml_split(tmp_path):
+    """A user trial: --set "method=EHBVM(12,3" (a ')' missing) was explained as 'inside {...}
+    YAML splits an unquoted EHBVM(12,3) at its comma; quote it', which had not happened; other
+    malformed forms said 'must be a mapping'. The split is named only where YAML made one (the
+    key '3)' beside name); otherwise the notation is called unbalanced or malformed, with the
+    form expected."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    path = write(tmp_path, "problem: kepler\nmethod: {name: ehbvm, k: 12, s: 3}\n"
+                           "integration: {h: 0.1, t_end: 1}\n", "run.yaml")
+    for given, message in [
+            ("method=EHBVM(12,3", "method: 'EHBVM(12,3' is unbalanced: a ')' is missing; expected EHBVM(k,s), e.g. "
+                                  "EHBVM(12,3) (value from --set method=EHBVM(12,3)"),
+            ("method=elim(8,12,3", "method: 'elim(8,12,3' is unbalanced: a ')' is missing; expected ELIM(r,k,s), "
+                                   "e.g. ELIM(8,12,3)"),
+            ("method=EHBVM 12,3)", "method: 'EHBVM 12,3)' is unbalanced: a '(' is missing; expected EHBVM(k,s)"),
+            ("method=EHBVM(12,3)x", "method: 'EHBVM(12,3)x' is malformed; expected EHBVM(k,s), e.g. EHBVM(12,3)"),
+            ("method.name=FOO((1)", "method.name: 'FOO((1)' is unbalanced: a ')' is missing; expected NAME(s), "
+                                    "NAME(k,s) or NAME(r,k,s), e.g. EHBVM(12,3)"),
+            ("method={name: EHBVM(12,3)}", "method.name: 'EHBVM(12' is cut off: inside {...} YAML splits an unquoted "
+                                           "EHBVM(12,3) at its comma; quote it")]:
+        with pytest.raises(ConfigError) as caught:
+            load_run(path, overrides=[given])
+        assert str(caught.value).startswith(f"{path}: {message}"), str(caught.value)
+        assert "YAML splits" not in str(caught.value) or "{" in given
+    result = CliRunner().invoke(cli, ["check", str(path), "--set", "method=EHBVM(12,3"])
+    assert result.exit_code == 2 and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert result.stderr.startswith(f"error: {path}: method: 'EHBVM(12,3' is unbalanced"), result.stderr
+    from elimfast.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"^method 'EHBVM\(12,3' is unbalanced: a '\)' is missing"):
+        elimfast.integrate(problems.kepler(0.6), "EHBVM(12,3", 0.1, n_steps=5)
+
+
 def test_integrate_takes_a_method_in_the_papers_notation():
     from elimfast.errors import ParameterError
     from elimfast.methods import ehbvm
