@@ -687,7 +687,7 @@ class _Builder:
     def step_control(self, integration: Section):
         """The integration section's adaptive keys, validated by StepControl (their one owner)."""
         from .adaptive import StepControl
-        return StepControl(controller=integration.step_control or "error", rtol=integration.rtol,
+        return StepControl(controller=integration.step_control, rtol=integration.rtol,
                            atol=integration.atol, epsilon=integration.epsilon, verify=integration.verify,
                            h=integration.h, h_max=integration.h_max)
 
