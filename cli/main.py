@@ -366,9 +366,14 @@ def _stored_spec(path, overrides, config):
     errors are a new run's), with the --set values the file stores from the runs before applied
     first, as they were then (they need not be given again); the resolved configs are compared,
     so comments, formatting and defaults written out are no change. Returns (spec, the changes
-    that come from CONFIG, not --set, as KEY=VALUE, {their keys: CONFIG} for the refusal to say
-    where they come from, the --set values to store: the stored ones merged with the given)."""
-    from elimfast.config import ConfigError, load_run_from_dict, parse_yaml
+    that come from CONFIG, not --set, as KEY=VALUE, {changed key: where its change comes from}
+    for the refusal to say (resume_refusal's origins), the --set values to store: the stored
+    ones merged with the given).
+
+    A refusal names a key the user changed: a --set key first, then one CONFIG writes out, then
+    one that follows from them (a user trial's --set integration.rtol was refused as
+    'integration.atol (in CONFIG)': atol defaults to rtol, and comes first in key order)."""
+    from elimfast.config import ConfigError, _clip, load_run_from_dict, parse_yaml, read_text_file
     from elimfast.io.hdf5 import RunFile
     from elimfast.io.layout import stored_set_overrides
     from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences,
@@ -381,14 +386,18 @@ def _stored_spec(path, overrides, config):
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
     given = parse_yaml(_resolved_yaml(_load(config, set_overrides)), str(config))
+    written = parse_yaml(read_text_file(Path(config), str(config), what="config file"), str(config))
     set_keys = _given_keys(overrides)
-    changes, from_config, origins = [], [], {}
+    changes, from_config, rank, where = [], [], {}, {}
     for key, value in config_differences(data, given):
         if key == "output.path":
             continue
         by_set = any(keys_overlap(key, k) for k in set_keys)
-        if not by_set:
-            origins[key] = str(config)
+        if by_set:
+            items = [item for item in overrides if keys_overlap(key, _set_key(item))]
+            rank[key], where[key] = 0, f"value from --set {_clip(items[-1])}" if items else None
+        else:
+            rank[key], where[key] = (1 if _writes_out(written, key) else 2), f"in {config}"
         if value is ABSENT:   # a key CONFIG leaves out, as --set KEY=null leaves it out
             if key.split(".")[0] in SOLVER_SECTIONS or key in LOAD_ONLY_KEYS:
                 continue
@@ -399,6 +408,9 @@ def _stored_spec(path, overrides, config):
         changes.append(item)
         if not by_set:
             from_config.append(item)
+    if any(r == 0 for r in rank.values()):   # what follows from a --set is not CONFIG's doing
+        where.update({key: None for key, r in rank.items() if r == 2})
+    origins = {key: where[key] for key in sorted(rank, key=rank.get)}
     # The stored config resolves both t_end and n_steps: a run continued to a later end
     # gets the other from the one given.
     keys = {_set_key(item) for item in changes}
@@ -419,7 +431,8 @@ def _stored_spec(path, overrides, config):
             raise
         load_run_from_dict(data, source=source, overrides=kept)
         others = sorted((item for item in changes if item not in kept),
-                        key=lambda item: any(_set_key(item).startswith(k) for k in EXTENSION_KEYS))
+                        key=lambda item: (any(_set_key(item).startswith(k) for k in EXTENSION_KEYS),
+                                          rank.get(_set_key(item), 2)))
 
         def fails(item) -> bool:
             try:
@@ -429,6 +442,19 @@ def _stored_spec(path, overrides, config):
             return False
         failing = next((item for item in others if fails(item)), others[0])
         raise resume_refusal(path, _set_key(failing), configs=(data, given), origins=origins) from None
+
+
+def _writes_out(data, key: str) -> bool:
+    """Whether a parsed config (as its file has it) gives the dotted ``key``: the key itself, a
+    key under it, or a short form above it (method: EHBVM(12,3) gives method.k)."""
+    node = data
+    for part in key.split("."):
+        if not isinstance(node, dict):
+            return node is not None
+        if part not in node:
+            return False
+        node = node[part]
+    return True
 
 
 def _yaml_value(value) -> str:

@@ -45,11 +45,15 @@ def time_scale_at(problem: Problem, y) -> float:
     return float(out[0])
 
 
+_EPSILON_WITH_ERROR_CONTROL = "belongs to step_control = 'time_scale'; the error controller takes rtol (and atol)"
+
+
 @dataclass(frozen=True)
 class StepControl:
     """How the step size is chosen (docs/adaptive.md).
 
-    controller 'error' (the default): local error estimate with tolerances rtol (and atol,
+    controller 'error' (the default, also for None: then an epsilon without rtol or atol asks
+    for 'time_scale', which it belongs to): local error estimate with tolerances rtol (and atol,
     default rtol) and Gustafsson's controller; verify: estimate by step doubling instead
     (exact to 0.2%, three steps' work); None (the default) lets ``for_method`` choose it
     where the cheap estimate is not trusted; h: the first step (None: chosen from the problem).
@@ -59,7 +63,7 @@ class StepControl:
     largest step.
     """
 
-    controller: str = "error"
+    controller: str | None = None
     rtol: float | None = None
     atol: float | None = None
     epsilon: float | None = None
@@ -68,13 +72,26 @@ class StepControl:
     h_max: float | None = None
 
     def __post_init__(self):
+        given = self.controller is not None
+        if not given:
+            object.__setattr__(self, "controller", "error")
         if self.controller not in CONTROLLERS:
             raise ParameterError("step_control", f"must be one of {', '.join(CONTROLLERS)} (the error estimate, the "
                                                  f"default, or time-reversible steps from the problem's time scale), "
                                                  f"got {self.controller!r}")
         if self.controller == "error":
+            # Without rtol, name what was given (a user trial was told only that rtol was needed):
+            # an epsilon meant the time-reversible steps, an atol lacks the rtol beside it.
             if self.rtol is None:
-                raise ParameterError("rtol", "is needed for error-controlled steps, e.g. rtol = 1e-10")
+                if self.atol is not None:
+                    raise ParameterError("atol", "is given without rtol, which error-controlled steps need: add "
+                                                 "rtol, e.g. rtol = 1e-10")
+                if self.epsilon is not None and not given:
+                    raise ParameterError("epsilon", "applies to time-reversible steps: add step_control = "
+                                                    "'time_scale', or give rtol instead for error-controlled steps")
+                if self.epsilon is None:
+                    raise ParameterError("rtol", "is needed for error-controlled steps, e.g. rtol = 1e-10")
+                raise ParameterError("epsilon", _EPSILON_WITH_ERROR_CONTROL)
             rtol = _positive("rtol", self.rtol)
             if not MIN_RTOL <= rtol <= MAX_RTOL:
                 raise ParameterError("rtol", f"must be between {MIN_RTOL:g} and {MAX_RTOL:g}, got {rtol:g}")
@@ -85,11 +102,11 @@ class StepControl:
                                              "positive value")
             object.__setattr__(self, "atol", rtol if self.atol is None else _positive("atol", self.atol))
             if self.epsilon is not None:
-                raise ParameterError("epsilon", "belongs to step_control = 'time_scale'; the error controller takes "
-                                                "rtol (and atol)")
+                raise ParameterError("epsilon", _EPSILON_WITH_ERROR_CONTROL)
         else:
             if self.rtol is not None or self.atol is not None:
-                raise ParameterError("rtol", "belongs to step_control = 'error'; time-scale steps take epsilon")
+                raise ParameterError("rtol" if self.rtol is not None else "atol",
+                                     "belongs to step_control = 'error'; time-scale steps take epsilon")
             if self.verify:
                 raise ParameterError("verify", "belongs to step_control = 'error' (step doubling checks its "
                                                "estimate)")

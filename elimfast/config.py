@@ -490,8 +490,11 @@ def write_out_shorthands(data: dict, error) -> dict:
     data = dict(data)
     method = data.get("method")
     name = method.get("name") if isinstance(method, dict) else method
-    if isinstance(name, str) and "(" in name:
-        if ")" not in name:   # YAML's flow mapping {name: EHBVM(12,3)} splits it at the comma
+    if isinstance(name, str) and ("(" in name or ")" in name):
+        # YAML's flow mapping {name: EHBVM(12,3)} splits it at the comma: name 'EHBVM(12' and a
+        # key '3)'. Without that key the notation itself is wrong (from_notation says how).
+        rest = [key for key in method if key != "name"] if isinstance(method, dict) else []
+        if ")" not in name and any(str(key).rstrip().endswith(")") for key in rest):
             raise error(("method", "name"), f"{name!r} is cut off: inside {{...}} YAML splits an unquoted "
                         f"EHBVM(12,3) at its comma; quote it (name: \"EHBVM(12,3)\"), or write method: "
                         "EHBVM(12,3) on its own line")
@@ -684,7 +687,7 @@ class _Builder:
     def step_control(self, integration: Section):
         """The integration section's adaptive keys, validated by StepControl (their one owner)."""
         from .adaptive import StepControl
-        return StepControl(controller=integration.step_control or "error", rtol=integration.rtol,
+        return StepControl(controller=integration.step_control, rtol=integration.rtol,
                            atol=integration.atol, epsilon=integration.epsilon, verify=integration.verify,
                            h=integration.h, h_max=integration.h_max)
 

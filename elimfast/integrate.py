@@ -1240,11 +1240,8 @@ def _step_control(step_control, rtol, atol, epsilon, verify, h, h_max):
     from .adaptive import StepControl
     if isinstance(step_control, StepControl):
         return step_control
-    if step_control is None and epsilon is not None and rtol is None and atol is None:
-        raise ParameterError("epsilon", "applies to time-reversible steps: add step_control='time_scale' (or give "
-                                        "rtol for error-controlled steps instead)")
-    return StepControl(controller=step_control or "error", rtol=rtol, atol=atol, epsilon=epsilon, verify=verify,
-                       h=h, h_max=h_max)
+    return StepControl(controller=step_control, rtol=rtol, atol=atol, epsilon=epsilon, verify=verify, h=h,
+                       h_max=h_max)
 
 
 def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve, store_every, t0, y0, backward,

@@ -581,11 +581,14 @@ def step_solver_refusal(path, key: str) -> OutputError:
 def resume_refusal(path, key: str, prefix: str = "", configs=(), origins=None) -> OutputError:
     """The refusal of a --resume that would change ``key``, a key outside SOLVER_SECTIONS;
     ``configs``: the stored config and the new one, as far as known (parsed YAML), which tell
-    a terminal event from one that is not (``change_effect``). ``origins``: {dotted key: the
-    file that changes it} for changes not given with --set (the CONFIG of the command line),
-    so that a change the user did not type names where it comes from."""
-    origin = next((where for changed, where in (origins or {}).items() if keys_overlap(key, changed)), None)
-    label = f"{key} (in {origin})" if origin else key
+    a terminal event from one that is not (``change_effect``). ``origins``: {dotted key: where
+    its change comes from, as the message says it ("value from --set integration.rtol=1e-12",
+    "in run.yaml"), or None}, the keys the user changed first (run_to_file names the first
+    that differs)."""
+    origins = origins or {}
+    origin = origins[key] if key in origins else next(
+        (where for changed, where in origins.items() if where and keys_overlap(key, changed)), None)
+    label = f"{key} ({origin})" if origin else key
     return OutputError(f"{path}: {prefix}only {'/'.join(s + '.*' for s in SOLVER_SECTIONS)} may change on --resume; "
                        f"{change_effect(key, configs, label)}: start a new run (-o NEW.h5), or replace this one with "
                        "--overwrite")
@@ -624,9 +627,11 @@ def change_effect(key: str, configs=(), label: str | None = None) -> str:
 
 
 def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
-                      ignore_keys: tuple[str, ...] = ()) -> str | None:
+                      ignore_keys: tuple[str, ...] = (), prefer: tuple[str, ...] = ()) -> str | None:
     """The first key where two resolved YAML configs differ (output.path, the sections in
-    ``ignore`` and the dotted keys in ``ignore_keys`` left out), or None."""
+    ``ignore`` and the dotted keys in ``ignore_keys`` left out), or None. ``prefer``: dotted
+    keys, most wanted first, named before the others where they differ (a key the user changed
+    before one that follows from it: atol, which defaults to rtol, comes first in key order)."""
     import yaml
     try:
         old, new = yaml.safe_load(stored) or {}, yaml.safe_load(current) or {}
@@ -642,7 +647,9 @@ def config_difference(stored: str, current: str, ignore: tuple[str, ...] = (),
                 section, _, name = key.partition(".")
                 if isinstance(tree.get(section), dict):
                     tree[section].pop(name, None)
-    return next((key for key, _ in config_differences(old, new)), None)
+    keys = [key for key, _ in config_differences(old, new)]
+    wanted = (key for preferred in prefer for key in keys if keys_overlap(key, preferred))
+    return next(wanted, keys[0] if keys else None)
 
 
 ABSENT = object()   # config_differences' new value of a key that only the old config has
@@ -783,7 +790,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
     command line does so before the run). Raises OutputError for file problems and DiskFullError when the disk has no
     room, before any step is computed. ``resume_command``: the command line that
     continues this run, quoted in the messages of an interrupted or stopped run. ``origins``:
-    resume_refusal's, for the changes that come from a file rather than --set. ``set_overrides``:
+    resume_refusal's, where each change comes from, the keys the user changed first: a refusal
+    names the first of them that may not change. ``set_overrides``:
     the command line's --set values the run is made with (all of them, a resume's merged with the
     stored ones), stored for the next --resume (io.layout.SET_OVERRIDES); None stores none.
     """
@@ -809,7 +817,7 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 clock = existing.saved_state().get("clock")
             stored = str(attrs.get("config", ""))
             difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS,
-                                           ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS)
+                                           ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS, prefer=tuple(origins or ()))
             if difference is not None:
                 raise resume_refusal(path, difference, prefix="was written from a different config; ",
                                      configs=_parsed(stored, config_text), origins=origins)

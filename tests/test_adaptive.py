@@ -735,7 +735,7 @@ def test_output_times_before_zero_and_the_api_s_argument_checks():
     cases = [({"t_eval": [[0.1, 0.2], [0.3, 0.4]], "rtol": 1e-10}, r"^t_eval must be a list of times \(1-d\)"),
              ({"h": 0.1, "h_max": 0.05}, r"^h_max applies to adaptive steps only"),
              ({"h": 0.1, "verify": True}, r"^verify applies to adaptive steps only"),
-             ({"epsilon": 0.05}, r"^epsilon applies to time-reversible steps: add step_control='time_scale'"),
+             ({"epsilon": 0.05}, r"^epsilon applies to time-reversible steps: add step_control = 'time_scale'"),
              ({"h": 0.1, "t0": float("nan")}, r"^t0 must be a finite number"),
              ({"rtol": 1e-10, "t0": float("nan")}, r"^t0 must be a finite number"),
              ({}, r"^h is missing")]

@@ -677,6 +677,41 @@ def test_an_event_may_be_given_by_its_expression_alone_as_in_python():
     assert short.events == full.events == {"peri": {"expression": "q1*p1 + q2*p2", "direction": 0, "terminal": False}}
 
 
+def test_epsilon_or_atol_without_rtol_is_named_with_its_set_not_told_rtol_is_needed(tmp_path):
+    """A user trial: --set integration.epsilon=0.1 (and --set integration.atol=1e-10) on the
+    fixed-step configs/kepler.yaml said 'configs/kepler.yaml:9: integration.rtol: is needed for
+    error-controlled steps', naming neither the key given nor the --set. epsilon alone meant
+    the time-reversible steps, and is told how to ask for them (as elimfast.integrate said);
+    atol alone is told that it needs rtol; each names its --set, or its line in the file.
+    StepControl states the rule once, for the config and the API."""
+    from click.testing import CliRunner
+    from elimfast.errors import ParameterError
+    from elimfast_cli.main import cli
+    kepler = str(CONFIGS / "kepler.yaml")
+    for given, message in [
+            ("integration.epsilon=0.1", "integration.epsilon: applies to time-reversible steps: add step_control = "
+                                        "'time_scale', or give rtol instead for error-controlled steps (value from "
+                                        "--set integration.epsilon=0.1)"),
+            ("integration.atol=1e-10", "integration.atol: is given without rtol, which error-controlled steps need: "
+                                       "add rtol, e.g. rtol = 1e-10 (value from --set integration.atol=1e-10)")]:
+        with pytest.raises(ConfigError) as caught:
+            load_run(kepler, overrides=[given])
+        assert str(caught.value) == f"{kepler}: {message}"
+        result = CliRunner().invoke(cli, ["run", kepler, "-o", str(tmp_path / "x.h5"), "--set", given])
+        assert result.exit_code == 2 and result.stderr == f"error: {kepler}: {message}\n", result.stderr
+    # in the file: its line; with step_control: error given, epsilon is told where it belongs
+    path = write(tmp_path, "problem: kepler\nmethod: {name: ehbvm, s: 4}\nintegration:\n  t_end: 1\n"
+                           "  atol: 1e-10\n", "atol.yaml")
+    with pytest.raises(ConfigError, match=r"atol.yaml:5: integration.atol: is given without rtol"):
+        load_run(path)
+    with pytest.raises(ConfigError, match=r"kepler.yaml: integration.epsilon: belongs to step_control = 'time_scale'"):
+        load_run(kepler, overrides=["integration.step_control=error", "integration.epsilon=0.1"])
+    with pytest.raises(ConfigError, match=r"kepler.yaml: integration.atol: belongs to step_control = 'error'"):
+        load_run(kepler, overrides=["integration.step_control=time_scale", "integration.atol=1e-10"])
+    with pytest.raises(ParameterError, match=r"^atol is given without rtol"):
+        elimfast.integrate(problems.kepler(0.6), "EHBVM(8,4)", t_end=1.0, atol=1e-10)
+
+
 # --- short forms: the paper's notation for methods, a built-in's name for problems ---------
 
 @pytest.mark.parametrize("text,expected", [
@@ -723,6 +758,39 @@ def test_a_config_may_name_its_method_as_the_paper_does_and_its_problem_by_name(
         with pytest.raises(ConfigError) as caught:
             load_run(path)
         assert str(caught.value).startswith(f"{path.parent}/{message}"), str(caught.value)
+
+
+def test_a_method_whose_parentheses_do_not_make_the_notation_is_called_so_not_a_yaml_split(tmp_path):
+    """A user trial: --set "method=EHBVM(12,3" (a ')' missing) was explained as 'inside {...}
+    YAML splits an unquoted EHBVM(12,3) at its comma; quote it', which had not happened; other
+    malformed forms said 'must be a mapping'. The split is named only where YAML made one (the
+    key '3)' beside name); otherwise the notation is called unbalanced or malformed, with the
+    form expected."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    path = write(tmp_path, "problem: kepler\nmethod: {name: ehbvm, k: 12, s: 3}\n"
+                           "integration: {h: 0.1, t_end: 1}\n", "run.yaml")
+    for given, message in [
+            ("method=EHBVM(12,3", "method: 'EHBVM(12,3' is unbalanced: a ')' is missing; expected EHBVM(k,s), e.g. "
+                                  "EHBVM(12,3) (value from --set method=EHBVM(12,3)"),
+            ("method=elim(8,12,3", "method: 'elim(8,12,3' is unbalanced: a ')' is missing; expected ELIM(r,k,s), "
+                                   "e.g. ELIM(8,12,3)"),
+            ("method=EHBVM 12,3)", "method: 'EHBVM 12,3)' is unbalanced: a '(' is missing; expected EHBVM(k,s)"),
+            ("method=EHBVM(12,3)x", "method: 'EHBVM(12,3)x' is malformed; expected EHBVM(k,s), e.g. EHBVM(12,3)"),
+            ("method.name=FOO((1)", "method.name: 'FOO((1)' is unbalanced: a ')' is missing; expected NAME(s), "
+                                    "NAME(k,s) or NAME(r,k,s), e.g. EHBVM(12,3)"),
+            ("method={name: EHBVM(12,3)}", "method.name: 'EHBVM(12' is cut off: inside {...} YAML splits an unquoted "
+                                           "EHBVM(12,3) at its comma; quote it")]:
+        with pytest.raises(ConfigError) as caught:
+            load_run(path, overrides=[given])
+        assert str(caught.value).startswith(f"{path}: {message}"), str(caught.value)
+        assert "YAML splits" not in str(caught.value) or "{" in given
+    result = CliRunner().invoke(cli, ["check", str(path), "--set", "method=EHBVM(12,3"])
+    assert result.exit_code == 2 and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert result.stderr.startswith(f"error: {path}: method: 'EHBVM(12,3' is unbalanced"), result.stderr
+    from elimfast.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"^method 'EHBVM\(12,3' is unbalanced: a '\)' is missing"):
+        elimfast.integrate(problems.kepler(0.6), "EHBVM(12,3", 0.1, n_steps=5)
 
 
 def test_integrate_takes_a_method_in_the_papers_notation():

@@ -190,8 +190,9 @@ def test_resume_refuses_a_change_of_the_trajectory_by_name(tmp_path, change):
     assert CliRunner().invoke(cli, args).exit_code == 0
     result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", change])
     assert result.exit_code == 2
-    assert result.stderr.endswith(f"only solver.* may change on --resume; {change.split('=')[0]} changes the "
-                                  "trajectory: start a new run (-o NEW.h5), or replace this one with --overwrite\n")
+    assert result.stderr.endswith(f"only solver.* may change on --resume; {change.split('=')[0]} (value from --set "
+                                  f"{change}) changes the trajectory: start a new run (-o NEW.h5), or replace this "
+                                  "one with --overwrite\n"), result.stderr
     # a value repeated from the first run, and a solver setting, are no change
     repeated = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", "solver.max_halvings=6"])
     assert repeated.exit_code == 0, repeated.stderr
@@ -244,10 +245,10 @@ def test_resume_says_what_a_changed_event_would_do(tmp_path):
                    'events.apo={expression: "q1*p1 + q2*p2", direction: -1}'):
         result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", change])
         assert result.exit_code == 2
-        assert result.stderr.endswith(refusal + f"{change.split('=')[0]} leaves the trajectory as it is (an event that is "
-                                 "not terminal only records where it occurs), but the events stored for the steps "
-                                 "already done were found with the stored definition, so the file would hold events "
-                                 "of two definitions" + advice), result.stderr
+        assert result.stderr.endswith(refusal + f"{change.split('=')[0]} (value from --set {change}) leaves the "
+                                 "trajectory as it is (an event that is not terminal only records where it occurs), "
+                                 "but the events stored for the steps already done were found with the stored "
+                                 "definition, so the file would hold events of two definitions" + advice), result.stderr
     other = tmp_path / "other.h5"
     assert CliRunner().invoke(cli, [*args[:2], "-o", str(other), *args[4:-1], "--quiet", "--set",
                                     "events.peri.direction=-1"]).exit_code == 0
@@ -258,11 +259,12 @@ def test_resume_says_what_a_changed_event_would_do(tmp_path):
     # a terminal event, or making one terminal, changes where the run ends
     for change in ("events.peri.terminal=true", 'events.apo={expression: "q1*p1 + q2*p2", terminal: true}'):
         result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", change])
-        assert result.stderr.endswith(refusal + f"{change.split('=')[0]} changes where the run ends (a terminal event stops "
-                                 "it), and so the trajectory" + advice), result.stderr
+        assert result.stderr.endswith(refusal + f"{change.split('=')[0]} (value from --set {change}) changes where the "
+                                 "run ends (a terminal event stops it), and so the trajectory" + advice), result.stderr
     result = CliRunner().invoke(cli, [*args[:-1], "--resume", "--set", "output.every=5"])
-    assert result.stderr.endswith(refusal + "output.every leaves the trajectory as it is, but changes which states are "
-                             "sampled, so the file's samples would change their spacing part-way" + advice)
+    assert result.stderr.endswith(refusal + "output.every (value from --set output.every=5) leaves the trajectory as "
+                             "it is, but changes which states are sampled, so the file's samples would change their "
+                             "spacing part-way" + advice)
 
 
 def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_path):
@@ -328,6 +330,36 @@ def test_resume_with_another_config_is_refused_naming_the_change(tmp_path):
     assert f" (in {pendulum}) changes the trajectory" in other.stderr
     same = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--set", "integration.t_end=5", "--resume"])
     assert same.exit_code == 0 and "already complete" in same.stderr, same.stderr
+
+
+ADAPTIVE = ("problem: {builtin: kepler, parameters: {eccentricity: 0.6}}\nconserve: [angular_momentum]\n"
+            "method: {name: ehbvm, s: 3}\nintegration: {rtol: 1e-10, t_end: 3}\n")
+
+
+def test_a_refused_resume_names_the_key_the_user_changed_and_where(tmp_path):
+    """A user trial: --resume --set integration.rtol=1e-12 on an adaptive run was refused naming
+    'integration.atol (in k09_times.yaml)': atol only changed because it defaults to rtol, and
+    the file had not been edited. The refusal names the key the user changed, a --set one first
+    with its --set, then one CONFIG writes out, before one that follows from them."""
+    config, path = tmp_path / "adaptive.yaml", tmp_path / "a.h5"
+    config.write_text(ADAPTIVE)
+    assert CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--quiet"]).exit_code == 0
+    before = path.read_bytes()
+    refusal = f"error: {path}: was written from a different config; only solver.* may change on --resume; "
+    advice = " changes the trajectory: start a new run (-o NEW.h5), or replace this one with --overwrite\n"
+    by_set = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume", "--set",
+                                      "integration.rtol=1e-9"])
+    assert by_set.exit_code == 2 and by_set.stderr == (
+        refusal + "integration.rtol (value from --set integration.rtol=1e-9)" + advice), by_set.stderr
+    # an edit of CONFIG names the edited key, and the file; a --set beside it comes first
+    config.write_text(ADAPTIVE.replace("rtol: 1e-10", "rtol: 1e-9"))
+    edited = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert edited.exit_code == 2 and edited.stderr == refusal + f"integration.rtol (in {config})" + advice, \
+        edited.stderr
+    both = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume", "--set", "method.s=4"])
+    assert both.exit_code == 2 and both.stderr == refusal + "method.s (value from --set method.s=4)" + advice, \
+        both.stderr
+    assert path.read_bytes() == before
 
 
 def test_inspect_names_the_solver_settings_a_run_was_resumed_with(tmp_path):

@@ -972,7 +972,8 @@ def test_a_sweep_takes_the_short_forms_of_a_run_config(tmp_path):
         {"name": "ghbvm", "k": 12, "s": 3}, {"name": "ghbvm", "k": 16, "s": 3},
         {"name": "ehbvm", "k": 12, "s": 3}, {"name": "ehbvm", "k": 16, "s": 3}]
     assert all(run.config["problem"] == {"builtin": "kepler"} for run in spec.runs)
-    bad = write_sweep(tmp_path, {"base": {**BASE, "method": {"name": "EHBVM(12"}}}, "bad.yaml")
+    # what YAML reads from an unquoted {name: EHBVM(12,3)}: the split leaves the key '3)'
+    bad = write_sweep(tmp_path, {"base": {**BASE, "method": {"name": "EHBVM(12", "3)": None}}}, "bad.yaml")
     with pytest.raises(SweepError, match=r"bad.yaml: base.method.name: 'EHBVM\(12' is cut off"):
         load_sweep(bad)
 

@@ -57,13 +57,36 @@ def _notation_example(name: str, kind: Family) -> str:
     return f"{name}({','.join(str(n) for n in (8, 12, 3)[-len(kind.parameters):])})"
 
 
+def _malformed_notation(text: str) -> str:
+    """What is wrong with ``text``, which has parentheses but not the paper's notation, and the
+    form expected (the family's own where ``text`` begins with a known name)."""
+    opened, closed = text.count("("), text.count(")")
+    if opened != closed:
+        fault = f"is unbalanced: a {')' if opened > closed else '('!r} is missing"
+    else:
+        fault = "is malformed"
+    start = re.match(r"\s*([A-Za-z]+)", text)
+    kind = FAMILIES.get(start.group(1).lower()) if start else None
+    if kind is not None:
+        name = start.group(1).upper()
+        form = f"{name}({','.join(kind.parameters)}), e.g. {_notation_example(name, kind)}"
+    else:
+        form = "NAME(s), NAME(k,s) or NAME(r,k,s), e.g. EHBVM(12,3)"
+    return f"{text.strip()!r} {fault}; expected {form}"
+
+
 def from_notation(text: str) -> dict | None:
     """A method written as the paper writes it, ``EHBVM(12,3)``, ``GAUSS(4)``, ``ELIM(8,12,3)``
     (any case, spaces allowed), as ``{"name": family, parameter: value, ...}`` in the order of
-    the family's parameters (Family.parameters); None when ``text`` is not in that form.
-    ParameterError('name', ...) for an unknown family or numbers that do not fit its parameters."""
-    match = _NOTATION.fullmatch(text) if isinstance(text, str) else None
+    the family's parameters (Family.parameters); None when ``text`` has no parentheses (a
+    family's name, say). ParameterError('name', ...) for parentheses that do not make the
+    notation (unbalanced or malformed), an unknown family or numbers that do not fit its parameters."""
+    if not isinstance(text, str):
+        return None
+    match = _NOTATION.fullmatch(text)
     if match is None:
+        if "(" in text or ")" in text:
+            raise ParameterError("name", _malformed_notation(text))
         return None
     kind = family(match.group(1))
     numbers = [part.strip() for part in match.group(2).split(",")]
