@@ -208,9 +208,9 @@ def test_an_adaptive_result_in_xarray_has_its_steps_events_and_step_control():
     assert ds.sizes["pericentre_occurrence"] == 2
     assert ds.attrs["step_control"] == "error" and ds.attrs["rtol"] == 1e-12
     assert ds.attrs["rejected_steps"] == r.stats["rejected_steps"] and ds.attrs["steps"] == r.steps_done
-    # a fixed-step result has none of these
+    # a fixed-step result has none of these, and says step_control = fixed, as its run file does
     fixed = elimfast.integrate(p, methods.ehbvm(8, 4), 0.01, n_steps=10, conserve=CONSERVE).to_xarray()
-    assert "step_h" not in fixed and "step_control" not in fixed.attrs
+    assert "step_h" not in fixed and "rtol" not in fixed.attrs and fixed.attrs["step_control"] == "fixed"
 
 
 def test_an_adaptive_run_file_loads_with_the_attributes_of_the_result_it_stores(tmp_path):
