@@ -33,16 +33,36 @@ EVENT_DIRECTIONS = (-1, 0, 1)
 CHEAP_ESTIMATE_MAX_S = 5
 
 
-def time_scale_at(problem: Problem, y) -> float:
-    """sigma(y) of a problem's time scale (docs/adaptive.md); NaN where it raises an ArithmeticError."""
+def state_function_values(function, problem: Problem, y, size: int) -> np.ndarray:
+    """out (size,) of a compiled function of the state (the INVARIANTS signature: a time scale,
+    events) at y; NaN where it raises an ArithmeticError."""
     y = np.array(y, dtype=np.float64)   # writable, C-contiguous
-    out = np.full(y.size + 1, np.nan)   # sigma, then its gradient
+    out = np.full(size, np.nan)
     with np.errstate(all="ignore"):
         try:
-            problem.time_scale(y, problem.params, out)
+            function(y, problem.params, out)
         except ArithmeticError:
             pass
-    return float(out[0])
+    return out
+
+
+def time_scale_at(problem: Problem, y) -> float:
+    """sigma(y) of a problem's time scale (docs/adaptive.md); NaN where it raises an ArithmeticError."""
+    return float(state_function_values(problem.time_scale, problem, y, np.size(y) + 1)[0])   # sigma, its gradient
+
+
+def require_defined_at_start(parameter: str, value: float, y, why: str, positive: bool = False) -> None:
+    """The rule for a function of the state that steers or watches a run (a time scale, an
+    event): finite at the initial state y, and positive if ``positive``; else a ParameterError
+    naming ``parameter``, the value there and y, and ``why`` it must be so. It is checked
+    before the run: a time scale that is not positive ran backwards from t0 without end; an
+    event that is NaN at y0 (sqrt(q1 - 10) where q1 < 10) never changes sign, and a run found
+    none of it and said nothing (a user trial)."""
+    if math.isfinite(value) and (value > 0.0 or not positive):
+        return
+    must = "positive and finite" if positive else "finite"
+    raise ParameterError(parameter, f"is {value!r} at the initial state {np.asarray(y).tolist()}; it must be {must} "
+                                    f"along the orbit {why}")
 
 
 _EPSILON_WITH_ERROR_CONTROL = "belongs to step_control = 'time_scale'; the error controller takes rtol (and atol)"
@@ -189,11 +209,8 @@ class StepControl:
         first step with a message about Gamma."""
         if self.controller == "time_scale" and problem.time_scale is not None:
             y = np.array(problem.y0 if y0 is None else y0, dtype=np.float64)   # writable, C-contiguous
-            sigma = time_scale_at(problem, y)
-            if not (math.isfinite(sigma) and sigma > 0.0):
-                raise ParameterError("time_scale", f"is {sigma!r} at the initial state {y.tolist()}; it must be "
-                                                   "positive and finite along the orbit (the steps are epsilon times "
-                                                   "it), e.g. a positive power of a distance")
+            require_defined_at_start("time_scale", time_scale_at(problem, y), y, positive=True,
+                                     why="(the steps are epsilon times it), e.g. a positive power of a distance")
         if self.controller == "time_scale" and problem.time_scale is None:
             from .problems import PROBLEMS
             if problem.name in PROBLEMS and problem.hessian_source == "analytic":
@@ -284,7 +301,9 @@ class EventSpec:
     function: object = field(repr=False, default=None)
 
     @classmethod
-    def build(cls, problem: Problem, events: Mapping | None) -> "EventSpec":
+    def build(cls, problem: Problem, events: Mapping | None, y0=None) -> "EventSpec":
+        """The events compiled for the problem, each checked to be finite at the initial state
+        y0 (problem.y0 by default; require_defined_at_start, the time scale's rule)."""
         from .problems.symbolic import compile_state_functions
 
         events = dict(events or {})
@@ -315,6 +334,13 @@ class EventSpec:
             terminal.append(int(bool(term)))
         function = (compile_state_functions(problem, dict(zip(names, expressions)), what="event",
                                             key_prefix="events") if names else no_invariants)
+        if names:
+            y = problem.y0 if y0 is None else y0
+            for name, value in zip(names, state_function_values(function, problem, y, len(names))):
+                require_defined_at_start(f"events.{name}", float(value), y,
+                                         why="(an event is where it changes sign, which a NaN or an infinity "
+                                             "never shows): write it so that it is defined wherever the orbit "
+                                             "goes, e.g. no sqrt or log of a negative number")
         return cls(tuple(names), tuple(expressions), np.array(directions, dtype=np.int64),
                    np.array(terminal, dtype=np.int64), function)
 

@@ -61,7 +61,7 @@ def load(path, run: str | None = None):
         else:   # as integrate: ELIM imposing nothing has alpha with no columns
             alpha = np.zeros((stored.steps_done, 0)) if elim_family else None
         n_steps = int(stored.attrs.get("n_steps", spec.n_steps))
-        if n_steps == 0 and "step_control" in stored.attrs:
+        if n_steps == 0 and stored.adaptive:
             # an adaptive run's file has no step count set in advance (0); its Result, as integrate's,
             # counts the steps taken
             n_steps = stored.steps_done

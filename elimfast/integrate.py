@@ -1269,7 +1269,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
         control.check_problem(problem, y_start)
     if t_eval is not None:
         t_eval = resolve_t_eval(t_eval, float(t0), t_end, store_every)
-    event_spec = EventSpec.build(problem, events) if events else None
+    event_spec = EventSpec.build(problem, events, y_start) if events else None
     run = AdaptiveIntegration(problem, method, conserve_idx, names, solver, control, t_end=t_end, t0=t0,
                               y0=y_start, t_eval=t_eval, events=event_spec, store_every=store_every, h=h,
                               n_steps=n_steps)

@@ -512,6 +512,31 @@ def test_a_time_scale_not_positive_at_the_initial_state_is_refused(time_scale, v
         load_run_from_dict(config, source="run.yaml")
 
 
+@pytest.mark.parametrize("expression, value", [("sqrt(q1 - 10)", "nan"), ("log(q2)", "-inf"), ("1/q2", "inf")])
+def test_an_event_not_finite_at_the_initial_state_is_refused(expression, value):
+    """A user trial's finding: an event sqrt(q1 - 10) on Kepler (q1 = 0.4 at t0, never above 1)
+    is NaN at every step, so it never changes sign; the run found 0 events, exit 0, and nothing
+    said why. Like a time scale (require_defined_at_start, one rule for both), an event must be
+    finite at the initial state: integrate and a config (fixed or adaptive steps) refuse it,
+    naming the event's key."""
+    from elimfast.config import ConfigError, load_run_from_dict
+    message = rf"is {re.escape(value)} at the initial state \[0\.4, 0\.0, 0\.0, 2\.0\]; it must be finite along the orbit"
+    with pytest.raises(ParameterError, match=rf"^events\.bad {message}") as info:
+        elimfast.integrate(kepler(0.6), ehbvm(8, 4), t_end=1.0, rtol=1e-10,
+                           events={"fine": "q2", "bad": {"expression": expression, "direction": 1}})
+    assert info.value.parameter == "events.bad"
+    with pytest.raises(ParameterError, match=rf"^events\.bad {message}"):   # fixed steps with events too
+        elimfast.integrate(kepler(0.6), ehbvm(8, 4), h=0.1, t_end=1.0, events={"bad": expression})
+    for integration in ({"rtol": 1e-10, "t_end": 1}, {"h": 0.1, "t_end": 1}):
+        config = {"problem": {"builtin": "kepler"}, "method": {"name": "ehbvm", "k": 8, "s": 4},
+                  "integration": integration, "events": {"bad": {"expression": expression}}}
+        with pytest.raises(ConfigError, match=rf"^run\.yaml: events\.bad: {message}"):
+            load_run_from_dict(config, source="run.yaml")
+    # an event that is 0 at t0 is fine (it is finite): the run starts on it
+    run = elimfast.integrate(kepler(0.6), ehbvm(8, 4), t_end=1.0, rtol=1e-10, events={"axis": "q2"})
+    assert run.status == "complete"
+
+
 def test_a_time_scale_that_reaches_zero_along_the_orbit_is_named_in_the_failure():
     """A time scale q1 on Kepler e = 0.6 from q1 = 0.4: q1 reaches 0 at t = 0.447, the steps
     epsilon sigma collapse, and the run failed with 'the solution became NaN or infinite' at

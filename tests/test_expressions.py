@@ -149,6 +149,58 @@ def test_error_names_the_offending_token():
     assert info.value.token == "P2"
 
 
+@pytest.mark.parametrize("text, match", [
+    ("min(q1**2, q2**2)", r"'min' is not an allowed function: expressions must be smooth, since their gradients "
+                          r"are generated from them, and min has a kink where its arguments cross; for the smaller "
+                          r"of two positive values a, b write a smooth combination such as 1/\(1/a \+ 1/b\)"),
+    ("Max(q1, p1)", r"'Max' is not an allowed function: expressions must be smooth.*larger of two positive values "
+                    r"a, b .* a \+ b"),
+    ("max(q1, p1)", r"'max' is not an allowed function: expressions must be smooth"),
+    ("sign(q1)*q1", r"'sign' is not an allowed function: expressions must be smooth.* jumps at 0; .*tanh\(x/d\)"),
+    ("floor(q1)", r"'floor' is not an allowed function: expressions must be smooth"),
+    ("q1 + min", r"'min' is not an allowed function: expressions must be smooth"),
+    ("log10(q1)", r"'log10' is not an allowed function: write log\(x\)/log\(10\) \(allowed: sqrt, "),
+    ("sinn(q1)", r"'sinn' is not an allowed function; did you mean 'sin'\? \(allowed: sqrt, "),
+])
+def test_a_function_with_a_kink_is_refused_with_a_smooth_combination_to_write(text, match):
+    """A user trial: time_scale "min(s1, s2)" was refused with "'min' is not an allowed function;
+    did you mean 'sin'?". The expressions must be smooth (their gradients are generated), so
+    min and max are not offered; the message says so and gives a smooth combination (the
+    user's 1/(1/s1 + 1/s2) worked for two primaries), with no 'did you mean'. A misspelt
+    allowed function still gets its suggestion."""
+    with pytest.raises(ExpressionError, match=match) as info:
+        parse(text, NAMES, what="time scale")
+    if "sinn" not in text:
+        assert "did you mean" not in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_min_in_any_expression_of_a_config_gets_the_same_one_line_message():
+    """Hamiltonian, invariant, time scale and event expressions share the parser, so min is
+    refused alike in each, naming its key."""
+    from elimfast.config import ConfigError, load_run_from_dict
+    problem = {"coordinates": {"q": ["q1", "q2"], "p": ["p1", "p2"]},
+               "hamiltonian": "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)", "invariants": {"L": "q1*p2 - q2*p1"},
+               "time_scale": "(q1**2 + q2**2)**0.75", "initial": {"q1": 0.4, "q2": 0, "p1": 0, "p2": 2}}
+    bad = "min((q1**2 + q2**2)**0.75, 1 + q1**2)"
+    for key in ("hamiltonian", "invariants", "time_scale", "events"):
+        config = {"problem": dict(problem), "method": {"name": "hbvm", "s": 4},
+                  "integration": {"step_control": "time_scale", "t_end": 1}}
+        if key == "invariants":
+            config["problem"]["invariants"] = {"L": bad}
+            where = r"problem\.invariants\.L"
+        elif key == "events":
+            config["events"] = {"crossing": bad}
+            where = r"events\.crossing"
+        else:
+            config["problem"][key] = bad
+            where = rf"problem\.{key}"
+        with pytest.raises(ConfigError, match=rf"^run\.yaml: {where}: .*'min' is not an allowed function: expressions "
+                                              r"must be smooth") as info:
+            load_run_from_dict(config, source="run.yaml")
+        assert "did you mean" not in str(info.value) and "\n" not in str(info.value)
+
+
 @pytest.mark.parametrize("name,ok", [
     ("q1", True), ("theta_2", True), ("Q", True), ("lambda", False), ("__class__", False), ("_x", False),
     ("sqrt", False), ("pi", False), ("e", False), ("q-1", False), ("1q", False), ("", False), ("é", False),

@@ -242,6 +242,47 @@ def test_a_run_that_fails_between_samples_keeps_a_sample_of_its_last_good_state(
     assert saved["n_samples"] == 1 + 10 // 7
 
 
+def test_every_run_file_says_its_step_control_and_files_written_without_it_are_still_read(tmp_path, h_sweep):
+    """The README lists the root attribute step_control (fixed, error, time_scale), but a plain
+    fixed-step run file had none (only runs with output times or events wrote 'fixed'): a user
+    trial's script reading attrs["step_control"] raised KeyError, and so did Result.to_xarray's
+    attrs. Now every run file, sweep run and xarray view has it. A file written before, without
+    it, is read as fixed: load, inspect, and --resume of a failed run, which must still drop the
+    sample of its last good state (it told the two kinds of run apart by this attribute)."""
+    path = tmp_path / "plain.h5"
+    result = invoke("run", KEPLER, "-o", path, "-q", "--set", "integration.t_end=2")
+    assert result.exit_code == 0, result.output
+    with h5py.File(path, "r") as f:
+        assert f.attrs["step_control"] == "fixed"
+    assert elimfast.load(path).to_xarray().attrs["step_control"] == "fixed"
+    fixed = elimfast.integrate(problems.kepler(0.6), methods.gauss(3), h=0.1, n_steps=10)
+    assert fixed.to_xarray().attrs["step_control"] == "fixed"
+    sweep, _ = h_sweep
+    with h5py.File(sweep, "r") as f:
+        assert {f["runs"][label].attrs["step_control"] for label in f["runs"]} == {"fixed"}
+    # a file written before: no attribute
+    with h5py.File(path, "r+") as f:
+        del f.attrs["step_control"]
+    with hdf5.RunFile(path) as stored:
+        assert not stored.adaptive and stored.step_sizes() is None
+    assert elimfast.load(path).steps_done == 20
+    assert invoke("inspect", path).exit_code == 0
+    # a failed fixed-step run written before: --resume drops its off-grid sample as it did
+    failed = tmp_path / "failed.h5"
+    settings = {k: v for k, v in FAILING.items() if k not in ("h", "n_steps", "y0")}
+    kepler = problems.kepler(E)
+    run = Integration(kepler, methods.gauss(3), FAILING["h"], 40, store_every=7, y0=APOCENTRE, **settings)
+    assert streaming.run_to_file(run, failed, config_text="a: 1\n", handle_signals=False).status.startswith("failed")
+    with h5py.File(failed, "r+") as f:
+        assert f.attrs["step_control"] == "fixed"
+        del f.attrs["step_control"]
+    resumed = Integration(kepler, methods.gauss(3), FAILING["h"], 40, store_every=7, y0=APOCENTRE,
+                          solver="newton", max_halvings=4)
+    writer, saved = hdf5.RunWriter.resume(failed, restore=resumed.restore)
+    writer.close()
+    assert saved["n_samples"] == 1 + 10 // 7
+
+
 # --- item 10: FILE:/runs/<label> --------------------------------------------------------------------
 def test_inspect_and_plot_open_a_run_of_a_sweep_file(h_sweep, tmp_path):
     path, _ = h_sweep

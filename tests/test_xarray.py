@@ -208,9 +208,9 @@ def test_an_adaptive_result_in_xarray_has_its_steps_events_and_step_control():
     assert ds.sizes["pericentre_occurrence"] == 2
     assert ds.attrs["step_control"] == "error" and ds.attrs["rtol"] == 1e-12
     assert ds.attrs["rejected_steps"] == r.stats["rejected_steps"] and ds.attrs["steps"] == r.steps_done
-    # a fixed-step result has none of these
+    # a fixed-step result has none of these, and says step_control = fixed, as its run file does
     fixed = elimfast.integrate(p, methods.ehbvm(8, 4), 0.01, n_steps=10, conserve=CONSERVE).to_xarray()
-    assert "step_h" not in fixed and "step_control" not in fixed.attrs
+    assert "step_h" not in fixed and "rtol" not in fixed.attrs and fixed.attrs["step_control"] == "fixed"
 
 
 def test_an_adaptive_run_file_loads_with_the_attributes_of_the_result_it_stores(tmp_path):
@@ -411,9 +411,10 @@ def test_open_datatree_takes_group_refuses_engine_and_runs_may_be_numbers(tmp_pa
 
 
 def test_open_datatree_of_groups_of_different_lengths_says_why(tmp_path, kepler_file):
-    """A run still being written grows between the reads of its groups: xarray's 'group
-    /invariants is not aligned with its parents' came through raw (a user trial). Simulated here
-    by one more value of every invariant than samples."""
+    """Groups of different lengths: xarray's 'group /invariants is not aligned with its parents'
+    came through raw (a user trial, on a run still being written, which is now read as a
+    snapshot). A finished run's file like that was changed or damaged: one more value of every
+    invariant than samples."""
     import shutil
     path = tmp_path / "growing.h5"
     shutil.copy(kepler_file[1], path)
@@ -422,6 +423,45 @@ def test_open_datatree_of_groups_of_different_lengths_says_why(tmp_path, kepler_
             dataset.resize((dataset.shape[0] + 1,))
     with pytest.raises(elimfast.ElimfastError, match="its groups have different lengths .*elimfast.load"):
         elimfast.open_datatree(path)
+
+
+def test_open_datatree_of_a_run_still_being_written_gives_its_saved_rows_as_load_does(tmp_path):
+    """A user trial: elimfast.open_datatree on a run in progress in another process raised
+    'its groups have different lengths' (at random: a group read while the writer extended it),
+    where elimfast.load, inspect and plot read it. Now it reads as they do, in SWMR mode, the
+    rows the saved state counts in every group, whatever was appended since: simulated with a
+    writer that appended a chunk it has not saved yet and an /invariants extended ahead of /t
+    (as a reader between two of the writer's appends sees it), and with the file a kill -9 left."""
+    from elimfast.config import load_run
+    from elimfast.io import hdf5
+    path = tmp_path / "live.h5"
+    spec = load_run(str(KEPLER), overrides=["integration.t_end=10", "output.every=1"])
+    run = Integration.from_spec(spec)
+    writer = hdf5.RunWriter.create(path, run, config_text=yaml.safe_dump(spec.resolved, sort_keys=False))
+    try:
+        writer.append(run.advance(30))
+        writer.save_state(run.state(), wall_time_s=1.0, kernel_time_s=0.5)
+        writer.append(run.advance(5))   # flushed, not saved
+        for dataset in writer._file["invariants"].values():
+            dataset.resize((dataset.shape[0] + 3,))
+        writer._file.flush()
+        killed = tmp_path / "killed.h5"
+        killed.write_bytes(path.read_bytes())
+        for name in (path, killed):
+            loaded = elimfast.load(name)
+            with elimfast.open_datatree(name) as tree:
+                assert tree.sizes["t"] == loaded.t.size == 31 and tree["steps"].sizes["step"] == 30
+                assert tree["invariants"].sizes["t"] == 31
+                np.testing.assert_array_equal(tree["y"].values, loaded.y)
+                np.testing.assert_array_equal(tree["invariants"]["H"].values, loaded.invariants["H"])
+                np.testing.assert_array_equal(tree["steps"]["iterations"].values, loaded.iterations)
+                assert tree.attrs["steps_done"] == 30 and tree.attrs["status"] in ("running", "killed")
+        writer.append(run.advance(5))   # the tree is a snapshot: opened again, it has the newly saved rows
+        writer.save_state(run.state(), wall_time_s=2.0, kernel_time_s=1.0)
+        with elimfast.open_datatree(path) as tree:
+            assert tree["steps"].sizes["step"] == 40 and tree.attrs["steps_done"] == 40
+    finally:
+        writer.close()
 
 
 def test_open_datatree_says_in_one_line_what_it_cannot_open(tmp_path, sweep_file, kepler):

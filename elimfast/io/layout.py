@@ -489,13 +489,20 @@ INITIAL_GIVEN = "problem.initial"   # attribute initial_state: the state given, 
 INITIAL_DEFAULT = "default"
 
 
+STEP_CONTROL_FIXED = "fixed"   # the attribute step_control of a fixed-step run (adaptive: error, time_scale)
+
+
 def run_attributes(problem, method, *, h: float, t0: float, n_steps: int, t_end: float | None,
                    output_every: int, conserve) -> dict:
     """The attributes that describe a run, alike in a run file and in each run of a sweep file.
     ``initial_state``: where y0 came from, 'problem.initial' when it replaced the problem's
     default state (Problem.initial_given: the parameters that chose the default then do not
-    describe the orbit), else 'default' (files written before it: absent)."""
-    return {"problem": problem.name,
+    describe the orbit), else 'default' (files written before it: absent). ``step_control``:
+    'fixed' here; a run through the adaptive kernel overrides it with its own
+    (AdaptiveIntegration.file_attributes: error, time_scale, or fixed with output times or
+    events). Plain fixed-step files written before it was always written have none: readers
+    take its absence as 'fixed' (a user trial's script read attrs["step_control"], KeyError)."""
+    return {"problem": problem.name, "step_control": STEP_CONTROL_FIXED,
             "initial_state": INITIAL_GIVEN if getattr(problem, "initial_given", False) else INITIAL_DEFAULT,
             "method": method.name, "family": method.family, "r": method.r, "k": method.k,
             "s": method.s, "h": float(h), "t0": float(t0),

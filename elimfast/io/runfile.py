@@ -407,8 +407,8 @@ class RunWriter:
             existing.verify(stop=stop)
             # A failed fixed-step run ends with a sample of its last good state, off the grid
             # (Integration.advance): the continuation samples the grid again. Adaptive-kernel runs
-            # (step_control attribute) add none, and may hold more samples than steps.
-            if "step_control" not in existing.attrs:
+            # (/steps/h; not step_control: all files have it) add none.
+            if "h" not in existing._root["steps"]:
                 saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
                     saved["steps_done"], int(existing.attrs.get("output_every", 1))))
             n_datasets = 4 + len(existing.invariant_names) + (existing.multiplier_name is not None)

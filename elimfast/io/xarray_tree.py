@@ -22,7 +22,10 @@ The tree is the one h5netcdf gives: the same nodes, variables, dimensions, coord
 attributes (without netCDF's own: CLASS, NAME, REFERENCE_LIST, DIMENSION_LIST, ...),
 decoded by xarray (the decode_* options of ``xr.open_datatree``, which also takes ``chunks``
 and ``cache``). Numeric data are read when used (``.load()`` reads them into memory);
-string variables (the component names) are read at once. Encodings: only the HDF5 chunks, as
+string variables (the component names) are read at once. A run file still being written (or
+left by a killed run) is read as ``elimfast.load`` reads it, in SWMR mode, as a snapshot of the
+rows its saved state counts (``_snapshot``): every group then has the same length however far
+the run has gone on since. Encodings: only the HDF5 chunks, as
 ``preferred_chunks`` (what ``chunks={}`` uses); compression is not filled in. Files of elimfast's format 1 and 2 have no dimension
 scales: ``elimfast.load`` reads them.
 """
@@ -35,7 +38,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .layout import DIMENSION_ONLY, split_run_path
+from .layout import DIMENSION_ONLY, FORMAT, STATUS_RUNNING, _plain, split_run_path
 from .safety import READ_ERRORS, OutputError, _damaged
 
 try:
@@ -67,8 +70,10 @@ def open_datatree(path, run: str | None = None, **options):
     runs are ``tree["steps"]["step_t"]``, an event's times ``tree["events/<name>"]["<name>_t"]``
     (Result.to_xarray's names). The inherited ``t`` hid them: ``tree["steps"]["t"]`` gave the
     root's sample times, silently (with h5netcdf it still does).
-    The data are read when used; ``tree.close()`` closes the file. Raises OutputError (an
-    ElimfastError) for a file or run that cannot be read.
+    The data are read when used; ``tree.close()`` closes the file. A run still being written
+    gives the rows its last saved state counts, in every group (the root attributes status and
+    steps_done say how far, as ``elimfast inspect`` does); open it again for more. Raises
+    OutputError (an ElimfastError) for a file or run that cannot be read.
     """
     if "engine" in options:
         raise TypeError("elimfast.open_datatree reads with its own backend: leave out engine, or call "
@@ -103,6 +108,34 @@ def _open_file(path) -> h5py.File:
         raise OutputError(message) from None
 
 
+def _snapshot(path, f) -> tuple[dict, dict]:
+    """({dataset path: rows}, {root attribute: value}) that make a run file still being written
+    (status 'running': also a killed run's) one consistent snapshot, as RunFile reads it: the
+    rows its saved state counts (samples, steps, each event's occurrences), no more than the
+    shortest dataset of each as this handle sees it, with the state's steps_done and status
+    ('running' or 'killed'). ({}, {}) for any other file: its datasets end where its run did.
+    A user trial: a live run's tree failed at random ("groups ... not aligned": /invariants
+    read longer than /t), where load, inspect and plot read it."""
+    if _plain(f.attrs.get("format")) != FORMAT or _plain(f.attrs.get("status")) != STATUS_RUNNING:
+        return {}, {}
+    from .runfile import RunFile, _event_names, _sample_datasets, _step_datasets
+    with RunFile(path) as stored:   # reads the saved state (CRC-checked) in its own handle
+        saved, status = stored.saved_state(), stored.status
+    try:
+        dimensions = [(list(_sample_datasets(f)), saved["n_samples"]), (list(_step_datasets(f)), saved["steps_done"])]
+        counts = saved.get("event_counts")
+        for name, count in zip(_event_names(f), () if counts is None else counts):
+            dimensions.append(([f["events"][name]["t"], f["events"][name]["y"]], count))
+        rows = {}
+        for datasets, count in dimensions:
+            # rows below the saved count were flushed before the state that counts them: final
+            n = min([int(count)] + [dataset.shape[0] for dataset in datasets])
+            rows.update({dataset.name: n for dataset in datasets})
+    except READ_ERRORS as err:
+        raise _damaged(path, "the groups of the saved state", err) from None
+    return rows, {"status": status, "steps_done": rows.get("/steps/iterations", int(saved["steps_done"]))}
+
+
 def _attribute(value):
     """An attribute as h5netcdf and xarray give it: strings as str, arrays of strings as
     lists, a one-element array as its element."""
@@ -128,6 +161,7 @@ class _Walk:
     def __init__(self, f, manager, path, decoders: dict, drop_variables):
         self.f, self.manager, self.path = f, manager, path
         self.decoders = decoders
+        self.rows, self.root_attributes = _snapshot(path, f)
         if isinstance(drop_variables, str):
             drop_variables = [drop_variables]
         self.drop = set(drop_variables or ())
@@ -191,11 +225,13 @@ class _Walk:
             # chunks={} takes a backend's preferred chunks (as h5netcdf's): the HDF5 chunks, which a
             # dask chunk reads whole; without them each variable was one dask chunk
             encoding = {"preferred_chunks": dict(zip(dims, member.chunks))} if member.chunks else {}
-            variables[name] = xr.Variable(dims, self.data(member, path),
+            variables[name] = xr.Variable(dims, self.data(member, path, self.rows.get(path)),
                                           {key: _attribute(attrs[key]) for key in keys
                                            if key not in HIDDEN_ATTRIBUTES}, encoding)
         group = self.f[location]
         attributes = {key: _attribute(value) for key, value in group.attrs.items() if key not in HIDDEN_ATTRIBUTES}
+        if location == "/":
+            attributes.update(self.root_attributes)
         return xr.Dataset(variables, attrs=attributes)
 
     def dimensions(self, path: str, member, attrs, keys, scale: bool, scales: dict) -> tuple:
@@ -223,10 +259,12 @@ class _Walk:
             dims.append(dimension)
         return tuple(dims)
 
-    def data(self, member, path: str):
+    def data(self, member, path: str, rows: int | None = None):
+        """``rows``: read only the first rows (_snapshot), else all."""
         if h5py.check_string_dtype(member.dtype) is not None:
             return np.asarray(member.asstr()[()], dtype=object)
-        return indexing.LazilyIndexedArray(_LazyDataset(self.manager, path, member.shape, member.dtype))
+        shape = member.shape if rows is None else (rows,) + member.shape[1:]
+        return indexing.LazilyIndexedArray(_LazyDataset(self.manager, path, shape, member.dtype))
 
 
 def _rename_shadowed(dataset, inherited: frozenset, group_name: str):
@@ -256,6 +294,9 @@ class _LazyDataset(BackendArray):
         return indexing.explicit_indexing_adapter(key, self.shape, indexing.IndexingSupport.BASIC, self._read)
 
     def _read(self, key):
+        # slices within this array's shape, which a snapshot (_snapshot) cuts below the dataset's
+        key = tuple(slice(*part.indices(size)) if isinstance(part, slice) else part
+                    for part, size in zip(key, self.shape))
         with self.manager.acquire_context() as f:
             try:
                 return np.asarray(f[self.path][key])
@@ -318,11 +359,12 @@ class ElimfastBackend(BackendEntrypoint):
             groups["/"].close()
             if "not aligned" not in str(err):
                 raise
-            # A run still being written: its groups grew between their reads (t of /invariants
-            # longer than the root's), which xarray reports as "group ... is not aligned".
-            raise OutputError(f"{filename_or_obj}: its groups have different lengths (a run still being written "
-                              "grows while it is read); read it when the run ends, or read the stored part "
-                              "consistently with elimfast.load") from None
+            # Groups of different lengths (t of /invariants longer than the root's), which xarray
+            # reports as "group ... is not aligned": a run file still being written is read as a
+            # snapshot (_snapshot), so a file a writer changed outside elimfast's way, or damaged.
+            raise OutputError(f"{filename_or_obj}: its groups have different lengths (written to while it was read, "
+                              "or damaged); read the stored part consistently with elimfast.load, or check it with "
+                              "elimfast inspect") from None
         tree.set_close(groups["/"].close)   # every group's close closes the one file
         return tree
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import LONG_NAMES, VALUE_AT_T0, unit_attributes
+from .layout import LONG_NAMES, STEP_CONTROL_FIXED, VALUE_AT_T0, unit_attributes
 
 
 def result_dataset(result):
@@ -54,6 +54,7 @@ def result_dataset(result):
              "conserve": list(result.conserve), "n_steps": int(result.n_steps), "steps_done": int(done),
              "status": result.status, **unit_attributes(result.problem)}
     control = result.step_control
+    attrs["step_control"] = STEP_CONTROL_FIXED   # as a run file says it (layout.run_attributes)
     if control is not None:
         attrs["h_first"] = float(result.h)
         settings = control.as_dict()

@@ -9,7 +9,9 @@ before anything is built from it; nothing is ever evaluated by Python (no ``eval
   parameters) and the constants ``pi`` and ``e``;
 - ``+ - * / **``, unary ``-`` and ``+``, parentheses;
 - calls, with positional arguments only, to ``sqrt exp log sin cos tan sinh cosh tanh
-  arcsin asin arccos acos arctan atan atan2 abs``.
+  arcsin asin arccos acos arctan atan atan2 abs``. Functions with a kink or a jump (``min``,
+  ``max``, ``sign``, ``floor``, ...) are refused with a smooth combination to write instead:
+  the gradients (and Hessians) are generated from the expressions.
 
 Everything else (attributes, subscripts, lambdas, comprehensions, strings, keyword
 arguments, comparisons, unknown names, dunder names, ...) raises ``ExpressionError``
@@ -55,6 +57,26 @@ FUNCTIONS = {
     "arcsin": 1, "asin": 1, "arccos": 1, "acos": 1, "arctan": 1, "atan": 1, "atan2": 2, "abs": 1,
 }
 CONSTANTS = {"pi": math.pi, "e": math.e}
+# Functions with a kink or a jump, which are not offered: every expression must be smooth, since
+# elimfast generates its gradient (and Hessian) and steps with them. Refused with what to write
+# instead: "did you mean 'sin'?" for min (a user trial's time scale, the smaller of two distances'
+# powers) helped nobody. For two positive a, b: 1/(1/a + 1/b) is between min/2 and min,
+# (a**-8 + b**-8)**(-1/8) between 0.917 min and min; max alike.
+_SMOOTH_MIN = ("for the smaller of two positive values a, b write a smooth combination such as 1/(1/a + 1/b) "
+               "(min/2 to min) or (a**-8 + b**-8)**(-1/8) (0.917 min to min)")
+_SMOOTH_MAX = ("for the larger of two positive values a, b write a smooth combination such as a + b (max to 2 max) "
+               "or (a**8 + b**8)**(1/8) (max to 1.091 max)")
+NOT_SMOOTH = {
+    **dict.fromkeys(("min", "Min", "amin", "minimum", "fmin"), ("has a kink where its arguments cross", _SMOOTH_MIN)),
+    **dict.fromkeys(("max", "Max", "amax", "maximum", "fmax"), ("has a kink where its arguments cross", _SMOOTH_MAX)),
+    **dict.fromkeys(("sign", "heaviside", "Heaviside", "step"),
+                    ("jumps at 0", "for a smooth switch of width d write tanh(x/d)")),
+    **dict.fromkeys(("floor", "ceil", "round", "trunc", "fmod", "mod", "clip", "where", "piecewise",
+                     "Piecewise"), ("is not smooth", "write the expression without it")),
+}
+# Functions spelt out with the allowed ones (a close name, log for log10, would be wrong).
+WRITTEN_OUT = {"pow": "a**b", "power": "a**b", "hypot": "sqrt(a**2 + b**2)", "log10": "log(x)/log(10)",
+               "log2": "log(x)/log(2)", "exp2": "2**x", "square": "x**2", "arctan2": "atan2(y, x)"}
 RESERVED_NAMES = frozenset(FUNCTIONS) | frozenset(CONSTANTS)
 
 _MATH = {
@@ -144,6 +166,20 @@ def did_you_mean(word: str, options) -> str:
     return f"; did you mean {close!r}?" if close is not None else ""
 
 
+def not_allowed_function(name: str) -> str:
+    """Why a function name is refused and what to write instead: a smooth combination for one
+    with a kink or a jump (NOT_SMOOTH), the spelt-out form for WRITTEN_OUT, else the closest
+    allowed function; then the allowed ones."""
+    allowed = f"(allowed: {', '.join(FUNCTIONS)})"
+    if name in NOT_SMOOTH:
+        flaw, instead = NOT_SMOOTH[name]
+        return (f"{name!r} is not an allowed function: expressions must be smooth, since their gradients are "
+                f"generated from them, and {name} {flaw}; {instead} {allowed}")
+    if name in WRITTEN_OUT:
+        return f"{name!r} is not an allowed function: write {WRITTEN_OUT[name]} {allowed}"
+    return f"{name!r} is not an allowed function{did_you_mean(name, FUNCTIONS)} {allowed}"
+
+
 def parse(text, names=(), what: str = "expression") -> ast.Expression:
     """Parse and validate ``text``; return the checked tree. ``names``: the declared names."""
     if isinstance(text, bool) or not isinstance(text, (str, int, float)):
@@ -230,6 +266,8 @@ class _Validator:
                 return []
             if name in FUNCTIONS:
                 self.fail(node, f"{name!r} is a function: call it as {name}(...)")
+            if name in NOT_SMOOTH or name in WRITTEN_OUT:
+                self.fail(node, not_allowed_function(name))
             known = sorted(self.names) + sorted(CONSTANTS)
             hint = did_you_mean(name, known)
             listed = ", ".join(known)
@@ -240,8 +278,7 @@ class _Validator:
                 self.fail(func, f"{_segment(self.text, func)!r} cannot be called: only the functions "
                                 f"{', '.join(FUNCTIONS)}")
             if func.id not in FUNCTIONS:
-                hint = did_you_mean(func.id, FUNCTIONS)
-                self.fail(func, f"{func.id!r} is not an allowed function{hint} (allowed: {', '.join(FUNCTIONS)})")
+                self.fail(func, not_allowed_function(func.id))
             if node.keywords:
                 self.fail(node, f"{func.id}(...): keyword arguments are not allowed")
             arity = FUNCTIONS[func.id]
