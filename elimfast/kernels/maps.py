@@ -34,8 +34,10 @@ def stages(y, comp, scaled, scaled_low, coef, n_coef, out):
     with h Is = scaled + scaled_low (scale_tables) and comp the Kahan compensation of y.
 
     Rounded once, at the size of the stage increment (docs/methods.md#round-off-over-long-times):
-    the leading term scaled[l, 0] coef[0] alone, then the small ones (the low parts, the other
-    coefficients, comp) summed apart and added to it, then y. Rounding the sum first and
+    the leading term scaled[l, 0] coef[0] alone, then the small ones (comp, the leading term's low
+    part, the other coefficients' terms) summed apart and added to it, then y. (The other low
+    parts, scaled_low[l, j >= 1] coef[j], are below the rounding of the small sum and left out:
+    with them the run took 4% more time and drifted no less.) Rounding the sum first and
     multiplying it by h after (the paper's form, y + h sum) rounds twice, and h = 0.1 (mantissa
     8/5) rounds products with a mean error of -0.057 eps on the doubles near 0.6: with the
     rounded table Is that made GAUSS(2) gain 3.6e-19 of H per step on the harmonic oscillator,
@@ -43,9 +45,7 @@ def stages(y, comp, scaled, scaled_low, coef, n_coef, out):
     n = y.shape[0]
     for l in range(out.shape[0]):
         for i in range(n):
-            small = comp[i]
-            for j in range(n_coef):
-                small += scaled_low[l, j] * coef[j, i]
+            small = comp[i] + scaled_low[l, 0] * coef[0, i]
             for j in range(1, n_coef):
                 small += scaled[l, j] * coef[j, i]
             out[l, i] = y[i] + (scaled[l, 0] * coef[0, i] + small)
