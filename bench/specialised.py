@@ -250,13 +250,11 @@ def _scale_tables(h, Is, Is_low, k, s, scaled, scaled_low):
 @njit(inline="always", error_model="numpy")
 def _stages(y, comp, scaled, scaled_low, coef, k, s, n, u):
     """u[l] = (y + comp) + h sum_j Is[l, j] coef[j] from h Is = scaled + scaled_low, in maps.stages's
-    order: small = comp + sum_j scaled_low[l, j] coef[j] + sum_{j>=1} scaled[l, j] coef[j], then
+    order: small = comp + scaled_low[l, 0] coef[0] + sum_{j>=1} scaled[l, j] coef[j], then
     u[l] = y + (scaled[l, 0] coef[0] + small)."""
     for l in range(k):
         for i in range(n):
-            small = comp[i]
-            for j in range(s):
-                small += scaled_low[l, j] * coef[j, i]
+            small = comp[i] + scaled_low[l, 0] * coef[0, i]
             for j in range(1, s):
                 small += scaled[l, j] * coef[j, i]
             u[l, i] = y[i] + (scaled[l, 0] * coef[0, i] + small)
@@ -276,16 +274,11 @@ def _gradients(problem, y, coef, k, s, n, nu, work):
             scaled, scaled_low, comp = work.scaled, work.scaled_low, work.comp
             for l in range(k):
                 # _stages, one node at a time in registers, each component's sums in the same order
-                small0 = comp[0]
-                small1 = comp[1]
-                small2 = comp[2]
-                small3 = comp[3]
-                for j in range(s):
-                    w = scaled_low[l, j]
-                    small0 += w * coef[j, 0]
-                    small1 += w * coef[j, 1]
-                    small2 += w * coef[j, 2]
-                    small3 += w * coef[j, 3]
+                w = scaled_low[l, 0]
+                small0 = comp[0] + w * coef[0, 0]
+                small1 = comp[1] + w * coef[0, 1]
+                small2 = comp[2] + w * coef[0, 2]
+                small3 = comp[3] + w * coef[0, 3]
                 for j in range(1, s):
                     w = scaled[l, j]
                     small0 += w * coef[j, 0]
