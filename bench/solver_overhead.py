@@ -62,7 +62,8 @@ def solves(grad_H, grad_invariants, params, y, h, tables0, settings, n):
 def main():
     m, p = METHOD, PROBLEM
     tables = Tables(m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat, m.predictor_nodes,
-                    m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights)
+                    m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights,
+                    m.Is_low, m.Is_hat_low)
     y = p.y0.copy()
     n = 200_000
     maps_alone(p.grad_H, p.grad_invariants, p.params, y, H, tables, 10)

@@ -14,9 +14,15 @@ counts are elimfast's, bit for bit (checked, and printed). What it does differen
 - the sizes (k = 12, s = 3, n = 4, nu = 2) are compile-time constants;
 - the solve and the map inlined into the time loop (only the rounding band, needed when an
   iterate stops improving, is a call);
-- phi_0 is not formed (neither Gamma nor the stable right-hand side uses it).
-It keeps elimfast's Kahan sums of y and t, the finiteness test, and the per-step spurious-
-solution test (cond(Gamma) <= 1e13, |h^(2(s-1-j)) alpha_j| <= 1/2).
+- phi_0 is not formed (neither Gamma nor the stable right-hand side uses it);
+- h Is is scaled once per run (h is fixed), where elimfast's maps check at each call that
+  their scaled tables hold this h (maps.scale_tables).
+It keeps elimfast's arithmetic of the state (docs/methods.md#round-off-over-long-times): the
+stages from h Is as a double-double (Is + Is_low, exact integrals; scaled with
+maps.scale_tables's operations) and from y's Kahan compensation, in maps.stages's order; y
+updated by the exact product h coef_0 (stepper.add_product); Kahan's sum of t. And the
+finiteness test, and the per-step spurious-solution test (cond(Gamma) <= 1e13,
+|h^(2(s-1-j)) alpha_j| <= 1/2).
 
 Variants of it each take over one of elimfast's generalities (see VARIANTS), to show where
 elimfast's extra cost per iteration comes from; plus elimfast's own ``solve`` driven by a
@@ -60,11 +66,12 @@ from elimfast.kernels.codes import (FAMILY_ELIM, SOLVER_FIXED_POINT, STATUS_NONF
                                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR, internal)
 from elimfast.kernels.linalg import lu_factor, lu_solve_factored  # noqa: E402
 from elimfast.kernels.maps import EPS  # noqa: E402
+from elimfast.kernels.quadrature import quick_two_sum, two_prod  # noqa: E402
 from elimfast.kernels.signatures import (GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, INT_VECTOR, MATRIX,  # noqa: E402
                                          VECTOR)
 from elimfast.kernels.solver import (BAND_CAP, BAND_FACTOR, IN_BAND_STALLS, MAX_CONDITION,  # noqa: E402
                                      MAX_ETA_CORRECTION, MAX_WITHOUT_PROGRESS, solve)
-from elimfast.kernels.stepper import kahan_add  # noqa: E402
+from elimfast.kernels.stepper import add_product, kahan_add  # noqa: E402
 from elimfast.kernels.workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed,  # noqa: E402
                                         make_workspace)
 from elimfast.methods import ehbvm  # noqa: E402
@@ -127,6 +134,9 @@ Work = namedtuple("Work", [
     "delta",       # (s n,) G(coef) - coef
     "scale",       # (n,) sc_p of the stopping rule
     "h_powers",    # (nu,) h^(2(nu-1-c))
+    "scaled",      # (k, s) h Is as a double-double, high part (maps.scale_tables; once per run, h is fixed)
+    "scaled_low",  # (k, s) its low part
+    "comp",        # (n,) the Kahan compensation of y: the state's y_comp itself, which the stages add
 ])
 
 
@@ -135,7 +145,7 @@ def _make_work(k, s, n, nu):
     return Work(np.zeros((k, n)), np.zeros((k, n)), np.zeros((nu, k, n)), np.zeros((k, n)), np.zeros((nu, k, n)),
                 np.zeros((nu, nu)), np.zeros((nu, nu)), np.zeros(nu, dtype=np.int64), np.zeros(nu),
                 np.zeros((nu, nu)), np.zeros(nu), np.zeros((1 + nu, n)), np.zeros(n), np.zeros((s, n)),
-                np.zeros(s * n), np.zeros(n), np.zeros(nu))
+                np.zeros(s * n), np.zeros(n), np.zeros(nu), np.zeros((k, s)), np.zeros((k, s)), np.zeros(n))
 
 
 @njit(inline="always")
@@ -144,7 +154,8 @@ def _borrow_work(w):
     return Work(borrowed(w.u), borrowed(w.grads), borrowed(w.grads_hat), borrowed(w.gamma), borrowed(w.phi),
                 borrowed(w.big_gamma), borrowed(w.lu), borrowed(w.pivots), borrowed(w.bvec), borrowed(w.inverse),
                 borrowed(w.dalpha), borrowed(w.sizes), borrowed(w.level), borrowed(w.new_coef), borrowed(w.delta),
-                borrowed(w.scale), borrowed(w.h_powers))
+                borrowed(w.scale), borrowed(w.h_powers), borrowed(w.scaled), borrowed(w.scaled_low),
+                borrowed(w.comp))
 
 
 @njit(inline="always")
@@ -152,7 +163,7 @@ def _work_from_workspace(ws):
     """The same Work, as views into elimfast's Workspace (the Outlined variants)."""
     return Work(ws.u, ws.grads, ws.grads_hat, ws.gamma, ws.phi, ws.small_copy, ws.small_matrix, ws.small_pivots,
                 ws.small_vector, ws.small_inverse, ws.small_rounding[0], ws.sizes, ws.rounding_level, ws.new_coef,
-                ws.delta, ws.scale, ws.h_powers)
+                ws.delta, ws.scale, ws.h_powers, ws.scaled_Is, ws.scaled_Is_low, ws.stage_comp)
 
 
 @njit(cache=True)
@@ -226,41 +237,59 @@ def kepler_grad_invariants_nodes(u, params, out):
 
 
 @njit(inline="always", error_model="numpy")
-def _stages(y, h, Is, coef, k, s, n, u):
-    """u[l] = y + h sum_j Is[l, j] coef[j] (maps.stages)."""
+def _scale_tables(h, Is, Is_low, k, s, scaled, scaled_low):
+    """scaled + scaled_low = h (Is + Is_low) as a double-double: maps.scale_tables's operations
+    (an exact product, quadrature.two_prod, then quick_two_sum), once per run (h is fixed here;
+    elimfast's maps check per call whether they hold this h)."""
+    for l in range(k):
+        for j in range(s):
+            product, error = two_prod(h, Is[l, j])
+            scaled[l, j], scaled_low[l, j] = quick_two_sum(product, error + h * Is_low[l, j])
+
+
+@njit(inline="always", error_model="numpy")
+def _stages(y, comp, scaled, scaled_low, coef, k, s, n, u):
+    """u[l] = (y + comp) + h sum_j Is[l, j] coef[j] from h Is = scaled + scaled_low, in maps.stages's
+    order: small = comp + scaled_low[l, 0] coef[0] + sum_{j>=1} scaled[l, j] coef[j], then
+    u[l] = y + (scaled[l, 0] coef[0] + small)."""
     for l in range(k):
         for i in range(n):
-            acc = 0.0
-            for j in range(s):
-                acc += Is[l, j] * coef[j, i]
-            u[l, i] = y[i] + h * acc
+            small = comp[i] + scaled_low[l, 0] * coef[0, i]
+            for j in range(1, s):
+                small += scaled[l, j] * coef[j, i]
+            u[l, i] = y[i] + (scaled[l, 0] * coef[0, i] + small)
 
 
-def gradients(problem, y, h, Is, coef, k, s, n, nu, work):
-    """work.grads[l] = grad H(u_l), work.grads_hat[a, l] = grad L_a(u_l) for the imposed L_a."""
+def gradients(problem, y, coef, k, s, n, nu, work):
+    """work.grads[l] = grad H(u_l), work.grads_hat[a, l] = grad L_a(u_l) for the imposed L_a, the stages
+    u_l from y, work.comp and the scaled tables work.scaled, work.scaled_low (_stages)."""
     raise NotImplementedError("compiled only")
 
 
 @overload(gradients, jit_options={"cache": True, "error_model": "numpy"}, inline="always")
-def _gradients(problem, y, h, Is, coef, k, s, n, nu, work):
+def _gradients(problem, y, coef, k, s, n, nu, work):
     if _is(problem, Hand):
-        def hand(problem, y, h, Is, coef, k, s, n, nu, work):
+        def hand(problem, y, coef, k, s, n, nu, work):
             grads, grads_hat = work.grads, work.grads_hat
+            scaled, scaled_low, comp = work.scaled, work.scaled_low, work.comp
             for l in range(k):
-                acc0 = 0.0
-                acc1 = 0.0
-                acc2 = 0.0
-                acc3 = 0.0
-                for j in range(s):
-                    w = Is[l, j]
-                    acc0 += w * coef[j, 0]
-                    acc1 += w * coef[j, 1]
-                    acc2 += w * coef[j, 2]
-                    acc3 += w * coef[j, 3]
-                q1 = y[0] + h * acc0
-                q2 = y[1] + h * acc1
-                p1 = y[2] + h * acc2
-                p2 = y[3] + h * acc3
+                # _stages, one node at a time in registers, each component's sums in the same order
+                w = scaled_low[l, 0]
+                small0 = comp[0] + w * coef[0, 0]
+                small1 = comp[1] + w * coef[0, 1]
+                small2 = comp[2] + w * coef[0, 2]
+                small3 = comp[3] + w * coef[0, 3]
+                for j in range(1, s):
+                    w = scaled[l, j]
+                    small0 += w * coef[j, 0]
+                    small1 += w * coef[j, 1]
+                    small2 += w * coef[j, 2]
+                    small3 += w * coef[j, 3]
+                w = scaled[l, 0]
+                q1 = y[0] + (w * coef[0, 0] + small0)
+                q2 = y[1] + (w * coef[0, 1] + small1)
+                p1 = y[2] + (w * coef[0, 2] + small2)
+                p2 = y[3] + (w * coef[0, 3] + small3)
                 r2 = q1 * q1 + q2 * q2
                 root = math.sqrt(r2)
                 inv_r3_H = 1.0 / (r2 * root)
@@ -281,10 +310,10 @@ def _gradients(problem, y, h, Is, coef, k, s, n, nu, work):
                 grads_hat[1, l, 3] = -p1 * q1
         return hand
     if _is(problem, Interface):
-        def interface(problem, y, h, Is, coef, k, s, n, nu, work):
+        def interface(problem, y, coef, k, s, n, nu, work):
             u, grads, grads_hat = work.u, work.grads, work.grads_hat
             params, conserve_idx, inv_grads = problem.params, problem.conserve_idx, problem.inv_grads
-            _stages(y, h, Is, coef, k, s, n, u)
+            _stages(y, work.comp, work.scaled, work.scaled_low, coef, k, s, n, u)
             for l in range(k):
                 _grad_H_inline(u[l], params, grads[l])
             for l in range(k):
@@ -294,11 +323,11 @@ def _gradients(problem, y, h, Is, coef, k, s, n, nu, work):
                         grads_hat[a, l, p] = inv_grads[conserve_idx[a], p]
         return interface
     if _is(problem, Functions):
-        def functions(problem, y, h, Is, coef, k, s, n, nu, work):
+        def functions(problem, y, coef, k, s, n, nu, work):
             u, grads, grads_hat = work.u, work.grads, work.grads_hat
             grad_H, grad_invariants = problem.grad_H, problem.grad_invariants
             params, conserve_idx, inv_grads = problem.params, problem.conserve_idx, problem.inv_grads
-            _stages(y, h, Is, coef, k, s, n, u)
+            _stages(y, work.comp, work.scaled, work.scaled_low, coef, k, s, n, u)
             for l in range(k):
                 grad_H(u[l], params, grads[l])
             for l in range(k):
@@ -308,10 +337,10 @@ def _gradients(problem, y, h, Is, coef, k, s, n, nu, work):
                         grads_hat[a, l, p] = inv_grads[conserve_idx[a], p]
         return functions
     if _is(problem, Batched):
-        def batched(problem, y, h, Is, coef, k, s, n, nu, work):
+        def batched(problem, y, coef, k, s, n, nu, work):
             u, grads, grads_hat = work.u, work.grads, work.grads_hat
             params, conserve_idx, inv_grads = problem.params, problem.conserve_idx, problem.inv_grads
-            _stages(y, h, Is, coef, k, s, n, u)
+            _stages(y, work.comp, work.scaled, work.scaled_low, coef, k, s, n, u)
             problem.grad_H(u, params, grads)
             problem.grad_invariants(u, params, inv_grads)
             for a in range(nu):
@@ -469,7 +498,7 @@ def _band(h, alpha, solved, abs_projection, k, s, n, nu, work):
 
 
 @njit(inline="always", error_model="numpy")
-def _solve(problem, y, h, projection, Is, abs_projection, coef, alpha, cold, tol, max_iter, k, s, n, nu, work):
+def _solve(problem, y, h, projection, abs_projection, coef, alpha, cold, tol, max_iter, k, s, n, nu, work):
     """solver.solve for the fixed point on ELIM (stable right-hand side): iterate coef <- G(coef) from
     the guess in coef (cold: coef = 0, alpha = 0 for two sweeps). Returns (status, iterations)."""
     new_coef, delta, scale, h_powers = work.new_coef, work.delta, work.scale, work.h_powers
@@ -488,7 +517,7 @@ def _solve(problem, y, h, projection, Is, abs_projection, coef, alpha, cold, tol
     iteration = 0
     for iteration in range(1, max_iter + 1):
         plain_sweep = cold and iteration <= 2
-        gradients(problem, y, h, Is, coef, k, s, n, nu, work)
+        gradients(problem, y, coef, k, s, n, nu, work)
         singular = _map_rest(h, projection, alpha, plain_sweep, k, s, n, nu, work)
         largest = 0.0
         for i in range(n):
@@ -564,8 +593,8 @@ def _solve(problem, y, h, projection, Is, abs_projection, coef, alpha, cold, tol
 @internal
 def _solve_outlined(problem, sizes_mode, y, h, tables, workspace, coef, alpha, cold, tol, max_iter):
     k, s, n, nu = sizes_of(sizes_mode, tables.Is, y, alpha.shape[0])
-    return _solve(problem, y, h, tables.projection, tables.Is, tables.abs_projection_hat, coef, alpha, cold, tol,
-                  max_iter, k, s, n, nu, _work_from_workspace(workspace))
+    return _solve(problem, y, h, tables.projection, tables.abs_projection_hat, coef, alpha, cold, tol, max_iter,
+                  k, s, n, nu, _work_from_workspace(workspace))
 
 
 @internal
@@ -587,8 +616,8 @@ def _solve_step(call_mode, problem, sizes_mode, y, h, tables, work, coef, alpha,
     if _is(call_mode, Inlined):
         def inlined(call_mode, problem, sizes_mode, y, h, tables, work, coef, alpha, cold, tol, max_iter):
             k, s, n, nu = sizes_of(sizes_mode, tables.Is, y, alpha.shape[0])
-            return _solve(problem, y, h, tables.projection, tables.Is, tables.abs_projection_hat, coef, alpha, cold,
-                          tol, max_iter, k, s, n, nu, work)
+            return _solve(problem, y, h, tables.projection, tables.abs_projection_hat, coef, alpha, cold, tol,
+                          max_iter, k, s, n, nu, work)
         return inlined
     if _is(call_mode, Outlined):
         def outlined(call_mode, problem, sizes_mode, y, h, tables, work, coef, alpha, cold, tol, max_iter):
@@ -624,20 +653,39 @@ def _borrow_overload(call_mode, work):
         return lambda call_mode, work: borrow_workspace(work)
 
 
+def work_view(call_mode, work):
+    raise NotImplementedError("compiled only")
+
+
+@overload(work_view, jit_options={"cache": True}, inline="always")
+def _work_view_overload(call_mode, work):
+    """The Work of make_work's (borrowed) work: itself, or its views into elimfast's Workspace."""
+    if _is(call_mode, Inlined):
+        return lambda call_mode, work: work
+    if _is(call_mode, Outlined) or _is(call_mode, OutlinedOnce):
+        return lambda call_mode, work: _work_from_workspace(work)
+
+
 @njit(cache=True, error_model="numpy")
 def _time_loop(problem, sizes_mode, call_mode, y0, h, n_steps, tables0, tol, max_iter, y_final, iter_out, alpha_out):
     """n_steps fixed steps from y0 (stepper.time_loop for this run: warm start without the predictor,
-    Kahan sums of y and t). Returns (status, steps done). Compiled once per combination of markers
-    (one call per run: not inlined into the entry points, which saves a level of Numba's slow
-    IR inlining)."""
+    y kept with its compensation y_comp, which the stages add (maps.stages), and updated by the exact
+    product h coef_0 (stepper.add_product); Kahan's sum of t). The stages' tables h Is (double-double)
+    are computed once, before the loop. y_comp is the work's comp array itself (elimfast copies its
+    y_comp into work.stage_comp at each step). Returns (status, steps done). Compiled once per
+    combination of markers (one call per run: not inlined into the entry points, which saves a level
+    of Numba's slow IR inlining)."""
     k, s, n, nu = sizes_of(sizes_mode, tables0.Is, y0, alpha_out.shape[1])
     owners = make_work(call_mode, k, s, n, nu)
     work = borrow(call_mode, owners)
     tables = borrow_tables(tables0)
+    view = work_view(call_mode, work)
+    _scale_tables(h, tables.Is, tables.Is_low, k, s, view.scaled, view.scaled_low)
     y = np.zeros(n)
-    y_comp = np.zeros(n)
+    y_comp = view.comp
     for p in range(n):
         y[p] = y0[p]
+        y_comp[p] = 0.0
     coef = np.zeros((s, n))
     alpha = np.zeros(nu)
     t = 0.0
@@ -656,7 +704,7 @@ def _time_loop(problem, sizes_mode, call_mode, y0, h, n_steps, tables0, tol, max
         if status != STATUS_OK:
             break
         for p in range(n):
-            y[p], y_comp[p] = kahan_add(y[p], y_comp[p], h * coef[0, p])
+            y[p], y_comp[p] = add_product(y[p], y_comp[p], h, coef[0, p])
         t, t_comp = kahan_add(t, t_comp, h)
         for a in range(nu):
             alpha_out[step, a] = alpha[a]
@@ -763,7 +811,9 @@ def _run_batched_generic(grad_H, grad_invariants, params, conserve_idx, y0, h, n
 def _run_elimfast_solve(grad_H, grad_invariants, params, conserve_idx, y0, h, n_steps, tables, tol, max_iter,
                         y_final, iter_out, alpha_out):
     """elimfast's own solver.solve (its map, stopping rule, Workspace, FunctionType calls) from a bare
-    time loop: what stepper.try_step and time_loop add is the difference to elimfast's whole run."""
+    time loop: what stepper.try_step and time_loop add is the difference to elimfast's whole run.
+    As try_step: work.stage_comp = y_comp before each solve (the map's stages add it; the map scales
+    its tables itself, maps.scale_tables), and the update by stepper.add_product."""
     n = y0.shape[0]
     k, s = tables.Is.shape
     nu = conserve_idx.shape[0]
@@ -782,13 +832,15 @@ def _run_elimfast_solve(grad_H, grad_invariants, params, conserve_idx, y0, h, n_
     status = STATUS_OK
     done = 0
     for step in range(n_steps):
+        for p in range(n):
+            work.stage_comp[p] = y_comp[p]
         status, iterations = solve(grad_H, grad_invariants, params, settings, borrowed_tables, conserve_idx, work,
                                    y, h, coef, alpha, step == 0)
         iter_out[step] = iterations
         if status != STATUS_OK:
             break
         for p in range(n):
-            y[p], y_comp[p] = kahan_add(y[p], y_comp[p], h * coef[0, p])
+            y[p], y_comp[p] = add_product(y[p], y_comp[p], h, coef[0, p])
         t, t_comp = kahan_add(t, t_comp, h)
         for a in range(nu):
             alpha_out[step, a] = alpha[a]
@@ -856,7 +908,8 @@ def setup():
     assert (user.y0 == problem.y0).all() and user.invariant_names == problem.invariant_names
     m = method
     tables = Tables(m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat, m.predictor_nodes,
-                    m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights)
+                    m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights,
+                    m.Is_low, m.Is_hat_low)
     conserve_idx = np.array([problem.invariant_names.index(c) for c in CONSERVE], dtype=np.int64)
     return problem, user, method, tables, conserve_idx
 

@@ -639,7 +639,7 @@ class AdaptiveIntegration:
                 solver.tol, solver.max_iter, solver.max_halvings,
                 self.h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
                 m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
-                m.newton_weights, self.conserve_idx,
+                m.newton_weights, m.Is_low, m.Is_hat_low, self.conserve_idx,
                 self.controls, self.options, self._kernel_t_eval, self.events.directions, self.events.terminal,
                 self.y, self.y_comp, self.clock, self.coef, self.coef_extra, self.multipliers, self.last_h,
                 self.newton_base, self.control_state, self.counters, max_steps,

@@ -965,7 +965,7 @@ class Integration:
                 int(solver.predictor), solver.tol, solver.max_iter, solver.max_halvings,
                 self.signed_h, m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat,
                 m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
-                m.newton_weights, self.conserve_idx)
+                m.newton_weights, m.Is_low, m.Is_hat_low, self.conserve_idx)
 
     def advance(self, max_steps: int) -> Chunk:
         """Run up to max_steps more steps in one kernel call."""

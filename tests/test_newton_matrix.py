@@ -33,7 +33,8 @@ def _apply_inverse(grad_H, hess_H, params, y, h, tables, k, s, n_eigenvalues, rh
 
 def _tables(m):
     return Tables(m.projection, m.Is, m.projection_hat, m.Is_hat, m.X, m.abs_projection_hat, m.predictor_nodes,
-                  m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights)
+                  m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse, m.newton_weights,
+                  m.Is_low, m.Is_hat_low)
 
 
 FULL, INVERTED, LU_BLOCKS = 0, 1, 2

@@ -273,7 +273,7 @@ ADAPTIVE_LOOP_SIGNATURE = types.int64(
     types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
     #                                                                                    max_iter, max_halvings
     types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h0 and the method's tables
-    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,
+    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR, MATRIX, MATRIX,
     INT_VECTOR,                                                                        # conserve_idx
     VECTOR, INT_VECTOR, VECTOR, INT_VECTOR, INT_VECTOR,                                # controls, options, t_eval,
     #                                                                                    event direction, terminal
@@ -295,7 +295,7 @@ ADAPTIVE_LOOP_SIGNATURE = types.int64(
 def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_scale, events,
                   family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
                   h0, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
-                  newton_values, newton_vectors, newton_inverse, newton_weights,
+                  newton_values, newton_vectors, newton_inverse, newton_weights, Is_low, Ihat_low,
                   conserve_idx,
                   controls, options, t_eval, event_direction, event_terminal,
                   y, y_comp, clock, coef, coef_extra, multipliers, last_h, newton_base, control_state, counters,
@@ -340,7 +340,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     # Tables and workspaces are passed on by address (workspace.ByRef), as in stepper.time_loop.
     tables = by_ref(borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat,
                                          predictor_nodes, predictor_basis, newton_values, newton_vectors,
-                                         newton_inverse, newton_weights)))
+                                         newton_inverse, newton_weights, Is_low, Ihat_low)))
     owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
                             newton_eigenvalues(settings, newton_values))
     work = by_ref(borrow_workspace(owners))

@@ -178,7 +178,7 @@ ENSEMBLE_SIGNATURE = types.void(
 def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                   family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
                   h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
-                  newton_values, newton_vectors, newton_inverse, newton_weights,
+                  newton_values, newton_vectors, newton_inverse, newton_weights, Is_low, Ihat_low,
                   conserve_idx,
                   Y0, t0, n_steps, n_mult, n_workers,
                   y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps,
@@ -211,7 +211,7 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings)
     tables = borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes,
                                   predictor_basis, newton_values, newton_vectors, newton_inverse,
-                                  newton_weights))
+                                  newton_weights, Is_low, Ihat_low))
     n_traj = Y0.shape[0]
     next_trajectory = np.zeros(1, dtype=np.int64)
     for worker in prange(min(n_workers, n_traj)):

@@ -25,7 +25,7 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
 from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
-from .quadrature import legendre_table
+from .quadrature import legendre_table, two_prod, two_sum
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
 from .solver import BAND_CAP, NEARLY_SINGULAR_GAMMA, accelerates, newton_factor, solve
@@ -82,6 +82,21 @@ def kahan_add(value, compensation, increment):
     corrected = increment + compensation
     new_value = value + corrected
     return new_value, (value - new_value) + corrected
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def add_product(value, compensation, h, x):
+    """(value + compensation) + h x as a double-double: returns the new (value, compensation).
+
+    The state's update y1 = y0 + h coef_0 (docs/methods.md#round-off-over-long-times), with the
+    product h coef_0 taken exactly (quadrature.two_prod) and one rounding at the end: Kahan's
+    sum of the rounded product kept its rounding, which for h = 0.1 (mantissa 8/5) has a mean
+    that is not zero, 2e-20 of H per step on the harmonic oscillator, the same in every run."""
+    product, error = two_prod(h, x)
+    head, tail = two_sum(value, product)
+    tail += error + compensation
+    new_value = head + tail
+    return new_value, tail - (new_value - head)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -386,6 +401,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     """
     _copy(y, work.y_start)
     _copy(y_comp, work.y_comp_start)
+    _copy(y_comp, work.stage_comp)   # the maps' stages start from y + y_comp (maps.stages)
     _copy(coef, work.coef_start)
     _copy_rows(coef_extra, work.extra_start, coef_extra.shape[0])
     _copy(mult, work.mult_start)
@@ -446,7 +462,8 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
                     finite = False
             if finite:
                 for p in range(n):
-                    y[p], y_comp[p] = kahan_add(y[p], y_comp[p], h_sub * coef[0, p])
+                    y[p], y_comp[p] = add_product(y[p], y_comp[p], h_sub, coef[0, p])
+                    work.stage_comp[p] = y_comp[p]
                 substeps += 1
                 units_left -= 1
                 h_prev = h_sub
@@ -467,6 +484,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             diagnostics[DIAG_ITERATIONS] = used
             _copy(work.y_start, y)
             _copy(work.y_comp_start, y_comp)
+            _copy(work.y_comp_start, work.stage_comp)
             _copy(work.coef_start, coef)
             _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
             _copy(work.mult_start, mult)
@@ -519,7 +537,7 @@ RUN_ARGUMENT_TYPES = (
     types.float64, types.int64, types.int64,                                           # warm_start, predictor, tol,
     #                                                                                    max_iter, max_halvings
     types.float64, MATRIX, MATRIX, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, MATRIX,    # h and the method's tables
-    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR,                            # (workspace.Tables)
+    COMPLEX_VECTOR, COMPLEX_MATRIX, COMPLEX_MATRIX, VECTOR, MATRIX, MATRIX,            # (workspace.Tables)
     INT_VECTOR,                                                                        # conserve_idx
 )
 
@@ -538,7 +556,7 @@ TIME_LOOP_SIGNATURE = types.int64(
 def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
               family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings,
               h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
-              newton_values, newton_vectors, newton_inverse, newton_weights,
+              newton_values, newton_vectors, newton_inverse, newton_weights, Is_low, Ihat_low,
               conserve_idx,
               y, y_comp, clock, coef, coef_extra, multipliers, last_h, newton_base,
               step_start, n_steps, n_total, store_every,
@@ -585,7 +603,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
     # 73.7 -> 60.8 ms, the fixed point 102.7 -> 88.7 ms, bit for bit the same steps).
     tables = by_ref(borrow_tables(Tables(projection, Is, projection_hat, Ihat, X, abs_projection_hat,
                                          predictor_nodes, predictor_basis, newton_values, newton_vectors,
-                                         newton_inverse, newton_weights)))
+                                         newton_inverse, newton_weights, Is_low, Ihat_low)))
     owners = make_workspace(n, k, r, s, conserve_idx.shape[0], family, n_inv, multipliers.shape[0],
                             newton_eigenvalues(settings, newton_values))
     work = by_ref(borrow_workspace(owners))   # owners stays alive in this frame until the loop is done

@@ -35,9 +35,11 @@ from .codes import FAMILY_LIM
 #     complex, newton_weights (n_b,): X = V Lambda V^-1 restricted to one eigenvalue per
 #     conjugate pair (weight 2; a real eigenvalue has weight 1); empty when the method
 #     factorises the full Newton matrix instead (large s, ill-conditioned V).
+#   Is_low (k, s), Ihat_low (r, s): the low parts of Is and Ihat (double-doubles of the exact
+#     integrals; maps.scale_tables, docs/methods.md#round-off-over-long-times).
 Tables = namedtuple("Tables", ["projection", "Is", "projection_hat", "Ihat", "X", "abs_projection_hat",
                                "predictor_nodes", "predictor_basis", "newton_values", "newton_vectors",
-                               "newton_inverse", "newton_weights"])
+                               "newton_inverse", "newton_weights", "Is_low", "Ihat_low"])
 
 # The solver's settings (docs/solver.md): family and solver codes (codes.py), whether the
 # ELIM right-hand side is the stable tail (docs/methods.md#stable-right-hand-side), whether each step starts from the
@@ -103,6 +105,12 @@ Workspace = namedtuple("Workspace", [
     "extra_start",       # (e_max, n) the predictor's extra terms before the step (restored on failure)
     "metric",            # (n,) LIM's diagonal metric W of the correction (ones: the spec's Euclidean one;
     #                      the scaled metric: the mean square of each component over the stages)
+    "scaled_Is",         # (k, s), with scaled_Is_low: h Is + h Is_low as a double-double, for the h in
+    "scaled_Is_low",     #   scaled_h (maps.scale_tables: the stages' tables)
+    "scaled_Ihat",       # (r, s), and scaled_Ihat_low: the same for Ihat
+    "scaled_Ihat_low",
+    "scaled_h",          # (1,) the h of the scaled tables (NaN until the first)
+    "stage_comp",        # (n,) the Kahan compensation of the (sub)step's start, added into its stages
 ])
 
 
@@ -209,7 +217,7 @@ def borrow_tables(t):
     return Tables(borrowed(t.projection), borrowed(t.Is), borrowed(t.projection_hat), borrowed(t.Ihat),
                   borrowed(t.X), borrowed(t.abs_projection_hat), borrowed(t.predictor_nodes),
                   borrowed(t.predictor_basis), borrowed(t.newton_values), borrowed(t.newton_vectors),
-                  borrowed(t.newton_inverse), borrowed(t.newton_weights))
+                  borrowed(t.newton_inverse), borrowed(t.newton_weights), borrowed(t.Is_low), borrowed(t.Ihat_low))
 
 
 @njit(cache=True, inline="always")
@@ -228,7 +236,8 @@ def borrow_workspace(w):
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
         borrowed(w.predictor_points), borrowed(w.predictor_values), borrowed(w.extrapolation), borrowed(w.info),
-        borrowed(w.extra_start), borrowed(w.metric))
+        borrowed(w.extra_start), borrowed(w.metric), borrowed(w.scaled_Is), borrowed(w.scaled_Is_low),
+        borrowed(w.scaled_Ihat), borrowed(w.scaled_Ihat_low), borrowed(w.scaled_h), borrowed(w.stage_comp))
 
 
 # The Newton matrix is factorised in blocks whenever the method has an eigenbasis of X
@@ -290,4 +299,5 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n_jacobian, n_jacobian)), np.zeros((n_jacobian, n_jacobian)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(6),
-        np.zeros((e_max, n)), np.ones(n))
+        np.zeros((e_max, n)), np.ones(n), np.zeros((k, s)), np.zeros((k, s)), np.zeros((r, s)), np.zeros((r, s)),
+        np.full(1, np.nan), np.zeros(n))

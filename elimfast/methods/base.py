@@ -46,6 +46,19 @@ def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple
     return values, integrals
 
 
+def integral_tables(nodes: np.ndarray, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
+    """Is = int_0^{c_i} P_j at the exact Gauss nodes whose doubles are ``nodes`` (the len(nodes)-point
+    rule), j < n_integrals, as a double-double (Is, Is_low): the kernels' stages take both
+    (docs/methods.md#round-off-over-long-times)."""
+    from ..kernels.quadrature import legendre_integral_table_dd
+
+    nodes = np.ascontiguousarray(nodes, dtype=np.float64)
+    high = np.empty((nodes.size, n_integrals))
+    low = np.empty((nodes.size, n_integrals))
+    legendre_integral_table_dd(nodes, nodes.size, n_integrals, high, low)
+    return high, low
+
+
 def integrates_exactly(degree, k, s) -> bool:
     """Whether the k-node quadrature of HBVM(k,s) and its relatives integrates a Hamiltonian that
     is a polynomial of this total degree exactly, so that the method keeps H to round-off:
@@ -137,8 +150,10 @@ class Method:
     family: a registered family's name (``FAMILIES``; ``kind`` is its record). k nodes for H, r nodes
     for the invariants (r = k where the family has no separate r), s coefficients.
     Tables: c, b (k nodes and weights), Ps (k x k: P_j(c_l), j < k, enough for the
-    stable right-hand side, docs/methods.md#stable-right-hand-side), Is (k x s); chat, bhat, Ps_hat (r x r),
-    Is_hat (r x s) at the r nodes; projection[j, l] = b_l P_j(c_l) and
+    stable right-hand side, docs/methods.md#stable-right-hand-side), Is (k x s) and Is_low, its
+    low part (Is + Is_low is int_0^{c_l} P_j at the exact node to ~1e-32, double-double; the stages
+    take both, docs/methods.md#round-off-over-long-times); chat, bhat, Ps_hat (r x r), Is_hat and
+    Is_hat_low (r x s) at the r nodes; projection[j, l] = b_l P_j(c_l) and
     projection_hat[j, i] = bhat_i P_j(chat_i), the kernels' form of Ps^T Omega.
     Solver tables (docs/solver.md): X (s x s) = Ps^T Omega Is, tridiagonal (X[0,0] = 1/2,
     X[j,j-1] = -X[j-1,j] = 1/(2 sqrt(4j^2 - 1))), the simplified Newton matrix's;
@@ -172,6 +187,8 @@ class Method:
     newton_vectors: np.ndarray = field(repr=False)
     newton_inverse: np.ndarray = field(repr=False)
     newton_weights: np.ndarray = field(repr=False)
+    Is_low: np.ndarray = field(repr=False)
+    Is_hat_low: np.ndarray = field(repr=False)
 
     @property
     def order(self) -> int:
@@ -312,9 +329,11 @@ def build(family: str, r: int, k: int, s: int) -> Method:
             raise ParameterError(own(name), f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified up to "
                                             f"there), got {value}")
     c, b = quadrature(k)
-    Ps, Is = legendre_tables(c, k, s)
+    Ps = legendre_tables(c, k, s)[0]
+    Is, Is_low = integral_tables(c, s)
     chat, bhat = (c, b) if r == k else quadrature(r)
-    Ps_hat, Is_hat = (Ps, Is) if r == k else legendre_tables(chat, r, s)
+    Ps_hat = Ps if r == k else legendre_tables(chat, r, s)[0]
+    Is_hat, Is_hat_low = (Is, Is_low) if r == k else integral_tables(chat, s)
     # Left writable: Numba types read-only arrays differently from the kernels' signatures.
     projection = (b[:, None] * Ps).T
     projection_hat = (bhat[:, None] * Ps_hat).T
@@ -324,7 +343,7 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     predictor_basis = predictor_weights[:, None] * legendre_tables(predictor_nodes, s, 1)[0]
     arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat,
                                                  X, abs_projection_hat, predictor_nodes, predictor_basis,
-                                                 *newton_eigenbasis(X))]
+                                                 *newton_eigenbasis(X), Is_low, Is_hat_low)]
     return Method(kind.name, r, k, s, *arrays)
 
 

@@ -5,10 +5,18 @@ lrl_y, h = 0.1) aborted at step 836104, the step from t = 83610.3, whose midpoin
 2.2e-7 time units from a pericentre: Gamma is nearly singular there. This script runs
 the same orbit to that time and stores the state there and at the two steps before it.
 
-    .venv/bin/python tests/data/make_hard_steps.py
+With --exact it also stores each state's step solved in 40-digit arithmetic (mpmath, the
+fixed point to 1e-36), whole (exact_whole) and as two half steps (exact_halves): near that
+pericentre the solution of the step is so sensitive to rounding (cond(Gamma) ~ 1e7) that the
+NumPy reference in doubles (tests/reference.py) is itself 1.1e-13 from it, more than the
+kernel (tests/test_step_engine.py).
+
+    .venv/bin/python tests/data/make_hard_steps.py [--exact]   (--exact alone: keeps the states)
 """
+import sys
 from pathlib import Path
 
+import mpmath as mp
 import numpy as np
 
 import elimfast
@@ -16,15 +24,93 @@ from elimfast.methods import ehbvm
 from elimfast.problems import kepler
 
 STEP = 836103   # the state before step 836104 (1-based), t = 83610.3
+OUT = Path(__file__).with_name("hard_steps.npz")
+
+mp.mp.dps = 40
+k = r = 12
+s = 3
+nu = 2
+_roots = sorted(mp.polyroots(mp.taylor(lambda x: mp.legendre(k, x), 0, k)[::-1], maxsteps=500, extraprec=800))
+c = [(1 + x) / 2 for x in _roots]
+b = [1 / ((1 - x ** 2) * mp.diff(lambda t: mp.legendre(k, t), x) ** 2) for x in _roots]
+
+
+def P(j, x):
+    return mp.sqrt(2 * j + 1) * mp.legendre(j, 2 * x - 1)
+
+
+Pk = [[P(j, c[l]) for j in range(k)] for l in range(k)]
+Ik = [[mp.quad(lambda t, j=j: P(j, t), [0, c[l]]) for j in range(s)] for l in range(k)]
+
+
+def grad_H(y):
+    q1, q2, p1, p2 = y
+    r2 = q1 * q1 + q2 * q2
+    r3 = r2 * mp.sqrt(r2)
+    return [q1 / r3, q2 / r3, p1, p2]
+
+
+def grad_L(y):
+    """The gradients of angular_momentum and lrl_y (elimfast.problems.kepler)."""
+    q1, q2, p1, p2 = y
+    rr = mp.sqrt(q1 * q1 + q2 * q2)
+    r3 = rr ** 3
+    L = q1 * p2 - q2 * p1
+    return [[p2, -p1, -q2, q1], [-p1 * p2 + q1 * q2 / r3, p1 * p1 - 1 / rr + q2 * q2 / r3, -L + p1 * q2, -p1 * q1]]
+
+
+def J(v):
+    return [v[2], v[3], -v[0], -v[1]]
+
+
+def exact_step(y0, h, iterations=5000):
+    """One step of EHBVM(12,3) imposing L and A_y (stable right-hand side, docs/methods.md#elim) in
+    40-digit arithmetic: the fixed point, alpha = 0 for two sweeps, to increments below 1e-36."""
+    y0 = [mp.mpf(float(v)) for v in y0]
+    h = mp.mpf(float(h))
+    coef = [[mp.mpf(0)] * 4 for _ in range(s)]
+    alpha = [mp.mpf(0)] * nu
+    for iteration in range(iterations):
+        U = [[y0[i] + h * sum(Ik[l][j] * coef[j][i] for j in range(s)) for i in range(4)] for l in range(k)]
+        f = [J(grad_H(u)) for u in U]
+        gam = [[sum(b[l] * Pk[l][j] * f[l][i] for l in range(k)) for i in range(4)] for j in range(k)]
+        gL = [grad_L(u) for u in U]
+        phi = [[[sum(b[l] * Pk[l][j] * gL[l][a][i] for l in range(k)) for i in range(4)] for a in range(nu)]
+               for j in range(k)]
+        if iteration >= 2:
+            G, rhs = mp.matrix(nu, nu), mp.matrix(nu, 1)
+            for col in range(nu):
+                j = s - nu + col
+                for a in range(nu):
+                    G[a, col] = h ** (2 * (nu - 1 - col)) * sum(phi[j][a][i] * gam[j][i] for i in range(4))
+            for a in range(nu):
+                rhs[a] = -sum(sum(phi[j][a][i] * gam[j][i] for i in range(4)) for j in range(s, k))
+            solution = mp.lu_solve(G, rhs)
+            alpha = [solution[a] for a in range(nu)]
+        new = []
+        for j in range(s):
+            eta = 1 - h ** (2 * (nu - 1 - (j - s + nu))) * alpha[j - s + nu] if j >= s - nu else 1
+            new.append([eta * gam[j][i] for i in range(4)])
+        change = max(abs(new[j][i] - coef[j][i]) for j in range(s) for i in range(4))
+        coef = new
+        if iteration > 5 and change < mp.mpf(10) ** -36:
+            return np.array([float(y0[i] + h * coef[0][i]) for i in range(4)])
+    raise RuntimeError("the 40-digit fixed point did not converge")
 
 
 def main():
-    result = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=STEP, conserve=["angular_momentum", "lrl_y"],
-                                store_every=1)
-    states = result.y[STEP - 2:STEP + 1]
-    np.savez(Path(__file__).with_name("hard_steps.npz"), states=states, times=result.t[STEP - 2:STEP + 1],
-             source=f"elimfast {elimfast.__version__}, steps {STEP - 2}..{STEP} of the README's run x100")
-    print(f"stored {len(states)} states at t = {result.t[STEP - 2:STEP + 1]}")
+    if "--exact" in sys.argv and OUT.exists():
+        stored = dict(np.load(OUT))
+    else:
+        result = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=STEP,
+                                    conserve=["angular_momentum", "lrl_y"], store_every=1)
+        stored = {"states": result.y[STEP - 2:STEP + 1], "times": result.t[STEP - 2:STEP + 1],
+                  "source": f"elimfast {elimfast.__version__}, steps {STEP - 2}..{STEP} of the README's run x100"}
+    if "--exact" in sys.argv:
+        stored["exact_whole"] = np.array([exact_step(y0, 0.1) for y0 in stored["states"]])
+        stored["exact_halves"] = np.array([exact_step(exact_step(y0, 0.05), 0.05) for y0 in stored["states"]])
+    np.savez(OUT, **stored)
+    print(f"stored {len(stored['states'])} states at t = {stored['times']}")
 
 
 if __name__ == "__main__":
