@@ -95,6 +95,20 @@ def _legendre_dd(n, ch, cl):
 
 
 @njit(cache=True)
+def polished_node(c, n):
+    """The root of the shifted Legendre polynomial P_n near the double c, as a double-double
+    (ch, cl): three Newton steps in double-double (the correction only needs double precision;
+    ch is c up to an ulp). gauss_legendre's last polish, and legendre_integral_table_dd's nodes."""
+    ch, cl = c, 0.0
+    for _ in range(3):
+        ph, pl, qh, ql = _legendre_dd(n, ch, cl)
+        x = 2.0 * ch - 1.0
+        dp_dc = 2.0 * n * (x * ph - qh) / (x * x - 1.0)
+        ch, cl = _dd_add(ch, cl, -(ph + pl) / dp_dc, 0.0)
+    return ch, cl
+
+
+@njit(cache=True)
 def gauss_legendre(n, nodes, weights):
     """n-point Gauss-Legendre nodes and weights on [0, 1] (docs/methods.md#notation).
 
@@ -124,13 +138,7 @@ def gauss_legendre(n, nodes, weights):
                 c -= step
                 if abs(step) <= 1e-15 * c:
                     break
-            ch, cl = c, 0.0
-            # Newton in double-double: the correction only needs double precision.
-            for _ in range(3):
-                ph, pl, qh, ql = _legendre_dd(n, ch, cl)
-                x = 2.0 * ch - 1.0
-                dp_dc = 2.0 * n * (x * ph - qh) / (x * x - 1.0)
-                ch, cl = _dd_add(ch, cl, -(ph + pl) / dp_dc, 0.0)
+            ch, cl = polished_node(c, n)
         ph, pl, qh, ql = _legendre_dd(n, ch, cl)
         # 4 c (1 - c) in double-double
         oh, ol = _dd_add(1.0, 0.0, -ch, -cl)
@@ -201,19 +209,6 @@ def _dd_sqrt(a):
     root = math.sqrt(a)
     p, e = two_prod(root, root)
     return quick_two_sum(root, ((a - p) - e) / (2.0 * root))
-
-
-@njit(cache=True)
-def polished_node(c, n):
-    """The root of the shifted Legendre polynomial P_n near the double c, as a double-double
-    (ch, cl): Newton in double-double, as gauss_legendre takes it (ch is c up to an ulp)."""
-    ch, cl = c, 0.0
-    for _ in range(3):
-        ph, pl, qh, ql = _legendre_dd(n, ch, cl)
-        x = 2.0 * ch - 1.0
-        dp_dc = 2.0 * n * (x * ph - qh) / (x * x - 1.0)
-        ch, cl = _dd_add(ch, cl, -(ph + pl) / dp_dc, 0.0)
-    return ch, cl
 
 
 @njit(cache=True)

@@ -35,6 +35,12 @@ MAX_ETA_CORRECTION = 0.5   # ... and so is one with |h^(2(s-1-j)) alpha_j| above
 # Measured: well-posed steps have cond(Gamma) 8-30, up to 4e3 next to a pericentre; Kepler's L with
 # A_x (gradients dependent at the apsides) stalled at 6e8.
 NEARLY_SINGULAR_GAMMA = 1e6
+# An imposed solve that converged with cond(Gamma) above this is split when the step may still be
+# halved (stepper._attempt): its alpha, and so y1, carries rounding amplified by cond(Gamma), and the
+# halves of such a step, nearly symmetric about a pericentre, are well conditioned. Measured: the step
+# from t = 83610.3 of the README's run x100 (cond ~ 1e7) converged whole to 1.6e-14 of its 40-digit
+# solution, where the NumPy reference in doubles misses it by 1.1e-13; split, 2e-16.
+SPLIT_CONDITION = 1e6
 # The secant acceleration of simplified Newton (docs/solver.md#secant-acceleration; measured there,
 # not tunables): used only while the increment is above ACCEL_FLOOR (below it the increments carry
 # rounding that an extrapolation would amplify; at 1e-14 the slowest solve of the README's run took 16

@@ -28,7 +28,7 @@ from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table, two_prod, two_sum
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
-from .solver import BAND_CAP, NEARLY_SINGULAR_GAMMA, accelerates, newton_factor, solve
+from .solver import BAND_CAP, NEARLY_SINGULAR_GAMMA, SPLIT_CONDITION, accelerates, newton_factor, solve
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -182,8 +182,10 @@ def _copy_rows(source, target, rows):
 
 @internal
 def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-             y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base):
+             y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base, may_split):
     """Solve one (sub)step from y with step h: predicted guess, then the unextrapolated one.
+    may_split: the caller can still halve this (sub)step, and a solve that converged with
+    cond(Gamma) above SPLIT_CONDITION counts as failed (STATUS_SINGULAR) so that it is.
 
     coef/mult hold the previous (sub)step's coefficients and multipliers on entry (when
     have_prev) and the solution on success; on failure they are left as on entry.
@@ -233,6 +235,8 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             break
     if newton:
         newton_base[2] = work.info[2]
+    if status == STATUS_OK and may_split and work.info[1] > SPLIT_CONDITION:
+        status = STATUS_SINGULAR
     if status == STATUS_OK:
         if settings.predictor != 0:
             # Without the predictor coef_extra stays zero, and every start (side steps' too)
@@ -261,7 +265,7 @@ def _attempt_unimposed(grad_H, hess_H, grad_invariants, params, settings, tables
     stalled at increments 2e-12 to 3e-11, while the unimposed step changed L by 3e-17).
     Returns (status, iterations); the multipliers are 0 on success."""
     status, iterations = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx[:0], work,
-                                  y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base)
+                                  y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base, False)
     if status != STATUS_OK:
         return status, iterations
     # One map evaluation at the accepted coefficients, alpha = 0: b and the gradients of the invariants.
@@ -422,14 +426,15 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
                      settings.predictor, settings.tol, settings.max_iter, settings.max_halvings)
     while units_left > 0:
         h_sub = h * 0.5 ** depth
+        may_split = depth < settings.max_halvings
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
-                                y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
+                                y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base, may_split)
         iterations += used
         if status != STATUS_OK and retry_plain:
             # The secant steps can carry a hard solve to a spurious alpha, which is rejected
             # (docs/solver.md#secant-acceleration): plain Newton tries the substep before it is split.
             status, used = _attempt(grad_H, hess_H, grad_invariants, params, plain, tables, conserve_idx, work,
-                                    y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
+                                    y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base, may_split)
             iterations += used
         if status != STATUS_OK and (
                 (status == STATUS_SINGULAR and depth == 0 and may_skip_imposing and work.info[0] <= BAND_CAP)
