@@ -88,13 +88,15 @@ def config_of(run_file) -> dict:
     return config if isinstance(config, dict) else {}
 
 
-def relative_drift(run_file, names=None) -> dict[str, float]:
+def relative_drift(run_file, names=None, drift=None) -> dict[str, float]:
     """{name: max |I(t) - I(t0)| relative (integrate.relative_error)} over a run file's samples,
     for ``names`` (default: H and every invariant); names without a finite figure (no step
-    done yet) are left out."""
+    done yet) are left out. ``drift``: run_file.invariant_drift() when the caller has read it
+    (it reads every sample)."""
     from elimfast.integrate import relative_error
 
-    drift, initial, scales = run_file.invariant_drift(), run_file.initial_invariants(), run_file.invariant_scales()
+    drift = run_file.invariant_drift() if drift is None else drift
+    initial, scales = run_file.initial_invariants(), run_file.invariant_scales()
     relative = {}
     for name in (drift if names is None else names):
         error, first = drift.get(name, math.nan), initial.get(name, math.nan)
@@ -109,14 +111,14 @@ def _rate(steps, seconds) -> str:
     return f"{rate:,.0f} steps/s" if rate >= 1 else f"{seconds / steps:.3g} s/step"
 
 
-def energy_note(run_file) -> str | None:
+def energy_note(run_file, drift=None) -> str | None:
     """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
-    invariant lost more than round-off (relative 1e-12) in a run file."""
+    invariant lost more than round-off (relative 1e-12) in a run file (``drift``: as relative_drift's)."""
     from elimfast.integrate import energy_note as note
     from elimfast.integrate import roundoff_allowance
 
     attrs = run_file.attrs
-    relative = relative_drift(run_file, ("H", *list(attrs.get("conserve") or [])))
+    relative = relative_drift(run_file, ("H", *list(attrs.get("conserve") or [])), drift)
     steps = run_file.substep_stats()["total"]
     initial, scales = run_file.initial_invariants(), run_file.invariant_scales()
     roundoff = {name: roundoff_allowance(steps, initial.get(name, math.nan), scales.get(name, 0.0))
@@ -141,11 +143,12 @@ def run_notes(run_file) -> list[str]:
     if spikes:
         from elimfast.integrate import alpha_spike_note
         notes.append(alpha_spike_note(spikes, run_file.steps_done))
-    warning = energy_note(run_file)
+    drift = run_file.invariant_drift()
+    warning = energy_note(run_file, drift)
     if warning:
         notes.append(warning)
     if run_file.steps_done > 0:
-        undefined = [name for name, value in run_file.invariant_drift().items() if math.isnan(value)]
+        undefined = [name for name, value in drift.items() if math.isnan(value)]
         if undefined:
             # a user trial: H NaN in a third of the samples (log(x) with x < 0 on the orbit, the check off)
             # completed without a word
@@ -300,6 +303,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     from elimfast.integrate import relative_reference
 
     drift = run_file.invariant_drift()
+    samples_drift = drift
     initial = run_file.initial_invariants()
     scales = run_file.invariant_scales()
     if not any(math.isfinite(value) for value in drift.values()):
@@ -370,7 +374,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
                                                    if substeps["split"] else ""))
     if substeps.get("unimposed"):
         row("", unimposed_text(substeps["unimposed"], run_file.steps_done))
-    warning = energy_note(run_file)
+    warning = energy_note(run_file, samples_drift)
     if warning:
         row("note", warning)
     labels = run_file.multiplier_labels()
