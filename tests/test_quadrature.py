@@ -55,3 +55,21 @@ def test_legendre_basis_is_orthonormal_under_gauss_quadrature():
     c, b = quadrature(12)
     Ps, _ = legendre_tables(c, 12, 1)
     np.testing.assert_allclose(Ps.T @ np.diag(b) @ Ps, np.eye(12), atol=1e-13)
+
+
+@pytest.mark.parametrize("k,s", [(2, 2), (5, 5), (12, 3), (24, 6), (64, 8)])
+def test_the_methods_integral_tables_are_the_exact_integrals_as_double_doubles(k, s):
+    """docs/methods.md#round-off-over-long-times: a method's Is + Is_low is int_0^{c_l} P_j at the exact
+    Gauss node to double-double accuracy (Is rounded to doubles made GAUSS(2)'s H drift), and Is is
+    that value rounded, within an ulp (the kernels' stages add the low part of the leading term)."""
+    from elimfast.methods.base import integral_tables
+
+    nodes, _ = quadrature(k)
+    high, low = integral_tables(nodes, s)
+    for l in range(k):
+        node, _ = mpmath_root(k, nodes[l])
+        for j in range(s):
+            exact = node if j == 0 else (mp.legendre(j + 1, 2 * node - 1) - mp.legendre(j - 1, 2 * node - 1)) / (
+                2 * mp.sqrt(2 * j + 1))
+            assert abs(mp.mpf(high[l, j]) + mp.mpf(low[l, j]) - exact) <= mp.mpf(1e-30) * max(1, abs(exact)), (l, j)
+            assert abs(float(exact - mp.mpf(high[l, j]))) <= np.spacing(abs(high[l, j])), (l, j)

@@ -34,16 +34,26 @@ def quadrature(n: int) -> tuple[np.ndarray, np.ndarray]:
     return nodes, weights
 
 
-def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
-    """(Ps, Is) of docs/methods.md#notation: Ps[i, j] = P_j(c_i), j < n_values; Is[i, j] = int_0^{c_i} P_j, j < n_integrals."""
-    from ..kernels.quadrature import legendre_integral_table, legendre_table
+def legendre_values(nodes: np.ndarray, n_values: int) -> np.ndarray:
+    """Ps of docs/methods.md#notation: Ps[i, j] = P_j(c_i), j < n_values."""
+    from ..kernels.quadrature import legendre_table
 
     nodes = np.ascontiguousarray(nodes, dtype=np.float64)
     values = np.empty((nodes.size, n_values))
-    integrals = np.empty((nodes.size, n_integrals))
     legendre_table(nodes, n_values, values)
+    return values
+
+
+def legendre_tables(nodes: np.ndarray, n_values: int, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
+    """(Ps, Is) of docs/methods.md#notation at any nodes, in double precision: Ps[i, j] = P_j(c_i),
+    j < n_values; Is[i, j] = int_0^{c_i} P_j, j < n_integrals. (A method's own Is, at its Gauss
+    nodes, is integral_tables'.)"""
+    from ..kernels.quadrature import legendre_integral_table
+
+    nodes = np.ascontiguousarray(nodes, dtype=np.float64)
+    integrals = np.empty((nodes.size, n_integrals))
     legendre_integral_table(nodes, n_integrals, integrals)
-    return values, integrals
+    return legendre_values(nodes, n_values), integrals
 
 
 def integral_tables(nodes: np.ndarray, n_integrals: int) -> tuple[np.ndarray, np.ndarray]:
@@ -329,10 +339,10 @@ def build(family: str, r: int, k: int, s: int) -> Method:
             raise ParameterError(own(name), f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified up to "
                                             f"there), got {value}")
     c, b = quadrature(k)
-    Ps = legendre_tables(c, k, s)[0]
+    Ps = legendre_values(c, k)
     Is, Is_low = integral_tables(c, s)
     chat, bhat = (c, b) if r == k else quadrature(r)
-    Ps_hat = Ps if r == k else legendre_tables(chat, r, s)[0]
+    Ps_hat = Ps if r == k else legendre_values(chat, r)
     Is_hat, Is_hat_low = (Is, Is_low) if r == k else integral_tables(chat, s)
     # Left writable: Numba types read-only arrays differently from the kernels' signatures.
     projection = (b[:, None] * Ps).T
@@ -340,7 +350,7 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     X = projection[:s] @ Is                        # exact: the integrand has degree <= 2s - 1 <= 2k - 1
     abs_projection_hat = np.abs(projection_hat).sum(axis=1)
     predictor_nodes, predictor_weights = quadrature(s + 1)
-    predictor_basis = predictor_weights[:, None] * legendre_tables(predictor_nodes, s, 1)[0]
+    predictor_basis = predictor_weights[:, None] * legendre_values(predictor_nodes, s)
     arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat,
                                                  X, abs_projection_hat, predictor_nodes, predictor_basis,
                                                  *newton_eigenbasis(X), Is_low, Is_hat_low)]
