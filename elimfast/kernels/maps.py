@@ -54,11 +54,12 @@ def stages(y, comp, scaled, scaled_low, coef, n_coef, out):
 @njit(cache=True, inline="always", error_model="numpy")
 def scale_tables(h, tables, work):
     """work.scaled_Is (+ scaled_Is_low) = h (Is + Is_low) as a double-double, and the same for
-    Ihat, unless they already hold this h (work.scaled_h): the stages' tables (stages). Exact
-    products (quadrature.two_prod) of the double h with the double-double tables."""
+    Ihat where r != k (where r = k the maps take the stages at the k nodes for both), unless they
+    already hold this h (work.scaled_h): the stages' tables (stages). Exact products
+    (quadrature.two_prod) of the double h with the double-double tables."""
     if work.scaled_h[0] == h:
         return
-    for pair in range(2):
+    for pair in range(1 if tables.Ihat.shape[0] == tables.Is.shape[0] else 2):
         high, low = (tables.Is, tables.Is_low) if pair == 0 else (tables.Ihat, tables.Ihat_low)
         out, out_low = (work.scaled_Is, work.scaled_Is_low) if pair == 0 else (work.scaled_Ihat, work.scaled_Ihat_low)
         for l in range(high.shape[0]):
