@@ -25,16 +25,17 @@ kernel (elimfast.ensemble), not one process per run; it has no grid:
 
 A variant's ``set`` replaces whole top-level values it names (a method mapping is
 replaced, not merged, so ``{name: gauss, s: 3}`` does not inherit ``k`` from the
-base); the sweep-wide ``set`` merges into nested mappings.
+base); the sweep-wide ``set`` merges into nested mappings, except a method that names
+its family (``{name: hbvm, s: 4}`` replaces the base's method, as in a variant;
+``{s: 4}`` changes only s).
 
 Errors: ``exact: initial`` compares each run's final state with its initial state
 (a periodic problem over a whole number of periods, e.g. Kepler over 10 periods, the
 paper's Table 1); ``reference`` runs the base with the given overrides once and
 compares every run's final state with it, so every run must have the reference's
 problem (parameters, initial state) and interval (a sweep that varies them is refused).
-The reference's ``set`` merges as the sweep-wide one does (``integration: {h: 0.001}``
-keeps the t_end), except ``method``, which replaces the base's as in a variant
-(``{name: gauss, s: 6}`` is GAUSS(6), with no k from an EHBVM base). Its config is loaded
+The reference's ``set`` applies as the sweep-wide one does (``integration: {h: 0.001}``
+keeps the t_end; ``method: {name: gauss, s: 6}`` is GAUSS(6), with no k from an EHBVM base). Its config is loaded
 with the sweep file: one that does not load is refused before any run.
 
 Orders: ``order_axis`` names a plain axis of positive numbers; the order column gives
@@ -325,7 +326,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     common = data.get("set") or {}
     if not isinstance(common, dict):
         _fail(source, "set", "must be a mapping of overrides, e.g. {integration: {t_end: 20*pi}}")
-    _deep_merge(base, _written_out(source, "set.", common))
+    base = _apply_set(base, _written_out(source, "set.", common))
 
     axes = data.get("grid") or []
     if not isinstance(axes, list):
@@ -419,7 +420,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             if not isinstance(ref, dict) or not isinstance(ref.get("set", {}), dict):
                 _fail(source, "error.reference", "must be {set: {overrides of the base}}")
             reference_set = _written_out(source, "error.reference.set.", ref.get("set") or {})
-            reference = _reference_config(base, reference_set)
+            reference = _apply_set(base, reference_set)
             error_mode = "reference"
             _check_same_problem(source, runs, reference)
     order_axis = data.get("order_axis")
@@ -439,19 +440,21 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                      reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
 
 
-def _reference_config(base: dict, overrides: dict) -> dict:
-    """The reference run's config: error.reference.set merged into the base as the sweep-wide set
-    is (integration: {h: 0.001} keeps the base's t_end), except that a method replaces the base's
-    method mapping, as a variant's does. A method's parameters are its family's: a user trial's
-    {name: gauss, s: 6} kept the base's k = 12 and failed with 'method.k: does not apply: gauss(s)
-    takes no k; remove it', a key the sweep file did not have."""
-    reference = copy.deepcopy(base)
+def _apply_set(base: dict, overrides: dict) -> dict:
+    """The base with a sweep-wide set (or error.reference.set) applied: merged into nested mappings
+    (integration: {h: 0.001} keeps the base's t_end), except that a method naming its family
+    replaces the base's method mapping, as a variant's does. A method's parameters are its
+    family's: a user trial's reference {name: gauss, s: 6} kept the base's k = 12 and failed with
+    'method.k: does not apply: gauss(s) takes no k; remove it', a key the sweep file did not have,
+    and a sweep-wide {name: hbvm, s: 4} over an EHBVM(12,3) base ran HBVM(12,4). A method without
+    a name ({s: 4}) changes only what it gives."""
+    merged = copy.deepcopy(base)
     for key, value in overrides.items():
-        if key == "method":
-            reference[key] = copy.deepcopy(value)
+        if key == "method" and isinstance(value, dict) and "name" in value:
+            merged[key] = copy.deepcopy(value)
         else:
-            _deep_merge(reference, {key: value})
-    return reference
+            _deep_merge(merged, {key: value})
+    return merged
 
 
 def _reference_failure(source: str, failure: ElimfastError, reference_set: dict) -> str:

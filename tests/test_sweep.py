@@ -46,6 +46,23 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
     assert spec.runs[3].config["method"]["k"] == 12
 
 
+def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_path):
+    """A sweep-wide set: {method: {name: hbvm, s: 4}} over an EHBVM(12,3) base merged and ran
+    HBVM(12,4), inheriting k. A method naming its family replaces the base's (as a variant's and
+    the reference's do); one without a name changes only what it gives; other sections merge."""
+    grid = [{"name": "h", "key": "integration.h", "values": ["pi/30"]}]
+    whole = load_sweep(write_sweep(tmp_path, {"base": BASE, "set": {"method": {"name": "hbvm", "s": 4},
+                                                                     "integration": {"t_end": "4*pi"}},
+                                              "grid": grid}))
+    assert whole.runs[0].config["method"] == {"name": "hbvm", "s": 4}
+    assert whole.runs[0].config["integration"] == {"h": "pi/30", "t_end": "4*pi"}
+    shorthand = load_sweep(write_sweep(tmp_path, {"base": BASE, "set": {"method": "GAUSS(2)", "conserve": []},
+                                                  "grid": grid}, "shorthand.yaml"))
+    assert shorthand.runs[0].config["method"] == {"name": "gauss", "s": 2}
+    tweak = load_sweep(write_sweep(tmp_path, {"base": BASE, "set": {"method": {"s": 4}}, "grid": grid}, "tweak.yaml"))
+    assert tweak.runs[0].config["method"] == {"name": "ehbvm", "k": 12, "s": 4}
+
+
 @pytest.mark.parametrize("data,match", [
     ({"base": BASE, "grids": []}, "grids: unknown key"),
     ({"base": 3}, "base: give a run config"),
