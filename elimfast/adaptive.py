@@ -109,6 +109,11 @@ class StepControl:
                 if self.epsilon is not None and not given:
                     raise ParameterError("epsilon", "applies to time-reversible steps: add step_control = "
                                                     "'time_scale', or give rtol instead for error-controlled steps")
+                if self.epsilon is None and given:
+                    # named at the key given (a --set integration.step_control=error on a fixed-step
+                    # config was told only 'integration.rtol: is needed', at the file's line)
+                    raise ParameterError("step_control", "asks for error-controlled steps, which need rtol: add "
+                                                         "rtol, e.g. rtol = 1e-10")
                 if self.epsilon is None:
                     raise ParameterError("rtol", "is needed for error-controlled steps, e.g. rtol = 1e-10")
                 raise ParameterError("epsilon", _EPSILON_WITH_ERROR_CONTROL)

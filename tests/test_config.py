@@ -683,6 +683,7 @@ def test_epsilon_or_atol_without_rtol_is_named_with_its_set_not_told_rtol_is_nee
     error-controlled steps', naming neither the key given nor the --set. epsilon alone meant
     the time-reversible steps, and is told how to ask for them (as elimfast.integrate said);
     atol alone is told that it needs rtol; each names its --set, or its line in the file.
+    --set integration.step_control=error alone is named at step_control, with its --set.
     StepControl states the rule once, for the config and the API."""
     from click.testing import CliRunner
     from elimfast.errors import ParameterError
@@ -693,7 +694,10 @@ def test_epsilon_or_atol_without_rtol_is_named_with_its_set_not_told_rtol_is_nee
                                         "'time_scale', or give rtol instead for error-controlled steps (value from "
                                         "--set integration.epsilon=0.1)"),
             ("integration.atol=1e-10", "integration.atol: is given without rtol, which error-controlled steps need: "
-                                       "add rtol, e.g. rtol = 1e-10 (value from --set integration.atol=1e-10)")]:
+                                       "add rtol, e.g. rtol = 1e-10 (value from --set integration.atol=1e-10)"),
+            ("integration.step_control=error", "integration.step_control: asks for error-controlled steps, which need "
+                                               "rtol: add rtol, e.g. rtol = 1e-10 (value from --set "
+                                               "integration.step_control=error)")]:
         with pytest.raises(ConfigError) as caught:
             load_run(kepler, overrides=[given])
         assert str(caught.value) == f"{kepler}: {message}"
