@@ -492,12 +492,15 @@ def write_out_shorthands(data: dict, error) -> dict:
     name = method.get("name") if isinstance(method, dict) else method
     if isinstance(name, str) and ("(" in name or ")" in name):
         # YAML's flow mapping {name: EHBVM(12,3)} splits it at the comma: name 'EHBVM(12' and a
-        # key '3)'. Without that key the notation itself is wrong (from_notation says how).
-        rest = [key for key in method if key != "name"] if isinstance(method, dict) else []
+        # key '3)'; so does a sweep's set: {method: ELIM(4,8,3), conserve: []}, beside method.
+        # Without that key the notation itself is wrong (from_notation says how).
+        in_mapping = isinstance(method, dict)
+        rest = [key for key in (method if in_mapping else data) if key not in ("name", "method")]
         if ")" not in name and any(str(key).rstrip().endswith(")") for key in rest):
-            raise error(("method", "name"), f"{name!r} is cut off: inside {{...}} YAML splits an unquoted "
-                        f"EHBVM(12,3) at its comma; quote it (name: \"EHBVM(12,3)\"), or write method: "
-                        "EHBVM(12,3) on its own line")
+            quoted = 'name: "EHBVM(12,3)"' if in_mapping else 'method: "EHBVM(12,3)"'
+            raise error(("method", "name") if in_mapping else ("method",),
+                        f"{name!r} is cut off: inside {{...}} YAML splits an unquoted EHBVM(12,3) at its comma; "
+                        f"quote it ({quoted}), or write method: EHBVM(12,3) on its own line")
         try:
             expanded = methods.from_notation(name)
         except ParameterError as err:

@@ -993,6 +993,15 @@ def test_a_sweep_takes_the_short_forms_of_a_run_config(tmp_path):
     bad = write_sweep(tmp_path, {"base": {**BASE, "method": {"name": "EHBVM(12", "3)": None}}}, "bad.yaml")
     with pytest.raises(SweepError, match=r"bad.yaml: base.method.name: 'EHBVM\(12' is cut off"):
         load_sweep(bad)
+    # ... and from set: {method: ELIM(4,8,3), conserve: []}: the pieces land beside method (the
+    # message said only "'ELIM(4' is unbalanced")
+    variant = (tmp_path / "variant.yaml")
+    variant.write_text("base: {problem: kepler, method: \"EHBVM(12,3)\", integration: {h: 0.1, t_end: 1}}\n"
+                       "grid:\n  - name: m\n    values:\n"
+                       "      - {label: a, set: {method: ELIM(4,8,3), conserve: [angular_momentum]}}\n")
+    with pytest.raises(SweepError, match=r"variant.yaml: grid\[0\].values\[0\].set.method: 'ELIM\(4' is cut off: "
+                                         r"inside \{...\} YAML splits .* quote it \(method: "):
+        load_sweep(variant)
 
 
 def test_an_adaptive_runs_row_counts_the_iterations_its_grad_H_evaluations_count(tmp_path):
