@@ -38,7 +38,8 @@ The reference's ``set`` applies as the sweep-wide one does (``integration: {h: 0
 keeps the t_end; ``method: {name: gauss, s: 6}`` is GAUSS(6), with no k from an EHBVM base). Its config is loaded
 with the sweep file: one that does not load is refused before any run.
 
-Orders: ``order_axis`` names a plain axis of positive numbers; the order column gives
+Orders: ``order_axis`` names a plain axis of positive numbers (an h axis only over fixed-step
+runs: an adaptive run takes h as its first step only); the order column gives
 log(e1/e2)/log(x1/x2) between each run and the one before it on that axis (the other
 axes equal), x the value of the axis's key as the run resolved it: the order in h for
 an axis of integration.h (column ``order``), in epsilon or rtol for those (column
@@ -428,6 +429,8 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         _fail(source, "order_axis", f"names no axis; the axes are {', '.join(axis_names) or 'none'}")
     if order_axis is not None:
         _check_order_axis(source, order_axis, axes[axis_names.index(order_axis)], axis_names.index(order_axis))
+        if axis_keys.get(order_axis) == "integration.h":
+            _check_fixed_steps(source, order_axis, runs)
     if reference is not None:
         # Every error is taken against the reference run, which runs with the grid: a config it
         # could not load was reported after the whole grid had run (hours of a real sweep).
@@ -484,6 +487,18 @@ def _check_order_axis(source: str, name: str, axis: dict, index: int) -> None:
             _fail(source, "order_axis", f"the axis {name!r} has the value {value!r} (grid[{index}].values[{j}]), "
                                         f"not a positive number; {why}; give order_axis an axis of such numbers, "
                                         "or leave it out")
+
+
+def _check_fixed_steps(source: str, name: str, runs) -> None:
+    """An order in h needs runs whose steps are h: one with adaptive steps (rtol, or a step_control)
+    takes h as its first step only, and its 'order' was a number in that first step."""
+    for run in runs:
+        integration = run.config.get("integration") or {}
+        adaptive = [key for key in ("rtol", "step_control") if integration.get(key) is not None]
+        if adaptive:
+            _fail(source, "order_axis", f"the axis {name!r} sets h, but run {run.label!r} has adaptive steps "
+                                        f"(integration.{adaptive[0]}), where h is only the first step; give "
+                                        "order_axis an axis of rtol or epsilon instead, or run those with fixed steps")
 
 
 AXIS_KEYS = ("name", "key", "values", "labels")

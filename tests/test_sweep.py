@@ -46,6 +46,17 @@ def test_grid_is_the_product_of_the_axes_and_variants_replace_whole_sections(tmp
     assert spec.runs[3].config["method"]["k"] == 12
 
 
+def test_an_order_in_h_of_adaptive_runs_is_refused(tmp_path):
+    """order_axis: h over runs with rtol gave an 'order' in their first step, which is all h is to
+    them; such a sweep is refused when it is read, naming the run and the key."""
+    grid = [{"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60"]}]
+    adaptive = {**BASE, "method": {"name": "ehbvm", "s": 4}, "integration": {"rtol": 1e-10, "t_end": "2*pi"}}
+    with pytest.raises(SweepError, match=r"order_axis: the axis 'h' sets h, but run 'pi/30' has adaptive steps "
+                                         r"\(integration.rtol\), where h is only the first step"):
+        load_sweep(write_sweep(tmp_path, {"base": adaptive, "grid": grid, "order_axis": "h"}))
+    assert load_sweep(write_sweep(tmp_path, {"base": BASE, "grid": grid, "order_axis": "h"}, "fixed.yaml")).order_axis == "h"
+
+
 def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_path):
     """A sweep-wide set: {method: {name: hbvm, s: 4}} over an EHBVM(12,3) base merged and ran
     HBVM(12,4), inheriting k. A method naming its family replaces the base's (as a variant's and
