@@ -24,6 +24,7 @@ from numba import njit
 
 from .linalg import cholesky_factor, cholesky_solve_factored, lu_factor, lu_solve_factored
 from .quadrature import quick_two_sum, two_prod
+from .simd import add4, load4, load4_row, mul4, splat4, store4_row
 
 EPS = 2.0 ** -52
 
@@ -41,10 +42,24 @@ def stages(y, comp, scaled, scaled_low, coef, n_coef, out):
     multiplying it by h after (the paper's form, y + h sum) rounds twice, and h = 0.1 (mantissa
     8/5) rounds products with a mean error of -0.057 eps on the doubles near 0.6: with the
     rounded table Is that made GAUSS(2) gain 3.6e-19 of H per step on the harmonic oscillator,
-    the same for every start, a linear drift instead of a random walk."""
+    the same for every start, a linear drift instead of a random walk.
+
+    Four components at a time in one vector (simd.Double4: each lane the scalar operations, the
+    same bits), the nodes in the inner loop (y, comp and coef[0] loaded once per four components).
+    """
     n = y.shape[0]
+    n4 = n - n % 4
+    for i in range(0, n4, 4):
+        y4 = load4(y, i)
+        comp4 = load4(comp, i)
+        coef4 = load4_row(coef, 0, i)
+        for l in range(out.shape[0]):
+            small = add4(comp4, mul4(splat4(scaled_low[l, 0]), coef4))
+            for j in range(1, n_coef):
+                small = add4(small, mul4(splat4(scaled[l, j]), load4_row(coef, j, i)))
+            store4_row(out, l, i, add4(y4, add4(mul4(splat4(scaled[l, 0]), coef4), small)))
     for l in range(out.shape[0]):
-        for i in range(n):
+        for i in range(n4, n):
             small = comp[i] + scaled_low[l, 0] * coef[0, i]
             for j in range(1, n_coef):
                 small += scaled[l, j] * coef[j, i]
@@ -75,34 +90,46 @@ def project(projection, values, n_degrees, out):
 
     The discrete Legendre coefficients of docs/methods.md#hbvm (gamma_j) and #elim (phi_j) of the rows of
     values (n_nodes, n); projection (>= n_degrees, n_nodes) holds b_l P_j(c_l).
-    Scalar accumulators, four components at a time: accumulating into out[j, i]
-    chains every update through memory (3x slower), and four independent sums let
-    LLVM use one vector FMA for them.
+    Each sum runs over l in order from 0.0, in registers: four components at a time in one
+    vector (simd.Double4; accumulating into out[j, i] chains every update through memory,
+    3x slower), for two degrees j at a time (two independent chains of additions, which
+    share the loads of values). The vector lanes do the scalar operations: the same bits
+    as one scalar sum per (j, i). Measured (the three projections of EHBVM(12,3) on
+    Kepler, n = 4): 456 ns with four scalar sums, 210 ns.
     """
     n = values.shape[1]
     n_nodes = values.shape[0]
     n4 = n - n % 4
-    for j in range(n_degrees):
+    n2 = n_degrees - n_degrees % 2
+    for j in range(0, n2, 2):
         for i in range(0, n4, 4):
-            acc0 = 0.0
-            acc1 = 0.0
-            acc2 = 0.0
-            acc3 = 0.0
+            acc = splat4(0.0)
+            acc_next = splat4(0.0)
             for l in range(n_nodes):
-                w = projection[j, l]
-                acc0 += w * values[l, i]
-                acc1 += w * values[l, i + 1]
-                acc2 += w * values[l, i + 2]
-                acc3 += w * values[l, i + 3]
-            out[j, i] = acc0
-            out[j, i + 1] = acc1
-            out[j, i + 2] = acc2
-            out[j, i + 3] = acc3
+                x = load4_row(values, l, i)
+                acc = add4(acc, mul4(splat4(projection[j, l]), x))
+                acc_next = add4(acc_next, mul4(splat4(projection[j + 1, l]), x))
+            store4_row(out, j, i, acc)
+            store4_row(out, j + 1, i, acc_next)
         for i in range(n4, n):
-            acc = 0.0
+            acc1 = 0.0
+            acc1_next = 0.0
             for l in range(n_nodes):
-                acc += projection[j, l] * values[l, i]
-            out[j, i] = acc
+                acc1 += projection[j, l] * values[l, i]
+                acc1_next += projection[j + 1, l] * values[l, i]
+            out[j, i] = acc1
+            out[j + 1, i] = acc1_next
+    for j in range(n2, n_degrees):
+        for i in range(0, n4, 4):
+            acc = splat4(0.0)
+            for l in range(n_nodes):
+                acc = add4(acc, mul4(splat4(projection[j, l]), load4_row(values, l, i)))
+            store4_row(out, j, i, acc)
+        for i in range(n4, n):
+            acc1 = 0.0
+            for l in range(n_nodes):
+                acc1 += projection[j, l] * values[l, i]
+            out[j, i] = acc1
 
 
 @njit(cache=True, inline="always", error_model="numpy")
