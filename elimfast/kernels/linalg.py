@@ -10,6 +10,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .simd import addsub4, load4_row, load_pair_row, mul4, splat4, store4_row, store_pair_row, sub4, swap_pairs4
+
 # A pivot smaller than this times the largest entry of the matrix is treated as zero:
 # the solution would carry no correct digit. Relative, because Gamma is O(h^(2s-2)).
 RELATIVE_PIVOT_FLOOR = 1e-13
@@ -140,6 +142,179 @@ def invert(a, inverse):
                         a[i, j] -= factor * a[col, j]
                     for j in range(n):
                         inverse[i, j] -= factor * inverse[col, j]
+    return 0
+
+
+@njit(cache=True, inline="always")
+def _invert_start(a, inverse):
+    """invert's first pass: the largest |Re| + |Im| of a (-1 when an entry is not finite), and
+    inverse <- I."""
+    n = a.shape[0]
+    scale = 0.0
+    for i in range(n):
+        for j in range(n):
+            v = abs(a[i, j].real) + abs(a[i, j].imag)
+            if not (v <= 1e308):
+                return -1.0
+            if v > scale:
+                scale = v
+            inverse[i, j] = 0.0
+        inverse[i, i] = 1.0
+    return scale
+
+
+@njit(cache=True, inline="always")
+def _pivot(a, inverse, col, scale):
+    """invert's partial pivoting at column col: the row swap; False when the pivot is too small."""
+    n = a.shape[0]
+    pivot_row = col
+    pivot_abs = abs(a[col, col].real) + abs(a[col, col].imag)
+    for i in range(col + 1, n):
+        v = abs(a[i, col].real) + abs(a[i, col].imag)
+        if v > pivot_abs:
+            pivot_abs = v
+            pivot_row = i
+    if pivot_abs <= RELATIVE_PIVOT_FLOOR * scale:
+        return False
+    if pivot_row != col:
+        for j in range(n):
+            tmp = a[col, j]
+            a[col, j] = a[pivot_row, j]
+            a[pivot_row, j] = tmp
+            tmp = inverse[col, j]
+            inverse[col, j] = inverse[pivot_row, j]
+            inverse[pivot_row, j] = tmp
+    return True
+
+
+@njit(cache=True, inline="always")
+def _real_column(a, inverse, col, scale):
+    """invert's elimination of column col, real a: False when its pivot is too small."""
+    n = a.shape[0]
+    n4 = n - n % 4
+    if not _pivot(a, inverse, col, scale):
+        return False
+    inverse_pivot = 1.0 / a[col, col]
+    start = (col + 1) - (col + 1) % 4
+    ip = splat4(inverse_pivot)
+    for j in range(start, n4, 4):
+        store4_row(a, col, j, mul4(load4_row(a, col, j), ip))
+    for j in range(max(start, n4), n):
+        a[col, j] *= inverse_pivot
+    for j in range(0, n4, 4):
+        store4_row(inverse, col, j, mul4(load4_row(inverse, col, j), ip))
+    for j in range(n4, n):
+        inverse[col, j] *= inverse_pivot
+    for i in range(n):
+        if i != col:
+            factor = a[i, col]
+            if factor != 0.0:
+                f = splat4(factor)
+                for j in range(start, n4, 4):
+                    store4_row(a, i, j, sub4(load4_row(a, i, j), mul4(f, load4_row(a, col, j))))
+                for j in range(max(start, n4), n):
+                    a[i, j] -= factor * a[col, j]
+                for j in range(0, n4, 4):
+                    store4_row(inverse, i, j, sub4(load4_row(inverse, i, j), mul4(f, load4_row(inverse, col, j))))
+                for j in range(n4, n):
+                    inverse[i, j] -= factor * inverse[col, j]
+    return True
+
+
+@njit(cache=True, inline="always")
+def _complex_column(a, inverse, col, scale):
+    """invert's elimination of column col, complex a: False when its pivot is too small."""
+    n = a.shape[0]
+    n2 = n - n % 2
+    if not _pivot(a, inverse, col, scale):
+        return False
+    inverse_pivot = 1.0 / a[col, col]
+    start = (col + 1) - (col + 1) % 2
+    p_re = splat4(inverse_pivot.real)
+    p_im = splat4(inverse_pivot.imag)
+    for j in range(start, n2, 2):
+        x = load_pair_row(a, col, j)
+        store_pair_row(a, col, j, addsub4(mul4(x, p_re), mul4(swap_pairs4(x), p_im)))
+    for j in range(max(start, n2), n):
+        a[col, j] *= inverse_pivot
+    for j in range(0, n2, 2):
+        x = load_pair_row(inverse, col, j)
+        store_pair_row(inverse, col, j, addsub4(mul4(x, p_re), mul4(swap_pairs4(x), p_im)))
+    for j in range(n2, n):
+        inverse[col, j] *= inverse_pivot
+    for i in range(n):
+        if i != col:
+            factor = a[i, col]
+            if factor != 0.0:
+                f_re = splat4(factor.real)
+                f_im = splat4(factor.imag)
+                for j in range(start, n2, 2):
+                    x = load_pair_row(a, col, j)
+                    product = addsub4(mul4(f_re, x), mul4(f_im, swap_pairs4(x)))
+                    store_pair_row(a, i, j, sub4(load_pair_row(a, i, j), product))
+                for j in range(max(start, n2), n):
+                    a[i, j] -= factor * a[col, j]
+                for j in range(0, n2, 2):
+                    x = load_pair_row(inverse, col, j)
+                    product = addsub4(mul4(f_re, x), mul4(f_im, swap_pairs4(x)))
+                    store_pair_row(inverse, i, j, sub4(load_pair_row(inverse, i, j), product))
+                for j in range(n2, n):
+                    inverse[i, j] -= factor * inverse[col, j]
+    return True
+
+
+@njit(cache=True, inline="always")
+def invert_real(a, inverse):
+    """invert for a real a (n, n), C-contiguous: the same elimination, the same bits (every entry
+    of the inverse is the scalar code's), with the row operations four entries at a time in one
+    vector (simd.Double4: each lane the scalar multiply and subtract).
+
+    The row operations of a start at the multiple of 4 at or below col + 1, not at col + 1: the
+    columns up to col are never read again once column col is eliminated, so what the extra lanes
+    write there does not matter (a is destroyed). Scalar tails for n % 4."""
+    scale = _invert_start(a, inverse)
+    if not (scale > 0.0):
+        return 1
+    for col in range(a.shape[0]):
+        if not _real_column(a, inverse, col, scale):
+            return 1
+    return 0
+
+
+@njit(cache=True, inline="always")
+def invert_complex(a, inverse):
+    """invert for a complex a (n, n), C-contiguous: the same elimination, the same bits, with the
+    row operations two complex entries at a time in one vector (simd.Double4 as re, im, re, im).
+    Numba's complex product (ac - bd) + i(ad + bc), each product rounded, lane by lane: x * p as
+    (x_re p_re, x_im p_re) -+ (x_im p_im, x_re p_im) (simd.addsub4; the imaginary part's two terms
+    in the other order, an exact commutation) and f * x as (f_re x_re, f_re x_im) -+ (f_im x_im,
+    f_im x_re). As invert_real, the rows of a from the even column at or below col + 1. Scalar
+    tails for an odd n."""
+    scale = _invert_start(a, inverse)
+    if not (scale > 0.0):
+        return 1
+    for col in range(a.shape[0]):
+        if not _complex_column(a, inverse, col, scale):
+            return 1
+    return 0
+
+
+@njit(cache=True, inline="always")
+def invert_pair(real_a, real_inverse, complex_a, complex_inverse):
+    """invert_real(real_a, real_inverse) and invert_complex(complex_a, complex_inverse) (the same
+    n), column by column in one loop: each elimination is a chain of dependent operations (pivot,
+    division, row updates) that leaves the processor idle, and the two chains are independent, so
+    that it runs them side by side. Every entry the same bits as the two calls; returns 1 if
+    either matrix is singular (the inverses are then unfinished), else 0."""
+    real_scale = _invert_start(real_a, real_inverse)
+    complex_scale = _invert_start(complex_a, complex_inverse)
+    if not (real_scale > 0.0) or not (complex_scale > 0.0):
+        return 1
+    for col in range(real_a.shape[0]):
+        if not _real_column(real_a, real_inverse, col, real_scale):
+            return 1
+        if not _complex_column(complex_a, complex_inverse, col, complex_scale):
+            return 1
     return 0
 
 

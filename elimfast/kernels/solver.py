@@ -18,7 +18,9 @@ from numba import njit
 
 from .codes import (internal, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON_ACCELERATED, STATUS_NONFINITE,
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
-from .linalg import invert, lu_factor, lu_solve_factored
+from .linalg import invert_complex, invert_pair, invert_real, lu_factor, lu_solve_factored
+from .simd import (abs4, add4, addsub4, div4, load4, load4_dup_row, load4_row, mul4, pair4, raise4, splat4, store4,
+                   store4_row, store_pair_row, sub4)
 from .maps import EPS, RHS_STABLE, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
 
 # The stopping rule's constants (docs/solver.md; measured there, not tunables).
@@ -72,7 +74,8 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     diagonal in the eigenbasis, one complex n x n matrix I - h lambda J0~ per eigenvalue
     (one per conjugate pair), as in Hairer & Wanner's RADAU5; each block is inverted
     (small n, linalg.invert; the real eigenvalue of an odd s in real arithmetic, into
-    work.newton_real_inverse) or LU-factorised (large n). Without an eigenbasis (large s,
+    work.newton_real_inverse; linalg.invert_real and invert_complex, invert's
+    elimination in vector registers) or LU-factorised (large n). Without an eigenbasis (large s,
     where V is ill-conditioned), one real (s n) x (s n) LU of M~.
     Returns STATUS_OK, STATUS_NONFINITE (Hessian not finite) or STATUS_SINGULAR.
     """
@@ -113,6 +116,15 @@ def newton_factor(grad_H, hess_H, params, y, h, tables, work):
     return _newton_factor_scaled(y, h, tables, work)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _split_real(real_inverse, split, b):
+    """The real eigenvalue's inverted block, transposed, into rows (2 b) n + q of split (solve_inverted)."""
+    n = real_inverse.shape[0]
+    for p in range(n):
+        for q in range(n):
+            split[2 * b * n + q, p] = real_inverse[p, q]
+
+
 @internal
 def _newton_factor_scaled(y, h, tables, work):
     """newton_factor's J0~ and factorisation, with the equilibration in work.newton_scale and
@@ -123,9 +135,17 @@ def _newton_factor_scaled(y, h, tables, work):
     s = X.shape[0]
     hessian, jacobian, unit = work.hessian, work.jacobian, work.newton_scale
     # J0~[p, q] = (J Hess)[p, q] d_q / d_p, with (J Hess)[p] = Hess[m + p] and [m + p] = -Hess[p].
+    # Four entries of a row at a time in one vector (simd.Double4, the same operations; the sign
+    # change as -0.0 - x, exact like the scalar negation). Scalar tail for n % 4.
+    n4 = n - n % 4
     for p in range(m):
         inverse_q, inverse_p = 1.0 / unit[p], 1.0 / unit[m + p]
-        for q in range(n):
+        to_q, to_p = splat4(inverse_q), splat4(inverse_p)
+        for q in range(0, n4, 4):
+            d = load4(unit, q)
+            store4_row(jacobian, p, q, mul4(mul4(load4_row(hessian, m + p, q), d), to_q))
+            store4_row(jacobian, m + p, q, mul4(mul4(sub4(splat4(-0.0), load4_row(hessian, p, q)), d), to_p))
+        for q in range(n4, n):
             jacobian[p, q] = hessian[m + p, q] * unit[q] * inverse_q
             jacobian[m + p, q] = -hessian[p, q] * unit[q] * inverse_p
     for p in range(n):
@@ -136,29 +156,64 @@ def _newton_factor_scaled(y, h, tables, work):
     if work.newton_blocks.shape[0] > 0:
         blocks, pivots, scratch = work.newton_blocks, work.newton_block_pivots, work.newton_block_scratch
         inverted = scratch.shape[0] > 0
-        real_inverse = work.newton_real_inverse
+        real_inverse, split = work.newton_real_inverse, work.newton_inverse_split
+        # X's real eigenvalue (odd s): its block in real arithmetic, a quarter of the work; the
+        # Hessian's array is free once J0~ is built. Built first and inverted together with the
+        # first complex block (linalg.invert_pair: the two eliminations' chains of dependent
+        # operations overlap), alone when there is none (s = 1).
+        real_pending = -1
+        if inverted and real_inverse.shape[0] > 0:
+            for b in range(values.shape[0]):
+                if values[b].imag == 0.0:
+                    real_pending = b
+            real_factor = -h * values[real_pending].real
+            real_block = hessian
+            real_factor4 = splat4(real_factor)
+            for p in range(n):
+                for q in range(0, n4, 4):
+                    store4_row(real_block, p, q, mul4(real_factor4, load4_row(jacobian, p, q)))
+                for q in range(n4, n):
+                    real_block[p, q] = real_factor * jacobian[p, q]
+                real_block[p, p] += 1.0
+            if values.shape[0] == 1:
+                if invert_real(real_block, real_inverse) != 0:
+                    return STATUS_SINGULAR
+                _split_real(real_inverse, split, real_pending)
         for b in range(values.shape[0]):
             if inverted and values[b].imag == 0.0 and real_inverse.shape[0] > 0:
-                # X's real eigenvalue (odd s): its block in real arithmetic, a quarter of the work;
-                # the Hessian's array is free once J0~ is built
-                real_factor = -h * values[b].real
-                real_block = hessian
-                for p in range(n):
-                    for q in range(n):
-                        real_block[p, q] = real_factor * jacobian[p, q]
-                    real_block[p, p] += 1.0
-                if invert(real_block, real_inverse) != 0:
-                    return STATUS_SINGULAR
                 continue
             factor = -h * values[b]
             block = scratch if inverted else blocks[b]
-            for p in range(n):
-                for q in range(n):
-                    block[p, q] = factor * jacobian[p, q]
-                block[p, p] += 1.0
             if inverted:
-                if invert(block, blocks[b]) != 0:
+                # factor * J (complex * float: Numba makes J complex, (f_re J - f_im 0) + i(f_re 0 + f_im J)),
+                # two entries at a time as (re, im, re, im); the imaginary part's terms in the
+                # other order (exact)
+                factors = pair4(factor.real, factor.imag)
+                zeros = mul4(pair4(factor.imag, factor.real), splat4(0.0))
+                for p in range(n):
+                    for q in range(0, n - n % 2, 2):
+                        store_pair_row(block, p, q, addsub4(mul4(factors, load4_dup_row(jacobian, p, q)), zeros))
+                    for q in range(n - n % 2, n):
+                        block[p, q] = factor * jacobian[p, q]
+                    block[p, p] += 1.0
+            else:
+                for p in range(n):
+                    for q in range(n):
+                        block[p, q] = factor * jacobian[p, q]
+                    block[p, p] += 1.0
+            if inverted:
+                if real_pending >= 0:
+                    if invert_pair(hessian, real_inverse, block, blocks[b]) != 0:
+                        return STATUS_SINGULAR
+                    _split_real(real_inverse, split, real_pending)
+                    real_pending = -1
+                elif invert_complex(block, blocks[b]) != 0:
                     return STATUS_SINGULAR
+                inverse = blocks[b]
+                for p in range(n):   # transposed, real and imaginary parts apart, for solve_inverted
+                    for q in range(n):
+                        split[2 * b * n + q, p] = inverse[p, q].real
+                        split[(2 * b + 1) * n + q, p] = inverse[p, q].imag
             elif lu_factor(block, pivots[b]) != 0:
                 return STATUS_SINGULAR
         return STATUS_OK
@@ -174,6 +229,94 @@ def _newton_factor_scaled(y, h, tables, work):
     if lu_factor(M, work.newton_pivots) != 0:
         return STATUS_SINGULAR
     return STATUS_OK
+
+
+@internal
+def solve_inverted(V, V_inverse, weights, values, real_block, unit, split, rhs, delta, s):
+    """newton_solve's inverse form: delta (s n,) <- D Re(sum_b weight_b V[:, b] B_b^-1 w_b),
+    w_b = sum_j Vinv[b, j] r_j / d, with the inverted blocks as newton_factor leaves them in split
+    (rows (2 b) n + q: Re B_b^-1[:, q], (2 b + 1) n + q: Im; the real eigenvalue's block, when
+    real_block, in real arithmetic from its rows (2 b) n + q), w_b into rhs (rows 2 b, 2 b + 1).
+
+    Four components p at a time in one vector (simd.Double4), each lane the operations of the
+    scalar loops in their order, so the bits of them: the sums over j and q from 0.0 as written,
+    Numba's complex product (ac - bd) + i(ad + bc) with each product rounded, and z *= weight d_p
+    as Numba's complex * float, (z_re c - z_im 0) + i(z_re 0 + z_im c). Scalar tail for n % 4.
+    """
+    n = unit.shape[0]
+    n4 = n - n % 4
+    n_b = values.shape[0]
+    for b in range(n_b):
+        for p in range(0, n4, 4):
+            acc_re = splat4(0.0)
+            acc_im = splat4(0.0)
+            for j in range(s):
+                x = load4(delta, j * n + p)
+                acc_re = add4(acc_re, mul4(splat4(V_inverse[b, j].real), x))
+                acc_im = add4(acc_im, mul4(splat4(V_inverse[b, j].imag), x))
+            d = load4(unit, p)
+            store4_row(rhs, 2 * b, p, div4(acc_re, d))
+            store4_row(rhs, 2 * b + 1, p, div4(acc_im, d))
+        for p in range(n4, n):
+            # real and imaginary parts apart: a complex / float division is Numba's general
+            # complex division (Smith's algorithm, branches); two real divisions give the same bits
+            acc_re = 0.0
+            acc_im = 0.0
+            for j in range(s):
+                x = delta[j * n + p]
+                acc_re += V_inverse[b, j].real * x
+                acc_im += V_inverse[b, j].imag * x
+            rhs[2 * b, p] = acc_re / unit[p]
+            rhs[2 * b + 1, p] = acc_im / unit[p]
+    for i in range(s * n):
+        delta[i] = 0.0
+    zero = splat4(0.0)
+    for b in range(n_b):
+        row_re = 2 * b * n
+        row_im = row_re + n
+        weight = weights[b]
+        if values[b].imag == 0.0 and real_block:
+            # the real eigenvalue's block (newton_factor): w_b, V[:, b] and the inverse are real
+            for p in range(0, n4, 4):
+                z = splat4(0.0)
+                for q in range(n):
+                    z = add4(z, mul4(load4_row(split, row_re + q, p), splat4(rhs[2 * b, q])))
+                z = mul4(z, mul4(splat4(weight), load4(unit, p)))
+                for j in range(s):
+                    i = j * n + p
+                    store4(delta, i, add4(load4(delta, i), mul4(splat4(V[j, b].real), z)))
+            for p in range(n4, n):
+                z_re = 0.0
+                for q in range(n):
+                    z_re += split[row_re + q, p] * rhs[2 * b, q]
+                z_re *= weight * unit[p]
+                for j in range(s):
+                    delta[j * n + p] += V[j, b].real * z_re
+            continue
+        for p in range(0, n4, 4):
+            z_re = splat4(0.0)
+            z_im = splat4(0.0)
+            for q in range(n):
+                a = load4_row(split, row_re + q, p)
+                a_im = load4_row(split, row_im + q, p)
+                c = splat4(rhs[2 * b, q])
+                c_im = splat4(rhs[2 * b + 1, q])
+                z_re = add4(z_re, sub4(mul4(a, c), mul4(a_im, c_im)))
+                z_im = add4(z_im, add4(mul4(a, c_im), mul4(a_im, c)))
+            factor = mul4(splat4(weight), load4(unit, p))
+            scaled_re = sub4(mul4(z_re, factor), mul4(z_im, zero))
+            scaled_im = add4(mul4(z_re, zero), mul4(z_im, factor))
+            for j in range(s):
+                i = j * n + p
+                product = sub4(mul4(splat4(V[j, b].real), scaled_re), mul4(splat4(V[j, b].imag), scaled_im))
+                store4(delta, i, add4(load4(delta, i), product))
+        for p in range(n4, n):
+            z = 0.0 + 0.0j
+            for q in range(n):
+                z += complex(split[row_re + q, p], split[row_im + q, p]) * complex(rhs[2 * b, q], rhs[2 * b + 1, q])
+            z *= weight * unit[p]
+            for j in range(s):
+                delta[j * n + p] += (V[j, b] * z).real
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -192,6 +335,10 @@ def newton_solve(tables, work, delta):
     if work.newton_blocks.shape[0] > 0:
         V, V_inverse, weights = tables.newton_vectors, tables.newton_inverse, tables.newton_weights
         blocks, pivots, rhs = work.newton_blocks, work.newton_block_pivots, work.newton_block_rhs
+        if work.newton_block_scratch.shape[0] > 0:
+            solve_inverted(V, V_inverse, weights, values, work.newton_real_inverse.shape[0] > 0, unit,
+                           work.newton_inverse_split, work.newton_rhs_split, delta, s)
+            return
         for b in range(values.shape[0]):
             for p in range(n):
                 # real and imaginary parts apart: a complex / float division is Numba's general
@@ -203,31 +350,6 @@ def newton_solve(tables, work, delta):
                     acc_re += V_inverse[b, j].real * x
                     acc_im += V_inverse[b, j].imag * x
                 rhs[b, p] = complex(acc_re / unit[p], acc_im / unit[p])
-        if work.newton_block_scratch.shape[0] > 0:
-            # delta <- D Re(sum_b weight_b V[:, b] (B_b^-1 w_b)), row p of each B_b^-1 at a time
-            real_inverse = work.newton_real_inverse
-            for i in range(s * n):
-                delta[i] = 0.0
-            for b in range(values.shape[0]):
-                if values[b].imag == 0.0 and real_inverse.shape[0] > 0:
-                    # the real eigenvalue's block (newton_factor): w_b, V[:, b] and the inverse are real
-                    for p in range(n):
-                        z_re = 0.0
-                        for q in range(n):
-                            z_re += real_inverse[p, q] * rhs[b, q].real
-                        z_re *= weights[b] * unit[p]
-                        for j in range(s):
-                            delta[j * n + p] += V[j, b].real * z_re
-                    continue
-                inverse = blocks[b]
-                for p in range(n):
-                    z = 0.0 + 0.0j
-                    for q in range(n):
-                        z += inverse[p, q] * rhs[b, q]
-                    z *= weights[b] * unit[p]
-                    for j in range(s):
-                        delta[j * n + p] += (V[j, b] * z).real
-            return
         for b in range(values.shape[0]):
             lu_solve_factored(blocks[b], pivots[b], rhs[b])
         for j in range(s):
@@ -272,14 +394,26 @@ def _secant_update(h, scale, delta, coef, component, have_history, d_before, s, 
     iteration compiles as before (inlined, it made the README's run 15% slower with Newton and 27% with
     the fixed point, which never takes this branch)."""
     sn = s * n
+    n4 = n - n % 4
     d = 0.0
-    for p in range(n):
+    # component[p] four at a time in one vector (simd.Double4: each lane the scalar division and the
+    # same NaN-catching maximum, simd.raise4); scalar tail for n % 4
+    h4 = splat4(h)
+    for p in range(0, n4, 4):
+        largest4 = splat4(0.0)
+        sc = load4(scale, p)
+        for j in range(s):
+            largest4 = raise4(largest4, div4(abs4(mul4(h4, load4(delta, j * n + p))), sc))
+        store4(component, p, largest4)
+    for p in range(n4, n):
         largest_p = 0.0
         for j in range(s):
             value = abs(h * delta[j * n + p]) / scale[p]
             if not (value <= largest_p):   # also catches NaN
                 largest_p = value
         component[p] = largest_p
+    for p in range(n):
+        largest_p = component[p]
         if not (largest_p <= d):
             d = largest_p
     weight = 0.0
@@ -299,8 +433,18 @@ def _secant_update(h, scale, delta, coef, component, have_history, d_before, s, 
             weight = along / squared
             if not (abs(weight) < ACCEL_MAX_WEIGHT):
                 weight = 0.0
+    weight4 = splat4(weight)
     for j in range(s):
-        for p in range(n):
+        for p in range(0, n4, 4):
+            i = j * n + p
+            now, c = load4(delta, i), load4_row(coef, j, p)
+            step = now
+            if weight != 0.0:
+                step = sub4(now, mul4(weight4, add4(sub4(c, load4(delta, sn + i)), sub4(now, load4(delta, 2 * sn + i)))))
+            store4(delta, sn + i, c)
+            store4(delta, 2 * sn + i, now)
+            store4_row(coef, j, p, add4(c, step))
+        for p in range(n4, n):
             i = j * n + p
             step = delta[i]
             if weight != 0.0:

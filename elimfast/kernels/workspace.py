@@ -83,6 +83,12 @@ Workspace = namedtuple("Workspace", [
     "newton_block_scratch",  # (n, n) complex: I - h lambda_b J0~ before inversion (inverse form; else 0 x 0)
     "newton_real_inverse",   # (n, n): the inverse of the block of X's real eigenvalue, in real arithmetic
     #                          (inverse form with an odd s; else 0 x 0)
+    "newton_inverse_split",  # (2 n_b n, n): the inverted blocks transposed, real and imaginary parts apart:
+    #                          row (2 b) n + q holds Re(B_b^-1[:, q]), row (2 b + 1) n + q Im(B_b^-1[:, q])
+    #                          (the real eigenvalue's block: its real inverse); written by newton_factor
+    #                          for newton_solve's vectorised products (inverse form; else 0 x 0)
+    "newton_rhs_split",  # (2 n_b, n): newton_solve's w_b, real parts in row 2 b, imaginary in 2 b + 1
+    #                      (inverse form; else 0 x 0)
     "newton_scale",      # (n,) d_p, the equilibration of the Newton matrix
     "newton_point",      # (n,) where its Jacobian is taken (stepper._newton_point)
     "half_row",          # (s,) row 0 of E(offset 0, theta 1/2), the mean of u' over the step's first half
@@ -231,7 +237,8 @@ def borrow_workspace(w):
         borrowed(w.component_increment), borrowed(w.carried), borrowed(w.h_powers), borrowed(w.new_coef),
         borrowed(w.delta), borrowed(w.scale), borrowed(w.newton_matrix), borrowed(w.newton_pivots),
         borrowed(w.newton_blocks), borrowed(w.newton_block_pivots), borrowed(w.newton_block_rhs),
-        borrowed(w.newton_block_scratch), borrowed(w.newton_real_inverse), borrowed(w.newton_scale),
+        borrowed(w.newton_block_scratch), borrowed(w.newton_real_inverse),
+        borrowed(w.newton_inverse_split), borrowed(w.newton_rhs_split), borrowed(w.newton_scale),
         borrowed(w.newton_point), borrowed(w.half_row),
         borrowed(w.hessian), borrowed(w.jacobian), borrowed(w.y_start), borrowed(w.y_comp_start),
         borrowed(w.coef_start), borrowed(w.mult_start), borrowed(w.coef_base), borrowed(w.mult_base),
@@ -253,7 +260,8 @@ INVERSE_MAX_N = 8
 def dense_sizes(n, s, n_eigenvalues):
     """(n_jacobian, n_blocks, n_full, n_scratch, n_real): the sizes of a workspace's dense arrays
     (hessian and jacobian n_jacobian^2; newton_blocks n_blocks n^2 complex, or newton_matrix
-    n_full^2; newton_block_scratch n_scratch^2 complex; newton_real_inverse n_real^2), for
+    n_full^2; newton_block_scratch n_scratch^2 complex; newton_real_inverse n_real^2; newton_inverse_split
+    2 n_blocks n_scratch^2), for
     make_workspace and for the memory they take (workspace_dense_bytes). n_eigenvalues < 0: the
     fixed point, which has no Newton matrix and leaves them all empty (fpu_beta with 10^5
     masses: 640 GB of them)."""
@@ -270,7 +278,8 @@ def workspace_dense_bytes(n: int, s: int, n_eigenvalues: int) -> int:
     """The bytes of one workspace's dense arrays (dense_sizes, evaluated in Python)."""
     # py_func: the plain function (also what dense_sizes is under NUMBA_DISABLE_JIT=1)
     n_jacobian, n_blocks, n_full, n_scratch, n_real = getattr(dense_sizes, "py_func", dense_sizes)(n, s, n_eigenvalues)
-    return 16 * n_jacobian ** 2 + 16 * n_blocks * n * n + 8 * n_full ** 2 + 16 * n_scratch ** 2 + 8 * n_real ** 2
+    return (16 * n_jacobian ** 2 + 16 * n_blocks * n * n + 8 * n_full ** 2 + 16 * n_scratch ** 2 + 8 * n_real ** 2
+            + 16 * n_blocks * n_scratch ** 2)
 
 
 @njit(cache=True)
@@ -285,6 +294,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
     n_big = max(k, r, s)
     n_t = max(n_tilde, 1)
     e_max = min(k - s, 3)   # room for the predictor's extra terms (stepper.predictor_extra_rows)
+    n_rhs_split = 2 * n_blocks if n_scratch > 0 else 0
     return Workspace(
         np.zeros((k, n)), np.zeros((k, n)), np.zeros((n_big, n)), np.zeros((n_big, n)), np.zeros((r, n)),
         np.zeros((n_tilde + 1, r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)), np.zeros((n_big, n)),
@@ -296,6 +306,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
         np.zeros((n_blocks, n, n), dtype=np.complex128), np.zeros((n_blocks, n), dtype=np.int64),
         np.zeros((n_blocks, n), dtype=np.complex128), np.zeros((n_scratch, n_scratch), dtype=np.complex128),
         np.zeros((n_real, n_real)),
+        np.zeros((2 * n_blocks * n_scratch, n_scratch)), np.zeros((n_rhs_split, n_scratch)),
         np.zeros(n), np.zeros(n), np.zeros(s), np.zeros((n_jacobian, n_jacobian)), np.zeros((n_jacobian, n_jacobian)),
         np.zeros(n), np.zeros(n), np.zeros((s, n)), np.zeros(n_mult), np.zeros((s, n)), np.zeros(n_mult),
         np.zeros(s + 1), np.zeros((s + 1, s + e_max)), np.zeros((s, s + e_max)), np.zeros(6),
