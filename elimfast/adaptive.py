@@ -51,6 +51,11 @@ def time_scale_at(problem: Problem, y) -> float:
     return float(state_function_values(problem.time_scale, problem, y, np.size(y) + 1)[0])   # sigma, its gradient
 
 
+# A time scale below this fraction of its value at t0 where a time-reversible run fails: the orbit
+# is falling into what sigma measures the distance to (failure_message says so).
+COLLAPSED_TIME_SCALE = 0.05
+
+
 def require_defined_at_start(parameter: str, value: float, y, why: str, positive: bool = False) -> None:
     """The rule for a function of the state that steers or watches a run (a time scale, an
     event): finite at the initial state y, and positive if ``positive``; else a ParameterError
@@ -566,9 +571,15 @@ class AdaptiveIntegration:
             # The steps are epsilon sigma(y): a sigma that nears zero along the orbit makes them collapse
             # until some solve fails, with a message about the solver or Gamma (a time scale q1 on an orbit
             # crossing q1 = 0 failed at h = 2.6e-10 with "Assumption 1 fails"). The figures show it.
-            message += (f" (time scale sigma(y) = {time_scale_at(self.problem, self.y):.3g} there, "
-                        f"{time_scale_at(self.problem, self.y0):.3g} at t0: steps are epsilon sigma; a sigma "
-                        "that nears zero along the orbit makes them collapse)")
+            here, start = time_scale_at(self.problem, self.y), time_scale_at(self.problem, self.y0)
+            message += (f" (time scale sigma(y) = {here:.3g} there, {start:.3g} at t0: steps are epsilon sigma; "
+                        "a sigma that nears zero along the orbit makes them collapse)")
+            if here < COLLAPSED_TIME_SCALE * start:
+                # A user trial: perturbed Kepler e = 0.9, delta = 0.01 falls into the centre (its -delta/r^3
+                # wins at r = 0.1); the run failed at t = 0.037 and was told to raise solver.max_iter.
+                message += (f"; sigma has fallen to {here / start:.2g} of its value at t0: the orbit is nearing "
+                            "where sigma vanishes (a collision or a fall into a singularity of H), which no solver "
+                            "setting passes; check the initial state and the problem's parameters")
         return message
 
     @property

@@ -474,7 +474,7 @@ def test_the_first_step_recorded_is_the_one_the_controller_took():
 
 
 def test_expression_time_scale_matches_the_builtin():
-    from elimfast.problems import problem_from_expressions
+    from elimfast.problems import perturbed_kepler, problem_from_expressions
     e = 0.9
     p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
                                  initial={"q1": 1 - e, "q2": 0, "p1": 0, "p2": math.sqrt((1 + e) / (1 - e))},
@@ -498,7 +498,7 @@ def test_a_time_scale_not_positive_at_the_initial_state_is_refused(time_scale, v
     system is singular ... Assumption 1 of the paper fails for these invariants'."""
     from elimfast.config import load_run_from_dict
     from elimfast.config import ConfigError
-    from elimfast.problems import problem_from_expressions
+    from elimfast.problems import perturbed_kepler, problem_from_expressions
     p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
                                  initial={"q1": 0.1, "q2": 0, "p1": 0, "p2": math.sqrt(19)}, time_scale=time_scale)
     with pytest.raises(ParameterError, match=rf"^time_scale is {re.escape(value)}.* at the initial state \[0.1, 0.0, "
@@ -544,7 +544,7 @@ def test_a_time_scale_that_reaches_zero_along_the_orbit_is_named_in_the_failure(
     the time scale. Now a step that can no longer advance t stops the run with STATUS_TIME_SCALE,
     and a solver failure under time-scale control gives sigma there and at t0."""
     from elimfast.errors import ConvergenceError
-    from elimfast.problems import problem_from_expressions
+    from elimfast.problems import perturbed_kepler, problem_from_expressions
     p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
                                  invariants={"L": "q1*p2 - q2*p1"}, initial={"q1": 0.4, "q2": 0, "p1": 0, "p2": 2.0},
                                  time_scale="q1")
@@ -560,8 +560,14 @@ def test_a_time_scale_that_reaches_zero_along_the_orbit_is_named_in_the_failure(
         elimfast.integrate(p, ehbvm(8, 4), t_end=1.0, step_control="time_scale", conserve=["L"])
     with pytest.raises(ConvergenceError, match=r"\(time scale sigma\(y\) = \S+ there, 0\.4 at t0: steps are "
                                                r"epsilon sigma; a sigma that nears zero along the orbit makes them "
-                                               r"collapse\)"):
+                                               r"collapse\); sigma has fallen to \S+ of its value at t0: the "
+                                               r"orbit is nearing where sigma vanishes"):
         elimfast.integrate(p, ehbvm(8, 4), t_end=1.0, step_control="time_scale", conserve=["L"], max_halvings=0)
+    # a fall into the centre (perturbed Kepler's -delta/(2 r^3) wins at e = 0.9): the same hint, not only
+    # "raise solver.max_iter"
+    with pytest.raises(ConvergenceError, match=r"sigma has fallen to 0\.0\d+ of its value at t0"):
+        elimfast.integrate(perturbed_kepler(eccentricity=0.9, delta=0.01), ehbvm(8, 4), t_end=1.0,
+                           step_control="time_scale", epsilon=0.05, conserve=["angular_momentum"])
 
 
 def test_lim_imposing_invariants_of_very_different_sizes_starts_at_a_pericentre():
