@@ -97,38 +97,18 @@ def invert(a, inverse):
     inverse's n^3 (stepper keeps the LU there). Pivots are compared by |Re| + |Im| (no
     square root). Returns 0, or 1 as lu_factor: a pivot below RELATIVE_PIVOT_FLOOR times
     the largest entry, or an entry that is not finite.
+
+    The kernels call its vectorised forms, invert_real, invert_complex and invert_pair (the
+    same bits); this scalar elimination is what they are tested against, byte for byte
+    (tests/test_newton_vectorised.py). The first pass and the pivoting are theirs too.
     """
-    n = a.shape[0]
-    scale = 0.0
-    for i in range(n):
-        for j in range(n):
-            v = abs(a[i, j].real) + abs(a[i, j].imag)
-            if not (v <= 1e308):
-                return 1
-            if v > scale:
-                scale = v
-            inverse[i, j] = 0.0
-        inverse[i, i] = 1.0
-    if scale == 0.0:
+    scale = _invert_start(a, inverse)
+    if not (scale > 0.0):
         return 1
+    n = a.shape[0]
     for col in range(n):
-        pivot_row = col
-        pivot_abs = abs(a[col, col].real) + abs(a[col, col].imag)
-        for i in range(col + 1, n):
-            v = abs(a[i, col].real) + abs(a[i, col].imag)
-            if v > pivot_abs:
-                pivot_abs = v
-                pivot_row = i
-        if pivot_abs <= RELATIVE_PIVOT_FLOOR * scale:
+        if not _pivot(a, inverse, col, scale):
             return 1
-        if pivot_row != col:
-            for j in range(n):
-                tmp = a[col, j]
-                a[col, j] = a[pivot_row, j]
-                a[pivot_row, j] = tmp
-                tmp = inverse[col, j]
-                inverse[col, j] = inverse[pivot_row, j]
-                inverse[pivot_row, j] = tmp
         inverse_pivot = 1.0 / a[col, col]
         for j in range(col + 1, n):
             a[col, j] *= inverse_pivot

@@ -231,6 +231,20 @@ def _newton_factor_scaled(y, h, tables, work):
     return STATUS_OK
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _eigen_rhs(V_inverse, delta, unit, b, p, n, s):
+    """Component p of w_b = sum_j Vinv[b, j] r_j / d_p (newton_solve), as (real, imaginary): the
+    parts apart, since a complex / float division is Numba's general complex division (Smith's
+    algorithm, branches), and two real divisions give the same bits."""
+    acc_re = 0.0
+    acc_im = 0.0
+    for j in range(s):
+        x = delta[j * n + p]
+        acc_re += V_inverse[b, j].real * x
+        acc_im += V_inverse[b, j].imag * x
+    return acc_re / unit[p], acc_im / unit[p]
+
+
 @internal
 def solve_inverted(V, V_inverse, weights, values, real_block, unit, split, rhs, delta, s):
     """newton_solve's inverse form: delta (s n,) <- D Re(sum_b weight_b V[:, b] B_b^-1 w_b),
@@ -258,16 +272,7 @@ def solve_inverted(V, V_inverse, weights, values, real_block, unit, split, rhs, 
             store4_row(rhs, 2 * b, p, div4(acc_re, d))
             store4_row(rhs, 2 * b + 1, p, div4(acc_im, d))
         for p in range(n4, n):
-            # real and imaginary parts apart: a complex / float division is Numba's general
-            # complex division (Smith's algorithm, branches); two real divisions give the same bits
-            acc_re = 0.0
-            acc_im = 0.0
-            for j in range(s):
-                x = delta[j * n + p]
-                acc_re += V_inverse[b, j].real * x
-                acc_im += V_inverse[b, j].imag * x
-            rhs[2 * b, p] = acc_re / unit[p]
-            rhs[2 * b + 1, p] = acc_im / unit[p]
+            rhs[2 * b, p], rhs[2 * b + 1, p] = _eigen_rhs(V_inverse, delta, unit, b, p, n, s)
     for i in range(s * n):
         delta[i] = 0.0
     zero = splat4(0.0)
@@ -341,15 +346,8 @@ def newton_solve(tables, work, delta):
             return
         for b in range(values.shape[0]):
             for p in range(n):
-                # real and imaginary parts apart: a complex / float division is Numba's general
-                # complex division (Smith's algorithm, branches); two real divisions give the same bits
-                acc_re = 0.0
-                acc_im = 0.0
-                for j in range(s):
-                    x = delta[j * n + p]
-                    acc_re += V_inverse[b, j].real * x
-                    acc_im += V_inverse[b, j].imag * x
-                rhs[b, p] = complex(acc_re / unit[p], acc_im / unit[p])
+                re, im = _eigen_rhs(V_inverse, delta, unit, b, p, n, s)
+                rhs[b, p] = complex(re, im)
         for b in range(values.shape[0]):
             lu_solve_factored(blocks[b], pivots[b], rhs[b])
         for j in range(s):
