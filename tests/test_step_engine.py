@@ -672,6 +672,34 @@ def test_steps_next_to_a_zero_of_gamma_are_counted(tmp_path):
     assert expected in CliRunner().invoke(cli, ["inspect", str(out)]).stdout
 
 
+def test_alpha_spikes_of_an_adaptive_run_file_read_in_blocks_of_any_size(tmp_path, monkeypatch):
+    """A user trial: an adaptive EHBVM run of 1.5e6 steps ended with an internal error at the end
+    of `run` (and in `inspect`): alpha (two columns, 16 bytes a row) and h (8 bytes) were read in
+    blocks of 16 MiB each, so of other lengths, and zipped. Both are read in blocks of the same
+    rows now; here blocks of a few rows, against the count over the whole arrays."""
+    import h5py
+    from click.testing import CliRunner
+
+    from elimfast.integrate import count_alpha_spikes
+    from elimfast.io import runfile
+    from elimfast_cli.main import cli
+
+    out = tmp_path / "adaptive.h5"
+    ran = CliRunner().invoke(cli, ["run", str(ROOT / "configs" / "kepler_adaptive.yaml"), "-o", str(out), "--quiet",
+                                   "--set", "integration.t_end=20*pi"])
+    assert ran.exit_code == 0, ran.output
+    with h5py.File(out, "r") as f:
+        alpha, step_h = f["steps/alpha"][...], f["steps/h"][...]
+    assert alpha.shape[1] == 2 and step_h.size == alpha.shape[0] > 100
+    whole = count_alpha_spikes([(alpha, step_h)])
+    for block_bytes in (16, 24, 40, 16 << 20):   # alpha's rows 16 bytes, h's 8
+        monkeypatch.setattr(runfile, "VERIFY_BLOCK_BYTES", block_bytes)
+        with runfile.RunFile(out) as stored:
+            assert stored.alpha_spikes() == whole, block_bytes
+    inspected = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert inspected.exit_code == 0 and "steps done" in inspected.stdout, inspected.output
+
+
 # --- long runs that used to abort (docs/solver.md; the issue's acceptance) -----------------------------
 @pytest.mark.slow
 def test_kepler_e06_million_steps_completes_at_round_off():

@@ -996,10 +996,16 @@ class RunFile:
         return self.saved_state()
 
     # --- reductions, block by block (memory bounded for any length) ---
-    def _blocks(self, name: str, stop: int):
+    def _block_rows(self, name: str) -> int:
+        """Rows of the dataset name read at a time: about VERIFY_BLOCK_BYTES."""
         dataset = self._root[name]
         row_bytes = dataset.dtype.itemsize * int(np.prod(dataset.shape[1:], dtype=np.int64))
-        block = max(1, VERIFY_BLOCK_BYTES // max(row_bytes, 1))
+        return max(1, VERIFY_BLOCK_BYTES // max(row_bytes, 1))
+
+    def _blocks(self, name: str, stop: int, block: int | None = None):
+        """The rows [0, stop) of the dataset name in blocks of ``block`` rows (default _block_rows):
+        datasets read side by side (zipped) must be given the same block."""
+        block = block or self._block_rows(name)
         for start in range(0, stop, block):
             yield self._read_rows(name, start, min(stop, start + block))
 
@@ -1101,9 +1107,13 @@ class RunFile:
         from ..integrate import count_alpha_spikes
         if self.multiplier_name != "alpha":
             return 0
-        sizes = (self._blocks("steps/h", self.steps_done) if "h" in self._root["steps"]
+        # alpha's rows are wider than h's: read both in blocks of the same rows, or the pairs part
+        # after the first block (a run of over 2^20 steps failed here)
+        adaptive = "h" in self._root["steps"]
+        block = min(self._block_rows("steps/alpha"), self._block_rows("steps/h") if adaptive else np.inf)
+        sizes = (self._blocks("steps/h", self.steps_done, block) if adaptive
                  else itertools.repeat(float(self.attrs["h"])))
-        return count_alpha_spikes(zip(self._blocks("steps/alpha", self.steps_done), sizes))
+        return count_alpha_spikes(zip(self._blocks("steps/alpha", self.steps_done, block), sizes))
 
     def max_abs_multipliers(self) -> list[float]:
         if self.multiplier_name is None:
