@@ -476,10 +476,13 @@ def _resume_command(config, path) -> str:
 
 def _merge_sets(stored, given) -> list[str]:
     """The --set values a run goes on with: the stored ones, less those a given one replaces (the
-    same key, a key under it or above it; t_end and n_steps decide each other), then the given."""
-    from elimfast.streaming import keys_overlap
+    same key or a key under it; t_end and n_steps decide each other), then the given. A stored
+    value above a given key stays, and the given one changes a part of it: a stored
+    ``output.times={start: 0, stop: 20, step: 0.5}`` with a given ``output.times.stop=40`` (what
+    the refusal of an earlier output end advises) lost start and step."""
     keys = _given_keys(given)
-    return [item for item in stored if not any(keys_overlap(_set_key(item), k) for k in keys)] + list(given)
+    return [item for item in stored
+            if not any(_set_key(item) == k or _set_key(item).startswith(k + ".") for k in keys)] + list(given)
 
 
 def _given_keys(overrides) -> set[str]:

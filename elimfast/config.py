@@ -602,6 +602,9 @@ class _Builder:
                 method_parameters["k"] = 2 * method_parameters["s"]
                 if "r" in kind.parameters and "r" not in method_parameters:
                     method_parameters["r"] = method_parameters["k"]
+            if not adaptive and integration.h is None:
+                # before the method: without h or rtol, a missing k is not the fix (rtol makes k = 2s)
+                raise self.error(("integration", "h"), f"missing; {_EXAMPLES['integration.h']}")
             method = methods.get(config.method.name, **method_parameters)
             if adaptive:
                 step_control = self.step_control(integration).for_method(method, len(config.conserve))

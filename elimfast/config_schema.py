@@ -49,8 +49,18 @@ def _to_list_of_names(value):
     return [value] if isinstance(value, str) else value
 
 
+def _whole_number_or_as_given(value):
+    # For keys whose rule belongs to the API's validator (an event's direction: adaptive.events),
+    # which then names the values allowed: 'up' was told "is not a number ... did you mean 'pi'?".
+    try:
+        return _to_int(value)
+    except ValueError:
+        return value
+
+
 Number = Annotated[float, BeforeValidator(_to_number)]
 Integer = Annotated[int, BeforeValidator(_to_int)]
+IntegerOrAsGiven = Annotated[Any, BeforeValidator(_whole_number_or_as_given)]
 
 
 # --- the schema (types and keys only; meaning is checked in _Builder) ---------------------
@@ -107,7 +117,7 @@ class TimesSection(_Section):
 
 class EventSection(_Section):
     expression: str
-    direction: Integer = 0
+    direction: IntegerOrAsGiven = 0
     terminal: StrictBool = False
 
 

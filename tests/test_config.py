@@ -198,6 +198,9 @@ BAD = [
     ("method r < s", lambda d: {**d, "method": {"name": "elim", "r": 2, "k": 12, "s": 3}}, "method.r",
      "must be >= s = 3 .*got 2; raise r"),
     ("method s missing", _set(("method", "s"), DELETE), "method.s", r"ehbvm\(k, s\) needs k, s"),
+    # a user trial: without h or rtol the missing k was named, whose fix (rtol makes k = 2s) was rtol's
+    ("h and k missing", lambda d: _set(("method", "k"), DELETE)(_set(("integration", "h"), DELETE)(d)),
+     "integration.h", "missing; give the step size, e.g. h: pi/30, or rtol: 1e-12 for adaptive steps"),
     ("method extra r", _set(("method", "r"), 12), "method.r", "takes no r"),
     ("method k too large", _set(("method", "k"), 65), "method.k", "must be <= 64"),
     ("method k bool", _set(("method", "k"), True), "method.k", "whole number"),
