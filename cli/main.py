@@ -195,11 +195,16 @@ def announce_compilation():
         def on_start(self, ev):
             dispatcher = (ev.data or {}).get("dispatcher") if isinstance(ev.data, dict) else None
             module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
-            kind = "kernels" if module == "elimfast" or module.startswith("elimfast.") else "user"
+            kind = ("kernels" if module == "elimfast" or module.startswith("elimfast.")
+                    else "per_problem" if module.startswith("elimfast_kernel_") else "user")
             if kind in self.said:
                 return
             self.said.add(kind)
-            if kind == "kernels":
+            if kind == "per_problem":
+                self.said.add("kernels")   # it compiles elimfast's kernel code again, for the problem
+                click.echo("compiling the kernel for this problem (solver.kernel: per_problem; about 2 minutes, "
+                           "once: later runs of this problem load it from the cache) ...", err=True)
+            elif kind == "kernels":
                 click.echo("compiling Numba kernels (once: later runs load them from the cache; "
                            "`elimfast cache warm` does it ahead) ...", err=True)
             else:

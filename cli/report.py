@@ -367,7 +367,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
                       + (" (simplified Newton's only)" if solver.get("method") == "fixed_point"
                          and solver.get("accelerate") else "")
                       + (f", lim_metric {solver['lim_metric']}" if solver.get("lim_metric", "euclidean") != "euclidean"
-                         else ""))
+                         else "")
+                      + (", kernel per_problem" if solver.get("kernel") == "per_problem" else ""))
     substeps = run_file.substep_stats()
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"

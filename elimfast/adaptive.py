@@ -447,6 +447,8 @@ class AdaptiveIntegration:
                  t_end: float, t0: float, y0, t_eval=None, events: EventSpec | None = None,
                  store_every: int = 1, h: float | None = None, n_steps: int | None = None):
         self.problem, self.method, self.solver = problem, method, solver
+        from .per_problem import refuse
+        refuse(solver, "adaptive steps, output times and events")
         from .integrate import require_memory
         require_memory(problem, method, solver, adaptive=True)   # this kernel's arrays, whatever the steps
         self.conserve, self.conserve_idx = conserve, conserve_idx

@@ -139,6 +139,7 @@ class SolverSection(_Section):
     warm_start: StrictBool = True
     accelerate: StrictBool = True
     lim_metric: Literal["euclidean", "scaled"] = "euclidean"
+    kernel: Literal["shared", "per_problem"] = "shared"
 
 
 class OutputSection(_Section):

@@ -212,6 +212,8 @@ class EnsembleRun:
         self.integration = Integration(problem, method, h, n_steps, conserve=conserve, tol=tol, max_iter=max_iter,
                                        rhs=rhs, warm_start=warm_start, t0=t0, y0=y0, solver=solver,
                                        predictor=predictor, max_halvings=max_halvings, check_y0=False)
+        from .per_problem import refuse
+        refuse(self.integration.solver, "ensembles")
         self.problem, self.method, self.t0 = problem, method, float(t0)
         self.n_threads = _thread_count(n_threads)
 

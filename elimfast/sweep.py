@@ -539,19 +539,26 @@ def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
                 _fail(source, key, f"{dotted}: {unknown_key_text(location)}")
 
 
-def _whole_number(value) -> int | None:
-    """An integer given as 1000, 1e8, 1.0e8 or '10**8' (arithmetic, as in configs); None if it is none."""
+def _real_number(value) -> float | None:
+    """A finite number given as 0.01, '1e-2' (YAML reads it as a string) or 'pi/100' (arithmetic,
+    as in configs); None if it is none."""
     from .problems.expressions import ExpressionError, evaluate_number
 
     if isinstance(value, bool) or value is None:
         return None
-    if isinstance(value, int):
-        return value
     try:
-        number = evaluate_number(value, what="value")
-    except (ExpressionError, ValueError, TypeError):
+        number = float(value) if isinstance(value, (int, float)) else evaluate_number(value, what="value")
+    except (ExpressionError, ValueError, TypeError, OverflowError):
         return None
-    return int(number) if math.isfinite(number) and number.is_integer() else None
+    return number if math.isfinite(number) else None
+
+
+def _whole_number(value) -> int | None:
+    """An integer given as 1000, 1e8, 1.0e8 or '10**8' (arithmetic, as in configs); None if it is none."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    number = _real_number(value)
+    return int(number) if number is not None and number.is_integer() else None
 
 
 def ensemble_bytes(n_trajectories: int, dimension: int, n_invariants: int) -> int:
@@ -575,17 +582,24 @@ def _check_ensemble(source, ensemble) -> dict:
         states = ensemble["states"]
         if not isinstance(states, list) or not states or not all(isinstance(r, list) for r in states):
             _fail(source, "ensemble.states", "must be a non-empty list of initial states (lists of numbers)")
-        return {"states": states}
+        numbers = []
+        for i, state in enumerate(states):
+            numbers.append([_real_number(value) for value in state])
+            for j, value in enumerate(numbers[-1]):
+                if value is None:   # numbers as everywhere in configs: 1e-1 (a string to YAML), pi/4
+                    _fail(source, f"ensemble.states[{i}][{j}]", f"must be a finite number (or arithmetic on "
+                                                                f"numbers, pi and e), got {state[j]!r}")
+        return {"states": numbers}
     n = _whole_number(ensemble.get("n"))
     if n is None or n < 1:
         _fail(source, "ensemble.n", f"must be a positive integer, got {ensemble.get('n')!r}")
-    seed = ensemble.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        _fail(source, "ensemble.seed", f"must be a non-negative integer, got {seed!r}")
-    spread = ensemble.get("spread", 0.01)
-    if isinstance(spread, bool) or not isinstance(spread, (int, float)) or not (0 <= spread < math.inf):
-        _fail(source, "ensemble.spread", f"must be a number >= 0, got {spread!r}")
-    return {"n": n, "seed": seed, "spread": float(spread)}
+    seed = _whole_number(ensemble.get("seed", 0))
+    if seed is None or seed < 0:
+        _fail(source, "ensemble.seed", f"must be a non-negative integer, got {ensemble.get('seed')!r}")
+    spread = _real_number(ensemble.get("spread", 0.01))
+    if spread is None or spread < 0:
+        _fail(source, "ensemble.spread", f"must be a number >= 0, got {ensemble.get('spread', 0.01)!r}")
+    return {"n": n, "seed": seed, "spread": spread}
 
 
 def run_ensemble_sweep(spec: SweepSpec, threads: int | None = None, on_start: Callable[[int], None] | None = None):

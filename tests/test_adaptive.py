@@ -652,6 +652,29 @@ def test_invariants_whose_gradients_are_dependent_at_y0_are_refused_before_the_f
     assert elimfast.integrate(kepler(1e-8), ehbvm(8, 4), 0.1, n_steps=10, conserve=(L1,)).status == "complete"
 
 
+@pytest.mark.parametrize("a", [1.0, 1e7, 1e-7])
+def test_the_dependence_of_gradients_is_judged_whatever_the_units(a):
+    """A user trial: Kepler e = 0.6 in SI units was refused for imposing L (smallest singular
+    value of the unit gradients 1.5e-19), as was the same orbit after the canonical change of
+    units q -> a q, p -> p / a with a = 1e7 (H = a^2 |p|^2 / 2 - a / |q|), where grad H's q
+    and p parts are 1e14 apart. The gradients are judged scaled by |q| and |p|: every a runs
+    imposing L and A_y, and the circular orbit is refused in every unit."""
+    from elimfast.errors import ParameterError
+    from elimfast.problems.symbolic import problem_from_expressions
+
+    def scaled(e):
+        return problem_from_expressions(
+            {"q": ["q1", "q2"], "p": ["p1", "p2"]}, "a**2*(p1**2 + p2**2)/2 - a/sqrt(q1**2 + q2**2)",
+            invariants={"L": "q1*p2 - q2*p1", "Ay": "-a*p1*(q1*p2 - q2*p1) - q2/sqrt(q1**2 + q2**2)"},
+            parameters={"a": a},
+            initial={"q1": (1 - e) * a, "q2": 0, "p1": 0, "p2": math.sqrt((1 + e) / (1 - e)) / a})
+
+    run = elimfast.integrate(scaled(0.6), ehbvm(12, 3), 0.1, n_steps=200, conserve=("L", "Ay"))
+    assert run.status == "complete" and max(run.relative_invariant_errors().values()) < 1e-13
+    with pytest.raises(ParameterError, match="depends linearly on grad H"):
+        elimfast.integrate(scaled(0.0), ehbvm(12, 3), 0.1, n_steps=10, conserve=("L",))
+
+
 def test_time_scale_steps_capped_by_h_max_keep_following_the_time_scale():
     """h_max with time-reversible steps: after a step cut by h_max the controller starts afresh
     from the new state (rho = 1/sigma + epsilon G/2). Adding epsilon G after capped steps drove rho through zero:

@@ -131,7 +131,7 @@ def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
     assert resolved["method"] == {"name": "ehbvm", "k": 12, "s": 3}
     assert resolved["solver"] == {"method": "newton", "tol": 2.0 ** -52, "max_iter": 30, "max_halvings": 4,
                                   "predictor": True, "warm_start": True, "rhs": "stable", "accelerate": True,
-                                  "lim_metric": "euclidean"}
+                                  "lim_metric": "euclidean", "kernel": "shared"}
     yaml.safe_dump(resolved)
 
 
@@ -258,6 +258,11 @@ EXPRESSION_BAD = [
     ("parameter junk", ("parameters", "mu"), "1 +", "problem.parameters.mu", "not a valid expression"),
     ("missing hamiltonian", ("hamiltonian",), DELETE, "problem.hamiltonian", "missing"),
     ("invariant named H", ("invariants", "H"), "q1", "problem.invariants", "not 'H'"),
+    # a user trial: an invariant 'y' replaced the state in Result.to_xarray; 't' made xarray fail
+    ("invariant named y", ("invariants", "y"), "q1*p2 - q2*p1", "problem.invariants",
+     "invariant name 'y' is taken by other data of a run"),
+    ("invariant named t", ("invariants", "t"), "q1*p2 - q2*p1", "problem.invariants",
+     "invariant name 't' is taken by other data of a run"),
 ]
 
 

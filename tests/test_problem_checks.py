@@ -391,6 +391,20 @@ def test_non_ascii_names_in_a_python_file_are_refused(cache_root, tmp_path, chan
         problem_from_file(path)
 
 
+def test_an_invariant_named_as_other_data_of_a_run_is_refused(cache_root, tmp_path):
+    """A user trial: an invariant 'y' replaced the state in Result.to_xarray (silently), 't' made
+    xarray fail; the names of a run's other data are refused for invariants, in a file and in
+    the Problem itself."""
+    path = write_problem(tmp_path, KEPLER_FILE.replace('INVARIANT_NAMES = ("angular_momentum",',
+                                                       'INVARIANT_NAMES = ("y",'))
+    with pytest.raises(UserProblemError, match="INVARIANT_NAMES: invariant name 'y' is taken by other data of a run"):
+        problem_from_file(path)
+    from dataclasses import replace
+    kepler = problems.kepler()
+    with pytest.raises(ValueError, match="invariant name 'iterations' is taken"):
+        replace(kepler, invariant_names=("angular_momentum", "iterations", "lrl_y"))
+
+
 # --- bounded symbolic work ---------------------------------------------------------------------
 
 BIG_INPUT = textwrap.dedent("""

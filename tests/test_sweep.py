@@ -410,6 +410,10 @@ def test_ensemble_sweep_runs_in_the_parallel_kernel_and_matches_single_runs(tmp_
     ({"n": 5, "spreed": 0.1}, {}, "ensemble.spreed: unknown key"),
     ({"states": [[1, 2]]}, {}, None),
     ({"n": 5}, {"order_axis": "h"}, "order_axis: an ensemble sweep"),
+    ({"n": 5, "spread": "x"}, {}, "ensemble.spread: must be a number >= 0, got 'x'"),
+    ({"n": 5, "spread": -1}, {}, "ensemble.spread: must be a number >= 0"),
+    ({"n": 5, "seed": 0.5}, {}, "ensemble.seed: must be a non-negative integer"),
+    ({"states": [[0.4, 0, "q1", 2]]}, {}, r"ensemble.states\[0\]\[2\]: must be a finite number"),
 ])
 def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
     from elimfast.sweep import run_ensemble_sweep
@@ -420,6 +424,21 @@ def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
     else:
         with pytest.raises(SweepError, match="each state needs 4 numbers"):
             run_ensemble_sweep(load_sweep(path))
+
+
+def test_ensemble_numbers_are_written_as_everywhere_in_configs(tmp_path):
+    """A user trial: spread: 1e-2 (a string to YAML), pi/100, seed: 1e3 and states holding 1e-1
+    or pi/4 were refused ('must be a number'), where every other number of a config takes them."""
+    from elimfast.sweep import ensemble_states
+    written = (tmp_path / "w.yaml")
+    written.write_text(yaml.safe_dump({"base": BASE}) + "ensemble: {n: 4, seed: 1e3, spread: 1e-2}\n")
+    plain = write_sweep(tmp_path, {"base": BASE, "ensemble": {"n": 4, "seed": 1000, "spread": 0.01}}, "p.yaml")
+    np.testing.assert_array_equal(ensemble_states(load_sweep(written))[1], ensemble_states(load_sweep(plain))[1])
+    arithmetic = write_sweep(tmp_path, {"base": BASE, "ensemble": {"n": 4, "seed": 1000, "spread": "pi/100"}}, "a.yaml")
+    assert load_sweep(arithmetic).ensemble["spread"] == math.pi / 100
+    states = (tmp_path / "s.yaml")
+    states.write_text(yaml.safe_dump({"base": BASE}) + "ensemble: {states: [[4e-1, 0, 0, 2], [pi/8, 0, 0, 2]]}\n")
+    np.testing.assert_array_equal(ensemble_states(load_sweep(states))[1], [[0.4, 0, 0, 2], [math.pi / 8, 0, 0, 2]])
 
 
 @pytest.mark.parametrize("change,key", [

@@ -55,6 +55,21 @@ def real_state(value, parameter: str = "y0") -> np.ndarray:
     return np.array(array, dtype=np.float64)
 
 
+# The names of a run's other data, in its file and in Result.to_xarray (io/layout.py,
+# io/xarray_view.py), where each invariant is a variable of its own name: an invariant 'y'
+# replaced the state there, and 't', 'component' or 'invariant' made xarray fail.
+DATA_NAMES = frozenset({"t", "component", "y", "step", "invariant", "iterations", "substeps", "alpha", "lambda",
+                        "step_t", "step_h"})
+
+
+def invariant_name_clash(name) -> str | None:
+    """Why ``name`` cannot name an invariant (other data of the run has it), or None."""
+    if name in DATA_NAMES:
+        return (f"invariant name {name!r} is taken by other data of a run (in its file and in xarray: t, y, "
+                "component, step, invariant, iterations, substeps, alpha, lambda, step_t, step_h); choose another name")
+    return None
+
+
 def _shown(value, limit: int = 60) -> str:
     with np.printoptions(threshold=8):   # a large array's repr is summarised, not built whole
         text = repr(value)
@@ -132,6 +147,9 @@ class Problem:
         object.__setattr__(self, "invariant_names", tuple(self.invariant_names))
         if len(set(self.invariant_names)) != len(self.invariant_names) or "H" in self.invariant_names:
             raise ValueError(f"problem {self.name!r}: invariant names must be distinct and not 'H'")
+        for name in self.invariant_names:
+            if invariant_name_clash(name):
+                raise ValueError(f"problem {self.name!r}: {invariant_name_clash(name)}")
         if self.hessian_source not in HESSIAN_SOURCES:
             raise ValueError(f"problem {self.name!r}: hessian_source must be one of "
                              f"{', '.join(map(repr, HESSIAN_SOURCES))}, got {self.hessian_source!r}")

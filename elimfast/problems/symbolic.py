@@ -58,7 +58,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .. import cache
-from .base import Problem
+from .base import Problem, invariant_name_clash
 from .expressions import (ExpressionError, ProblemDefinitionError, canonical, check_name, did_you_mean,
                           evaluate_number, node_count, non_ascii, parse, polynomial_degree, to_sympy)
 
@@ -136,6 +136,8 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
         if not isinstance(iname, str) or not _INVARIANT_NAME.match(iname) or iname == "H":
             raise ProblemDefinitionError(f"invariant name {iname!r} is not allowed: use letters, digits and '_', "
                                          "starting with a letter, and not 'H' (always conserved)", key="invariants")
+        if invariant_name_clash(iname):
+            raise ProblemDefinitionError(invariant_name_clash(iname), key="invariants")
         if not isinstance(text, str):
             raise ProblemDefinitionError(f"invariant {iname} must be an expression string, got {text!r}",
                                          key=f"invariants.{iname}")

@@ -65,7 +65,7 @@ import numpy as np
 from .. import cache
 from ..kernels import signatures
 from ..errors import ParameterError
-from .base import Problem, real_state
+from .base import Problem, invariant_name_clash, real_state
 from .expressions import ProblemDefinitionError, check_name, did_you_mean, evaluate_number
 
 # Appended to the cached copy of every python: problem file (after its last line, so its
@@ -165,6 +165,8 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
             check_name(iname, "invariant name")
         except ProblemDefinitionError as err:
             raise UserProblemError(f"{label}: INVARIANT_NAMES: {err}", key="python") from None
+        if invariant_name_clash(iname):
+            raise UserProblemError(f"{label}: INVARIANT_NAMES: {invariant_name_clash(iname)}", key="python")
     if functions["invariants"] is not None and not invariant_names:
         raise UserProblemError(f"{label}: invariants is defined but INVARIANT_NAMES is not; list their names",
                                key="python")
