@@ -138,7 +138,7 @@ def run_notes(run_file) -> list[str]:
         notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
                      "solver could not converge them whole; every invariant is kept there too")
     if substeps.get("unimposed"):
-        notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done))
+        notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive))
     spikes = run_file.alpha_spikes()
     if spikes:
         from elimfast.integrate import alpha_spike_note
@@ -174,13 +174,19 @@ def unused_h_note(h, first=None) -> str:
 UNIMPOSED_DEGENERATE_FRACTION = 0.01
 
 
-def unimposed_text(count: int, steps_done: int) -> str:
+def unimposed_text(count: int, steps_done: int, adaptive: bool = False) -> str:
     """What a run's steps with a substep taken without imposing the invariants mean (docs/solver.md)."""
     text = (f"{count:,} step(s) were taken, or had a substep taken, without imposing the invariants, because "
             "imposing failed there (alpha was rounding over rounding, or the solver could not converge even after "
             "the last halving) and the step kept them to round-off anyway (their alpha is NaN; "
             "docs/solver.md#a-substep-without-imposing)")
-    if count > UNIMPOSED_DEGENERATE_FRACTION * steps_done:
+    if count > UNIMPOSED_DEGENERATE_FRACTION * steps_done and adaptive:
+        # a user trial: Kepler e = 0.99 under the time-scale controller, epsilon 0.05, whose pericentre
+        # steps of 5e-5 are too short for Gamma, was told that L and A_y were degenerate on its orbit
+        text += ("; that many means that its shortest steps (at close approaches) are too short for Gamma, "
+                 "or that the imposed invariants are degenerate along this orbit (e.g. L on a circular one): a "
+                 "larger epsilon or rtol takes longer steps there; imposing fewer or none is faster")
+    elif count > UNIMPOSED_DEGENERATE_FRACTION * steps_done:
         text += ("; that many means the imposed invariants are degenerate along this orbit (e.g. L on a "
                  "circular orbit), where the method keeps them by itself: impose fewer or none, which is faster")
     return text
@@ -374,7 +380,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
     if substeps.get("unimposed"):
-        row("", unimposed_text(substeps["unimposed"], run_file.steps_done))
+        row("", unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive))
     warning = energy_note(run_file, samples_drift)
     if warning:
         row("note", warning)

@@ -565,9 +565,14 @@ class AdaptiveIntegration:
 
     def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message
+        step = float(self.diagnostics[stepper.DIAG_STEP])   # the failed (sub)step's h
+        if self.control is None:
+            # fixed steps (with output times or events): the step is h, DIAG_STEP its failed substep's
+            # (a user trial read "t = 6.45 -> 6.453125, in its substep from t = 6.471875")
+            step = math.copysign(self.h, step) if step else self.h
         message = failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
-                                  float(self.diagnostics[stepper.DIAG_STEP]), self.diagnostics,
-                                  adaptive=self.control is not None, run_file=run_file)
+                                  step, self.diagnostics, adaptive=self.control is not None, run_file=run_file,
+                                  y=self.y, y0=self.y0)
         if self.control is not None and self.control.controller == "time_scale" \
                 and self.status != codes.STATUS_TIME_SCALE:
             # The steps are epsilon sigma(y): a sigma that nears zero along the orbit makes them collapse

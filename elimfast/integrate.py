@@ -1029,15 +1029,21 @@ class Integration:
         """One line naming the step and time of a failure, what the solver saw, and what to do
         (run_file: the run is in a run file, which --resume continues)."""
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t, self.signed_h,
-                               self.diagnostics, run_file=run_file)
+                               self.diagnostics, run_file=run_file, y=self.y, y0=self.y0)
+
+
+# A failing step whose state has grown this much beyond the initial one says so: the orbit is
+# likely leaving every bounded region, which no step size or solver setting gets through.
+GROWN_STATE = 1e3
 
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
-                    diagnostics, adaptive: bool = False, run_file: bool = False) -> str:
+                    diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None) -> str:
     """The one-line report of a step that failed at every level of splitting (docs/solver.md);
     adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h;
     run_file: the run is in a run file, which `elimfast run --resume` continues with other
-    solver settings (not said to the Python API or a sweep, which cannot)."""
+    solver settings (not said to the Python API or a sweep, which cannot); y, y0: the state
+    where it failed and the initial one (a state grown beyond GROWN_STATE times is named)."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -1089,6 +1095,12 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         # simplified Newton gets through steps the fixed point cannot (docs/solver.md); 'auto' takes
         # the fixed point for large systems without the user having asked for it
         advice += ", or use simplified Newton (solver.method: newton)"
+    if y is not None and y0 is not None:
+        size, start = float(np.max(np.abs(y))), float(np.max(np.abs(y0)))
+        if start > 0 and size > GROWN_STATE * start:
+            # a user trial: a Henon-Heiles variant with an unbounded potential was told to reduce h
+            advice = (f"the state has grown to {size:.3g} ({size / start:.2g} times its initial size): the orbit is "
+                      f"likely escaping to infinity, which no step size gets through; otherwise {advice}")
     if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive and run_file:
         advice += "; a failed run can be continued with --resume after changing solver settings"
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"

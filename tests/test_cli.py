@@ -152,6 +152,24 @@ def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file,
         f["steps/alpha"][:150] = np.nan
     text = invoke("inspect", path).stdout
     assert "150 step(s) were taken, or had a substep taken" in text and "degenerate along this orbit" in text
+    assert "too short for Gamma" not in text
+
+
+def test_many_unimposed_steps_of_an_adaptive_run_name_its_shortest_steps(tmp_path):
+    """A user trial: Kepler e = 0.99 under the time-scale controller (epsilon 0.05) takes pericentre
+    steps too short for Gamma (80 of 458 steps over two periods), and was told that its imposed
+    invariants were degenerate along the orbit, which is not so. The note names the short steps too."""
+    import yaml
+    config = tmp_path / "e099.yaml"
+    config.write_text(yaml.safe_dump({
+        "problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.99}},
+        "conserve": ["angular_momentum", "lrl_y"], "method": {"name": "ehbvm", "s": 4},
+        "integration": {"step_control": "time_scale", "epsilon": 0.05, "t_end": "4*pi"}}))
+    out = tmp_path / "e099.h5"
+    ran = invoke("run", config, "-o", out)
+    assert ran.exit_code == 0, ran.output
+    assert "too short for Gamma" in ran.stderr and "larger epsilon or rtol" in ran.stderr, ran.stderr
+    assert "too short for Gamma" in invoke("inspect", out).stdout
 
 
 def test_inspect_says_the_initial_state_comes_from_problem_initial(kepler_file, tmp_path):

@@ -735,3 +735,26 @@ def test_a_signal_stops_a_sweep_whose_run_never_returns(tmp_path, workers):
         time.sleep(0.5)
         left = subprocess.run(["pgrep", "-f", str(sweep)], capture_output=True, text=True).stdout.split()
         assert not left, f"workers left running: {left}"
+
+
+@pytest.mark.parametrize("events", [False, True], ids=["fixed steps", "fixed steps with an event"])
+def test_a_failure_where_the_orbit_escapes_names_the_step_and_the_growth(tmp_path, events):
+    """A user trial: a Henon-Heiles variant whose potential is unbounded below (x^2 y - y^3/3 with
+    2 for 1, no quartic term) escapes to infinity and fails at step 130; with an event (the
+    adaptive kernel's fixed steps) the line read "t = 6.45 -> 6.453125" (the substep's h for the
+    step's), and either way it advised reducing h, which cannot help. It names the step [6.45,
+    6.5] and the state's growth."""
+    config = {"problem": {"name": "escape", "coordinates": {"q": ["x", "y"], "p": ["px", "py"]},
+                          "hamiltonian": "(px**2 + py**2)/2 + (x**2 + y**2)/2 + 2*(x**2*y - y**3/3)",
+                          "initial": {"x": 0.1, "y": 0.2, "px": 0.3, "py": 0.0}},
+              "method": {"name": "hbvm", "k": 6, "s": 3}, "integration": {"h": 0.05, "t_end": 50}}
+    if events:
+        config["events"] = {"section": {"expression": "x", "direction": 1}}
+    path = tmp_path / "escape.yaml"
+    path.write_text(yaml.safe_dump(config))
+    result = CliRunner().invoke(cli, ["run", str(path), "-o", str(tmp_path / "escape.h5")])
+    assert result.exit_code == 1, result.output
+    line = result.stderr.strip().splitlines()[-1]
+    match = re.search(r"at step (\d+) \(t = ([0-9.]+) -> ([0-9.]+)\)", line)
+    assert match and abs(float(match.group(3)) - float(match.group(2)) - 0.05) < 1e-12, line
+    assert "the orbit is likely escaping to infinity, which no step size gets through" in line, line
