@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import math
 import os
 import sys
 from pathlib import Path
@@ -784,9 +785,12 @@ def _parse_floats(values) -> list[float] | None:
     for value in values:
         for item in str(value).replace(",", " ").split():
             try:
-                out.append(float(item))
+                number = float(item)
             except ValueError:
                 raise click.BadParameter(f"{item!r} is not a number", param_hint="--eta") from None
+            if not math.isfinite(number):   # a user trial: nan printed a tableau of NaN, exit 0
+                raise click.BadParameter(f"{item!r} is not a finite number", param_hint="--eta")
+            out.append(number)
     return out
 
 
@@ -815,10 +819,11 @@ def _quadrature_of_H(problem, method) -> str:
               help="ELIM scaling factors eta_1..eta_(s-1) (or eta_0..eta_(s-1), eta_0 = 1): "
                    "repeat the option or separate by commas. Default: all 1 (the HBVM tableau).")
 def tableau(name, k, s, r, eta):
-    """Print the Butcher tableau (A, b, c) of a method exactly.
+    """Print the Butcher tableau (A, b, c) of a method, as elimfast computes it.
 
     Every number is printed with Python's repr, so reading it back gives the same
-    double. Rows: c_i | a_i1 ... a_ik, then a rule and the weights b_j. LIM and GHBVM
+    double: the one the kernels use (a product of the method's matrices, which can be a
+    few units in the last place from the exact value, e.g. GAUSS(2)'s 1/4). Rows: c_i | a_i1 ... a_ik, then a rule and the weights b_j. LIM and GHBVM
     have no fixed Runge-Kutta form.
 
     \b

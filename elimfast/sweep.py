@@ -317,6 +317,9 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     base = data.get("base")
     if isinstance(base, str):
         base_path = (path.parent / base)
+        if not base_path.exists():   # a user trial was told only "nosuch.yaml: no such file"
+            _fail(source, "base", f"{base_path}: no such file; give the path of a run config, relative to "
+                                  f"the sweep file's folder ({path.parent})")
         base = _read_yaml(base_path, "base config")
         if not isinstance(base, dict):
             _fail(source, "base", f"{base_path} does not hold a config mapping")

@@ -76,6 +76,7 @@ def make_case(name, tmp: Path):
         "tableau of lim": (["tableau", "ghbvm", "--k", "3", "--s", "2"], "no fixed Runge-Kutta form"),
         "tableau k < s": (["tableau", "hbvm", "--k", "2", "--s", "3"], "k must be >= s"),
         "tableau bad eta": (["tableau", "ehbvm", "--k", "3", "--s", "2", "--eta", "x"], "not a number"),
+        "tableau nan eta": (["tableau", "ehbvm", "--k", "3", "--s", "2", "--eta", "nan"], "not a finite number"),
         "tableau without r and k": (["tableau", "elim", "--s", "3"], "--r is missing, and so is k;"),
         "empty output path": (["run", write(tmp, "g.yaml", GOOD), "-o", ""], "the output path is empty"),
         "duplicate section": (["run", write(tmp, "dup.yaml", GOOD + "integration: {h: 0.2, n_steps: 5}\n"), "-o",

@@ -1047,3 +1047,13 @@ def test_an_adaptive_runs_row_counts_the_iterations_its_grad_H_evaluations_count
     assert adaptive.grad_H_evaluations == 12 * adaptive.iterations_total   # EHBVM(12,3): k per iteration
     assert adaptive.iterations_total == adaptive.result.stats["iterations"]
     assert rows["fixed"].iterations_total == int(rows["fixed"].result.iterations.sum())
+
+
+def test_a_missing_base_file_is_named_at_the_sweep_files_key(tmp_path):
+    """A user trial: `base: nosuch.yaml` was told only 'nosuch.yaml: no such file', naming neither
+    the sweep file nor the key, nor where a relative path is looked for."""
+    path = write_sweep(tmp_path, {"base": "nosuch.yaml", "grid": [{"key": "integration.h", "values": [0.1]}]})
+    with pytest.raises(SweepError) as info:
+        load_sweep(path)
+    assert str(info.value).startswith(f"{path}: base: {tmp_path / 'nosuch.yaml'}: no such file; give the path of a "
+                                      "run config, relative to the sweep file's folder"), str(info.value)
