@@ -127,7 +127,8 @@ def energy_note(run_file, drift=None) -> str | None:
     return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive,
                 s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"), roundoff=roundoff, steps=steps,
                 tol=tol if isinstance(tol, (int, float)) else None,
-                hand_written="python" in (config_of(run_file).get("problem") or {}))
+                hand_written="python" in (config_of(run_file).get("problem") or {}),
+                unchecked=(config_of(run_file).get("problem") or {}).get("check") is False)
 
 
 def run_notes(run_file) -> list[str]:

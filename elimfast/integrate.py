@@ -505,7 +505,7 @@ def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
 
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
                 s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0,
-                tol: float | None = None, hand_written: bool = False) -> str | None:
+                tol: float | None = None, hand_written: bool = False, unchecked: bool = False) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -535,7 +535,9 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     user trial: the Pythagorean three-body problem lost 1e-8 at a close encounter, r = 4e-4, with
     k 8 to 16 and epsilon 0.02 to 0.005 alike), and, for ``hand_written`` gradients (a python:
     file's), a grad_H that is not H's gradient (another: a 1% error in grad_H with the check off
-    lost 7.7e-6 whatever k and h)."""
+    lost 7.7e-6 whatever k and h). ``unchecked``: the problem's check (grad L . J grad H = 0) was
+    switched off, so an imposed invariant may not be one (a user trial imposed q . p on Kepler
+    with problem.check: false and was told of quadrature, k and h)."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
@@ -579,7 +581,9 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     otherwise = ("; if a larger k leaves it unchanged, it is not quadrature but round-off where H's terms grow far "
                  "beyond their size at t0 (a close encounter)"
                  + (", or a grad_H that is not the gradient of H (elimfast check compares them)" if hand_written
-                    else ""))
+                    else "")
+                 + (", or an imposed quantity that the flow of H does not conserve (problem.check is off: "
+                    "elimfast check tests it)" if unchecked and imposed else ""))
     return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off: {method_name} keeps "
             f"{', '.join(kept)} {where}{otherwise}")
 

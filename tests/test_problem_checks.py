@@ -570,3 +570,27 @@ def test_a_run_whose_H_is_not_defined_on_part_of_its_orbit_says_so(cache_root, t
     report = CliRunner().invoke(cli, ["inspect", str(out)]).stdout
     assert "no step done" not in report
     assert "invariants   no figures: after 100 steps, the invariants are NaN or infinite in some or all" in report
+
+
+def test_a_non_invariant_imposed_with_the_check_off_is_named_in_the_note(tmp_path):
+    """A user trial imposed q . p on Kepler with problem.check: false: the run ended with a note of
+    quadrature error, k and h only. The note names the check that was off."""
+    import yaml
+    from click.testing import CliRunner
+
+    from elimfast_cli.main import cli
+    config = {"problem": {"coordinates": {"q": ["q1", "q2"], "p": ["p1", "p2"]},
+                          "hamiltonian": "(p1**2 + p2**2)/2 - 1/sqrt(q1**2 + q2**2)",
+                          "invariants": {"bogus": "q1*p1 + q2*p2"},
+                          "initial": {"q1": 0.4, "q2": 0.0, "p1": 0.0, "p2": 2.0}, "check": False},
+              "conserve": ["bogus"], "method": {"name": "ehbvm", "k": 12, "s": 3},
+              "integration": {"h": 0.1, "t_end": 10}}
+    path = tmp_path / "bogus.yaml"
+    path.write_text(yaml.safe_dump(config))
+    ran = CliRunner().invoke(cli, ["run", str(path), "-o", str(tmp_path / "bogus.h5")])
+    assert ran.exit_code == 0, ran.output
+    assert "an imposed quantity that the flow of H does not conserve (problem.check is off" in ran.stderr, ran.stderr
+    config["problem"]["check"] = True   # with the check on it is refused before the run, as before
+    path.write_text(yaml.safe_dump(config))
+    refused = CliRunner().invoke(cli, ["run", str(path), "-o", str(tmp_path / "checked.h5")])
+    assert refused.exit_code == 2 and "is not conserved by the flow of H" in refused.stderr
