@@ -207,7 +207,8 @@ def test_an_adaptive_result_in_xarray_has_its_steps_events_and_step_control():
     assert ds["pericentre_y"].dims == ("pericentre_occurrence", "component")
     assert ds.sizes["pericentre_occurrence"] == 2
     assert ds.attrs["step_control"] == "error" and ds.attrs["rtol"] == 1e-12
-    assert ds.attrs["rejected_steps"] == r.stats["rejected_steps"] and ds.attrs["steps"] == r.steps_done
+    assert ds.attrs["stats_rejected_steps"] == r.stats["rejected_steps"] and ds.attrs["stats_steps"] == r.steps_done
+    assert "iterations" not in ds.attrs   # named as in a run file, apart from the variable iterations
     # a fixed-step result has none of these, and says step_control = fixed, as its run file does
     fixed = elimfast.integrate(p, methods.ehbvm(8, 4), 0.01, n_steps=10, conserve=CONSERVE).to_xarray()
     assert "step_h" not in fixed and "rtol" not in fixed.attrs and fixed.attrs["step_control"] == "fixed"

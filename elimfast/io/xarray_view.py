@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import LONG_NAMES, STEP_CONTROL_FIXED, VALUE_AT_T0, unit_attributes
+from .layout import LONG_NAMES, STEP_CONTROL_FIXED, VALUE_AT_T0, stats_attributes, unit_attributes
 
 
 def result_dataset(result):
@@ -16,7 +16,8 @@ def result_dataset(result):
     (for relative errors), as in a run file; ``imposed`` is 0 or 1.
     Attributes: problem, method, h (adaptive: the first step, also as h_first), conserve,
     n_steps, steps_done, status and the units; adaptive runs add the step control's
-    settings (step_control, rtol, atol or epsilon, verify) and the counts of Result.stats."""
+    settings (step_control, rtol, atol or epsilon, verify) and the counts of Result.stats, named
+    stats_<name> as in a run file (layout.stats_attributes)."""
     try:
         import xarray as xr
     except ImportError:
@@ -62,7 +63,9 @@ def result_dataset(result):
         # verify as 0/1, as imposed: netCDF has no boolean attributes (to_netcdf refused every adaptive run)
         attrs.update({key: int(value) if isinstance(value, (bool, np.bool_)) else value
                       for key, value in settings.items() if value is not None})
-        attrs.update({key: int(value) for key, value in result.stats.items()})
+        # stats_<name>, as a run file's root has them (a user trial: a bare 'iterations' attribute beside
+        # the variable iterations)
+        attrs.update(stats_attributes(result.stats))
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
