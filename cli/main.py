@@ -145,6 +145,12 @@ class ElimfastGroup(click.Group):
                 # The reader went away (elimfast inspect ... | head): not an error of ours.
                 sys.stderr.close()
                 os._exit(EXIT_OK)
+            except SystemExit as err:
+                # click answers a broken pipe itself: it wraps the streams and exits with 1, the code of a
+                # failed integration (a user trial: `elimfast check ... | head -1` exited 1)
+                if err.code == 1 and type(sys.stdout).__name__.endswith("PacifyFlushWrapper"):
+                    os._exit(EXIT_OK)
+                raise
             except _Exit:
                 raise   # fail() inside a command: its message is printed, the code stands
             except Exception as err:

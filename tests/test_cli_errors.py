@@ -197,3 +197,19 @@ def test_run_refuses_to_resume_a_sweep_file_or_to_write_into_one(tmp_path):
         assert result.exit_code == 2, result.output
         assert_one_line_error(result.stderr, fragment)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.yaml", "sweep.h5", "sweep.yaml"]
+
+
+def test_a_reader_that_goes_away_is_no_failure():
+    """A user trial: `elimfast check CONFIG | head -1` exited 1 (click's answer to a broken pipe),
+    the code of a failed integration. The reader leaving is not an error of elimfast's: 0."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    config = Path(__file__).resolve().parents[1] / "configs" / "kepler.yaml"
+    process = subprocess.Popen([sys.executable, "-m", "elimfast_cli.main", "check", str(config)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.readline()
+    process.stdout.close()   # as head -1 does
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 0, stderr
+    assert b"Traceback" not in stderr
