@@ -28,3 +28,39 @@ def central_quartic():
 
 def max_error(a, b):
     return float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+
+
+# --- the per-problem kernel, compiled beside the other tests ------------------------------------
+# tests/test_per_problem_kernel.py needs elimfast's fixed-step kernel compiled for one problem:
+# about 100 s on a cold cache (CI's), on one core. It is compiled in a process of its own from the
+# start of the session, on the second core (CI has two), while the other tests run; that module
+# waits for it (per_problem_kernel_compiled) and then loads the kernel from the cache.
+PER_PROBLEM_CONFIG = "configs/kepler_expressions.yaml"
+_per_problem_compile = []
+
+
+def pytest_collection_finish(session):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if any(item.nodeid.startswith("tests/test_per_problem_kernel.py") for item in session.items):
+        root = Path(__file__).resolve().parents[1]
+        code = ("from elimfast.config import load_run; from elimfast.per_problem import time_loop_for; "
+                f"time_loop_for(load_run({str(root / PER_PROBLEM_CONFIG)!r}).problem)")
+        _per_problem_compile.append(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
+                                                     stderr=subprocess.PIPE))
+
+
+@pytest.fixture(scope="session")
+def per_problem_kernel_compiled():
+    """Wait for the compilation started at collection (if any); its failure is the tests' to see."""
+    for process in _per_problem_compile:
+        _, stderr = process.communicate(timeout=1800)
+        assert process.returncode == 0, stderr.decode(errors="replace")[-2000:]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    for process in _per_problem_compile:
+        if process.poll() is None:
+            process.kill()

@@ -348,3 +348,35 @@ def _zero_hessian(y, params, out):
 
 def test_jit_hessian_compiles_with_the_signature():
     assert _zero_hessian.signatures == [HESS_H_SIGNATURE.args]
+
+
+@pytest.mark.parametrize("n_masses", [2, 12])
+def test_generated_matrices_write_every_entry_whatever_out_held(cache_root, n_masses):
+    """The generated hess_H and grad_invariants write every entry, the zeros too: one by one when
+    they are few (Kepler's grad_invariants has none, its Hessian 10; a fill of the whole matrix
+    cost each kernel call a loop of stores), by a fill of the whole matrix when many (a chain of
+    12 masses). Checked on out arrays full of NaN, against sympy's matrices."""
+    q = [f"q{i}" for i in range(1, n_masses + 1)]
+    p = [f"p{i}" for i in range(1, n_masses + 1)]
+    H = " + ".join(f"{x}**2/2" for x in p) + " + " + " + ".join(
+        f"({b} - {a})**4/4" for a, b in zip(q, q[1:])) + f" + {q[0]}**4/4"
+    momentum = " + ".join(p)
+    problem = problem_from_expressions({"q": q, "p": p}, H, invariants={"P": momentum, "Q": f"{q[0]}*{p[-1]}"},
+                                       initial={**{x: 0.1 * i for i, x in enumerate(q)}, **{x: 0.3 for x in p}})
+    generated = problem.grad_H.py_func.__module__
+    import sys
+    source = open(sys.modules[generated].__spec__.origin).read()
+    assert ("for i in range(out.shape[0])" in source) == (n_masses == 12)
+    y = problem.y0.copy()
+    n = y.size
+    hessian = np.full((n, n), np.nan)
+    problem.hess_H(y, problem.params, hessian)
+    gradients = np.full((2, n), np.nan)
+    problem.grad_invariants(y, problem.params, gradients)
+    symbols = sympy.symbols(q + p)
+    expr = sympy.sympify(H)
+    exact_hessian = np.array(sympy.hessian(expr, symbols).subs(dict(zip(symbols, y))).evalf(), dtype=float)
+    np.testing.assert_allclose(hessian, exact_hessian, rtol=1e-14, atol=1e-14)
+    exact_gradients = np.array([[float(sympy.diff(sympy.sympify(f), s).subs(dict(zip(symbols, y)))) for s in symbols]
+                                for f in (momentum, f"{q[0]}*{p[-1]}")])
+    np.testing.assert_array_equal(gradients, exact_gradients)

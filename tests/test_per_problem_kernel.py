@@ -3,9 +3,10 @@
 It is elimfast's fixed-step kernel compiled once more, with the problem's functions as
 compile-time constants (kernels/static.py): the same arithmetic in the same order, so the
 same steps bit for bit as the shared kernel, and cached by Numba (a second process loads
-it). One compilation here (about 100 s on a cold cache), shared by every test below: Kepler
-from expressions, the user-defined case (its functions live in a module generated into
-elimfast's cache, which the kernel module imports by name).
+it). One compilation (about 100 s on a cold cache; conftest.py starts it in a process of its
+own when the session's tests are collected, beside the other tests), shared by every test
+below: Kepler from expressions, the user-defined case (its functions live in a module
+generated into elimfast's cache, which the kernel module imports by name).
 """
 import os
 import subprocess
@@ -31,7 +32,9 @@ L, AY = "angular_momentum", "lrl_y"
 
 
 @pytest.fixture(scope="module")
-def user_kepler():
+def user_kepler(per_problem_kernel_compiled):
+    """Kepler from expressions; its per-problem kernel compiled (conftest: in a process beside the
+    other tests) or loaded."""
     return load_run(CONFIG).problem
 
 

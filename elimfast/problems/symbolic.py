@@ -62,7 +62,9 @@ from .base import Problem, invariant_name_clash
 from .expressions import (ExpressionError, ProblemDefinitionError, canonical, check_name, did_you_mean,
                           evaluate_number, node_count, non_ascii, parse, polynomial_degree, to_sympy)
 
-GENERATOR_VERSION = 3   # 2: hess_H; 3: zero entries by a fill. Part of the cache key and of the generated text.
+GENERATOR_VERSION = 4   # 2: hess_H; 3: zero entries by a fill; 4: a few zeros one by one. Part of the cache key
+#                         and of the generated text.
+EXPLICIT_ZEROS = 32     # zero entries of a matrix written one by one; more: a fill of the whole matrix first
 FUNCTIONS = ("H", "grad_H", "hess_H", "invariants", "grad_invariants")   # what a generated module defines
 # Bounds of the symbolic work (issue 9, point 6). Measured here: sympy differentiates about
 # 45,000 nodes/s and cse handles about 100,000 nodes/s, so MAX_DERIVATIVE_NODES keeps an
@@ -341,24 +343,32 @@ def generate_source(q_names, p_names, param_names, hamiltonian, invariants, name
 
     h_body = body([H], ["return "], "hamiltonian")
     g_body = body(grad_H, [f"out[{i}] = " for i in range(n)], "hamiltonian")
-    def sparse_body(exprs, targets, key):
+    def sparse_body(exprs, entries, key, symmetric=False):
         # Every entry is written: a zero fill, then the nonzero ones. A chain's Hessian is mostly
         # zeros, and one line each made a function whose compilation grew with the square of its
         # size (a user trial: an FPU chain of 12 masses written as expressions took 10 s, of 64 was
         # killed after 170 s at 2.8 GB).
+        # A few zeros are written one by one instead: the fill's stores cannot be dropped by the
+        # compiler (out might alias y), and Kepler's grad_invariants, all twelve entries nonzero,
+        # spent a loop of twelve stores on each of the kernel's calls.
+        # symmetric: entries are the upper triangle, and a zero there is a zero below it too.
+        targets = [f"out[{i}, {j}] = " for i, j in entries]
         kept = [(target, expr) for target, expr in zip(targets, exprs) if expr != 0]
-        fill = ["    for i in range(out.shape[0]):", "        for j in range(out.shape[1]):",
-                "            out[i, j] = 0.0"]
+        zeros = [f"    out[{i}, {j}] = 0.0" for (i, j), expr in zip(entries, exprs) if expr == 0]
+        zeros += [f"    out[{j}, {i}] = 0.0" for (i, j), expr in zip(entries, exprs) if expr == 0 and symmetric and i != j]
+        fill = (zeros if len(zeros) <= EXPLICIT_ZEROS else
+                ["    for i in range(out.shape[0]):", "        for j in range(out.shape[1]):",
+                 "            out[i, j] = 0.0"])
         if not kept:
-            return fill
+            return fill or ["    return"]
         return fill + body([e for _, e in kept], [target for target, _ in kept], key)
 
-    hess_body = sparse_body(hess_H, [f"out[{i}, {j}] = " for i, j in upper], "hamiltonian")
+    hess_body = sparse_body(hess_H, upper, "hamiltonian", symmetric=True)
     hess_body += [f"    out[{j}, {i}] = out[{i}, {j}]" for (i, j), expr in zip(upper, hess_H)   # symmetric
                   if i != j and expr != 0]
     i_body = body(L, [f"out[{a}] = " for a in range(len(L))], "invariants") if L else ["    return"]
-    gi_body = (sparse_body([d for row in grad_L for d in row],
-                           [f"out[{a}, {i}] = " for a in range(len(L)) for i in range(n)], "invariants")
+    gi_body = (sparse_body([d for row in grad_L for d in row], [(a, i) for a in range(len(L)) for i in range(n)],
+                           "invariants")
                if L else ["    return"])
 
     doc = [f"elimfast {__version__}: problem {name!r}, generated from expressions; do not edit.",
