@@ -62,6 +62,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import elimfast  # noqa: E402
 from elimfast.config import load_run  # noqa: E402
+from elimfast.integrate import SolverSettings  # noqa: E402
 from elimfast.kernels.codes import (FAMILY_ELIM, SOLVER_FIXED_POINT, STATUS_NONFINITE,  # noqa: E402
                                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR, internal)
 from elimfast.kernels.linalg import lu_factor, lu_solve_factored  # noqa: E402
@@ -958,13 +959,15 @@ def make_runner(kind, problem, tables, conserve_idx):
     return run
 
 
-def elimfast_runner(problem, method, n_steps):
-    """A whole elimfast.integrate call of n_steps steps (t_end = T_END for the whole run)."""
+def elimfast_runner(problem, method, n_steps, kernel="shared"):
+    """A whole elimfast.integrate call of n_steps steps (t_end = T_END for the whole run), on the
+    shared kernel or the problem's own (solver.kernel, docs/solver.md#per-problem-kernel)."""
     span = {"t_end": T_END} if n_steps == N_STEPS else {"n_steps": n_steps}
+    solver = SolverSettings(method="fixed_point", predictor=False, kernel=kernel)
 
     def run():
         start = time.perf_counter()
-        result = elimfast.integrate(problem, method, H_STEP, conserve=CONSERVE, solver="fixed_point", predictor=False,
+        result = elimfast.integrate(problem, method, H_STEP, conserve=CONSERVE, solver=solver,
                                     store_every=STORE_EVERY, **span)
         return time.perf_counter() - start, result
     return run
@@ -985,6 +988,9 @@ def load_average():
 
 
 BUILTIN_RUN, USER_RUN = "elimfast, built-in Kepler", "elimfast, Kepler from expressions"
+PER_PROBLEM_BUILTIN_RUN = "elimfast, per-problem kernel, built-in Kepler"
+PER_PROBLEM_USER_RUN = "elimfast, per-problem kernel, Kepler from expressions"
+ELIMFAST_RUNS = (BUILTIN_RUN, USER_RUN, PER_PROBLEM_BUILTIN_RUN, PER_PROBLEM_USER_RUN)
 BASE = "specialised"
 
 
@@ -1001,6 +1007,10 @@ def measure(rounds):
         BUILTIN_RUN + ", 1 step": elimfast_runner(problem, method, 1),
         USER_RUN: elimfast_runner(user, method, N_STEPS),
         USER_RUN + ", 1 step": elimfast_runner(user, method, 1),
+        PER_PROBLEM_BUILTIN_RUN: elimfast_runner(problem, method, N_STEPS, "per_problem"),
+        PER_PROBLEM_BUILTIN_RUN + ", 1 step": elimfast_runner(problem, method, 1, "per_problem"),
+        PER_PROBLEM_USER_RUN: elimfast_runner(user, method, N_STEPS, "per_problem"),
+        PER_PROBLEM_USER_RUN + ", 1 step": elimfast_runner(user, method, 1, "per_problem"),
     }
     for label, _, kind in VARIANTS:
         entries[label] = make_runner(kind, problem, tables, conserve_idx)
@@ -1028,7 +1038,7 @@ def measure(rounds):
     wall = time.perf_counter() - wall_start
 
     ns, iterations = {}, {}
-    for label in (BUILTIN_RUN, USER_RUN):
+    for label in ELIMFAST_RUNS:
         result = last[label][1]
         total, first = int(result.iterations.sum()), int(result.iterations[0])
         iterations[label] = total
@@ -1052,11 +1062,17 @@ def measure(rounds):
     for label, result in ((BUILTIN_RUN, reference), (USER_RUN, reference_user)):
         checks.append([label, result.status, int(result.steps_done), int(result.iterations.sum()), None, None, None,
                        [float(e) for e in invariant_errors(problem, problem.y0, result.y_final)]])
+    for label, ref in ((PER_PROBLEM_BUILTIN_RUN, reference), (PER_PROBLEM_USER_RUN, reference_user)):
+        result = last[label][1]   # against the shared kernel's run of the same problem
+        checks.append([label, result.status, int(result.steps_done), int(result.iterations.sum()),
+                       int(np.count_nonzero(result.iterations != ref.iterations)),
+                       float(np.max(np.abs(result.y_final - ref.y_final))), float(np.max(np.abs(result.alpha - ref.alpha))),
+                       [float(e) for e in invariant_errors(problem, problem.y0, result.y_final)]])
     spec_iterations = last[BASE][1][1]
     return {
         "ns": ns, "iterations": iterations, "checks": checks,
-        "whole_call_ms": {label: [t * 1e3 for t in times[label]] for label in (BUILTIN_RUN, USER_RUN, BASE)},
-        "one_step_ms": {label: statistics.median(times[label + ", 1 step"]) * 1e3 for label in (BUILTIN_RUN, USER_RUN)},
+        "whole_call_ms": {label: [t * 1e3 for t in times[label]] for label in (*ELIMFAST_RUNS, BASE)},
+        "one_step_ms": {label: statistics.median(times[label + ", 1 step"]) * 1e3 for label in ELIMFAST_RUNS},
         "user_vs_builtin": [int(np.count_nonzero(reference_user.iterations != reference.iterations)),
                             float(np.max(np.abs(reference_user.y_final - reference.y_final)))],
         "iterations_per_step": [float(spec_iterations.mean()), int(spec_iterations.max())],
@@ -1101,13 +1117,15 @@ def report(runs):
 
     lines += ["## elimfast against the specialised kernel", "",
               f"elimfast: `elimfast.integrate(problem, ehbvm(12, 3), {H_STEP}, t_end={T_END:g}, conserve={CONSERVE}, "
-              f"solver=\"fixed_point\", predictor=False, store_every={STORE_EVERY})`, timed around the call. "
+              f"solver=SolverSettings(method=\"fixed_point\", predictor=False, kernel=...), "
+              f"store_every={STORE_EVERY})`, timed around the call; kernel 'shared' (the default) or 'per_problem' "
+              "(docs/solver.md#per-problem-kernel). "
               "'kernel': less the same call for 1 step in the same round (the fixed cost of a call, "
               f"{first['one_step_ms'][BUILTIN_RUN]:.2f} ms built-in and {first['one_step_ms'][USER_RUN]:.2f} ms "
               "from expressions, medians of the first process) and that step's iterations.", "",
               "| run | whole call, median (min-max), first process | iterations | ns/iteration, whole call | "
               "ns/iteration, kernel | ratio | ratio over processes |", "|---|---|---|---|---|---|---|"]
-    for label in (BUILTIN_RUN, USER_RUN, BASE):
+    for label in (*ELIMFAST_RUNS, BASE):
         ms = first["whole_call_ms"][label]
         whole = statistics.median(statistics.median(run["ns"][label + " (whole call)" if label != BASE else label])
                                   for run in runs)
@@ -1140,7 +1158,7 @@ def report(runs):
               "| variant | what changes | ns/iteration | ratio | ratio over processes |", "|---|---|---|---|---|"]
     for label, what, _ in VARIANTS + USER_VARIANTS:
         lines.append(f"| {label} | {what} | {cells(label)} |")
-    for label in (BUILTIN_RUN, USER_RUN):
+    for label in ELIMFAST_RUNS:
         lines.append(f"| {label} (kernel, from the first table) | time_loop, try_step, _attempt, solve | "
                      f"{cells(label)} |")
     return "\n".join(lines)
