@@ -26,6 +26,7 @@ DEFAULT_EPSILON = 0.05
 MAX_RTOL = 1e-2
 MIN_RTOL = 1e-16
 EVENT_DIRECTIONS = (-1, 0, 1)
+EVENT_CHECK_SAMPLES = 64   # samples of each chunk at which the events are checked to be finite
 # The cheap error estimate is trusted up to this s (docs/adaptive.md, "When the estimate is
 # checked by step doubling"): above it, HBVM and LIM at loose rtol took steps where its
 # leading term no longer dominates (Kepler e = 0.9, 10 periods, rtol 1e-6: HBVM(12,6) ended
@@ -458,6 +459,7 @@ class AdaptiveIntegration:
         self.t0, self.t_end = float(t0), float(t_end)
         self.events = events or EventSpec((), (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
                                           no_invariants)
+        self.events_not_finite: dict[str, float] = {}   # check_events_finite
         self.store_every = store_every
         n = 2 * problem.degrees_of_freedom
         self.y = np.array(y0, dtype=np.float64)
@@ -561,7 +563,7 @@ class AdaptiveIntegration:
             status="complete" if self.status == codes.STATUS_OK else STATUS_NAMES[self.status],
             solver=self.solver, step_t=np.concatenate([c.step_t for c in chunks]),
             step_h=np.concatenate([c.step_h for c in chunks]), step_control=self.control, stats=self.stats(),
-            events=found, y0=self.y0.copy(), t0=self.t0)
+            events=found, y0=self.y0.copy(), t0=self.t0, events_not_finite=dict(self.events_not_finite))
 
     def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message
@@ -672,9 +674,25 @@ class AdaptiveIntegration:
         self.status = int(status)
         self.finished_flag = bool(finished)
         self.event_counts += np.bincount(event_out[:found], minlength=self.event_counts.size)
+        if n_events and samples:
+            self.check_events_finite(t_out[:samples], y_out[:samples])
         return AdaptiveChunk(t_out[:samples], y_out[:samples], inv_out[:samples], step_t[:done], step_h[:done],
                              mult_out[:done], iter_out[:done], substeps_out[:done], event_out[:found],
                              event_t[:found], event_y[:found], first, int(status))
+
+    def check_events_finite(self, t: np.ndarray, y: np.ndarray) -> None:
+        """Record in events_not_finite (name -> first time) the events that are NaN or infinite at
+        some of these samples (at most EVENT_CHECK_SAMPLES of them, evenly spread): no crossing can
+        be found where an event is not finite, and the kernel says nothing of it (a user trial:
+        sqrt(q1 + 0.5) on Kepler e = 0.9, NaN on most of the orbit, found 0 events, status
+        complete). Only an event NaN at t0 is refused (events_for)."""
+        rows = np.unique(np.linspace(0, t.size - 1, min(t.size, EVENT_CHECK_SAMPLES)).round().astype(np.int64))
+        values = np.empty(self.events.directions.size)
+        for row in rows:
+            self.events.function(np.ascontiguousarray(y[row]), self.problem.params, values)
+            for name, value in zip(self.events.names, values):
+                if not math.isfinite(value) and name not in self.events_not_finite:
+                    self.events_not_finite[name] = float(t[row])
 
     @property
     def _kernel_t_eval(self) -> np.ndarray:

@@ -297,6 +297,9 @@ class Result:
     events: dict = field(default_factory=dict)
     y0: np.ndarray | None = None
     t0: float | None = None
+    # name -> the first sample time where the event was NaN or infinite (no crossing can be
+    # found there; AdaptiveIntegration.check_events_finite)
+    events_not_finite: dict = field(default_factory=dict)
 
     def _initial_state(self) -> np.ndarray | None:
         """y0, else the first sample (a Result built without y0), else None."""

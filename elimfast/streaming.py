@@ -876,6 +876,11 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
         drive_options.setdefault("problem_source", _python_file(config_text))
         outcome = drive(integration, writer, progress=progress, stop=stop, wall_offset=wall_offset,
                         kernel_offset=kernel_offset, label=label, resume_command=resume_command, **drive_options)
+    not_finite = getattr(integration, "events_not_finite", None)
+    if not_finite:
+        listed = ", ".join(f"{name!r} (first at t = {t:.6g})" for name, t in not_finite.items())
+        note += (("; " if note else "") + f"event{'s' if len(not_finite) > 1 else ''} {listed} NaN or infinite at "
+                 "samples of this run: no crossing is found where an event is not finite; check the expression")
     outcome.note = note
     outcome.session_open_s = open_s
     return outcome

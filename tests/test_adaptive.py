@@ -820,3 +820,18 @@ def test_any_problem_takes_a_time_scale_in_python_as_in_a_config():
     expressed = elimfast.integrate(kepler(0.6).with_time_scale("(q1**2 + q2**2)**0.75"), hbvm(8, 4), t_end=5.0,
                                    step_control="time_scale", epsilon=0.1)
     np.testing.assert_allclose(expressed.step_h, built_in.step_h, rtol=1e-12)
+
+
+def test_an_event_that_turns_nan_along_the_orbit_is_named():
+    """A user trial: an event sqrt(q1 + 0.5) on Kepler e = 0.9 (NaN wherever q1 < -0.5, most of
+    the orbit) found no crossing and the run said nothing. Result.events_not_finite names it with
+    the first sample where it was seen (of those checked); a finite event is not named."""
+    result = elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=4 * PERIOD, rtol=1e-12,
+                                events={"nan": "sqrt(q1 + 0.5)", "q2": "q2"})
+    assert result.status == "complete" and set(result.events_not_finite) == {"nan"}
+    first = result.events_not_finite["nan"]
+    index = int(np.searchsorted(result.t, first))
+    assert result.t[index] == first and result.y[index, 0] < -0.5 and first < PERIOD   # seen in the first orbit
+    assert len(result.events["q2"].t) >= 7   # q2 = 0 at every n pi (8 pi, the end, a draw of rounding)
+    clean = elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=PERIOD, rtol=1e-12, events={"q2": "q2"})
+    assert clean.events_not_finite == {}

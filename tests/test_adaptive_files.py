@@ -548,3 +548,14 @@ os._exit(0)
     with h5py.File(path, "r") as f:
         assert f.attrs["steps_done"] == f["steps/iterations"].shape[0] == saved_steps
         assert sum(f["events"][name]["t"].shape[0] for name in f["events"]) == saved_events
+
+
+def test_run_names_an_event_that_turns_nan(tmp_path):
+    """The end-of-run line names an event that was NaN at samples of the run (a user trial's
+    sqrt(q1 + 0.5) on Kepler e = 0.9 found nothing, and nothing was said)."""
+    config = {**CONFIG, "integration": {"rtol": 1e-12, "t_end": "4*pi"},
+              "events": {"nan": {"expression": "sqrt(q1 + 0.5)"}}}
+    path = write_config(tmp_path, config)
+    ran = CliRunner().invoke(cli, ["run", str(path), "-o", str(tmp_path / "nan.h5")])
+    assert ran.exit_code == 0, ran.output
+    assert "event 'nan' (first at t = " in ran.stderr and "NaN or infinite at samples of this run" in ran.stderr
