@@ -641,6 +641,12 @@ class _Builder:
         except ParameterError as err:
             raise self.parameter_error(err) from None
         events = self.events(problem, config.events)
+        if step_control is not None or t_eval is not None or events:
+            from .per_problem import refuse
+            try:
+                refuse(solver, "adaptive steps, output times and events")
+            except ParameterError as err:   # named at solver.kernel, with its line
+                raise self.parameter_error(err, ("solver",)) from None
         solver = solver.resolved_for(method, len(conserve), 2 * problem.degrees_of_freedom)
         integration_record = {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps}
         if step_control is not None:

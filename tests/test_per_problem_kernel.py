@@ -135,3 +135,15 @@ def test_the_setting_is_validated():
     with pytest.raises(ParameterError, match="must be 'shared'"):
         SolverSettings(kernel="fast")
     assert SolverSettings().as_dict()["kernel"] == "shared"
+
+
+def test_a_config_asking_for_it_with_adaptive_steps_is_refused_at_the_key():
+    from elimfast.config import ConfigError, load_run_from_dict
+    import yaml
+    data = yaml.safe_load(CONFIG.read_text())
+    data["integration"] = {"rtol": 1e-12, "t_end": 10}
+    data["solver"] = {"kernel": "per_problem"}
+    with pytest.raises(ConfigError) as info:
+        load_run_from_dict(data, source="run.yaml")
+    assert str(info.value).startswith("run.yaml: solver.kernel: per_problem compiles the kernel of fixed steps"), \
+        str(info.value)
