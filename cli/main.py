@@ -208,7 +208,9 @@ def announce_compilation():
                 return
             self.said.add(kind)
             if kind == "per_problem":
-                self.said.add("kernels")   # it compiles elimfast's kernel code again, for the problem
+                # it compiles elimfast's kernel code again for the problem, and the problem's functions
+                # once more for their calls there: one line says it all
+                self.said.update(("kernels", "user"))
                 click.echo("compiling the kernel for this problem (solver.kernel: per_problem; about 2 minutes, "
                            "once: later runs of this problem load it from the cache) ...", err=True)
             elif kind == "kernels":

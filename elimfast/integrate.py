@@ -994,6 +994,13 @@ class Integration:
                 m.predictor_nodes, m.predictor_basis, m.newton_values, m.newton_vectors, m.newton_inverse,
                 m.newton_weights, m.Is_low, m.Is_hat_low, self.conserve_idx)
 
+    def prepare_kernel(self) -> None:
+        """Load the per-problem kernel (solver.kernel: per_problem), compiling it the first time for
+        this problem (about 90 s); the first advance does it otherwise. The shared kernel is loaded."""
+        if self._time_loop is None:
+            from .per_problem import time_loop_for
+            self._time_loop = time_loop_for(self.problem)
+
     def advance(self, max_steps: int) -> Chunk:
         """Run up to max_steps more steps in one kernel call."""
         p = self.problem
@@ -1008,9 +1015,7 @@ class Integration:
         substeps_out = np.zeros(n_run, dtype=np.int64)
         if n_run <= 0 or self.status != codes.STATUS_OK:
             return Chunk(t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self.steps_done, self.status)
-        if self._time_loop is None:
-            from .per_problem import time_loop_for
-            self._time_loop = time_loop_for(p)
+        self.prepare_kernel()
         with remembered_addresses():
             status = self._time_loop(
                 *self.kernel_settings(),

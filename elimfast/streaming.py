@@ -372,6 +372,9 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     ``source_file``, else its name).
     """
     progress = progress or NoProgress()
+    prepare = getattr(integration, "prepare_kernel", None)
+    if prepare is not None:
+        prepare()   # a per-problem kernel is compiled (or loaded) here, outside the run's wall time and ETA
     started = time.perf_counter()
     kernel_s = write_s = 0.0
     chunks = 0
