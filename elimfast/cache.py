@@ -149,6 +149,37 @@ def content_hash(*parts: str) -> str:
     return digest.hexdigest()
 
 
+def write_if_changed(path: Path, text: str) -> None:
+    """Write a generated or copied module into the cache unless it already holds this text
+    (its Numba cache is keyed by the file's time stamp: rewriting the same text would recompile)."""
+    try:
+        current = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        current = None
+    if current != text:
+        write_atomic(path, text)
+
+
+def import_file(path: Path, module_name: str, prepare=None):
+    """Import the module file ``path`` as ``module_name``: in sys.modules while its code runs
+    (Numba's cache finds its functions by module) and after; removed again if the code raises,
+    which the caller then reports. ``prepare(module)`` runs first (a user's file sees its own
+    location as __file__)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(module_name, path)
+    module = importlib.util.module_from_spec(spec)
+    if prepare is not None:
+        prepare(module)
+    sys.modules[module_name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(module_name, None)
+        raise
+    return module
+
+
 def write_atomic(path: Path, text: str | bytes, *, sync: bool = True) -> None:
     """Write text (or bytes) to path so that readers see either nothing or the whole file;
     ``sync``: on disk before it is renamed into place (also after a crash of the machine)."""

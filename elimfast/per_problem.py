@@ -19,7 +19,6 @@ function may call another module's code), so an edited problem never loads old c
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import inspect
 import sys
 import threading
@@ -125,23 +124,10 @@ def time_loop_for(problem):
     with _LOCK:
         module = _MODULES.get(str(path))
         if module is None:
-            try:
-                current = path.read_text(encoding="utf-8")
-            except (OSError, UnicodeDecodeError):
-                current = None
-            if current != text:
-                cache.write_atomic(path, text)
-            module_name = f"elimfast_kernel_{digest}"
-            spec = importlib.util.spec_from_file_location(module_name, path)
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[module_name] = module
-            try:
-                with warnings.catch_warnings():   # Numba's note on first-class functions, as for the shared kernels
-                    warnings.simplefilter("ignore", NumbaExperimentalFeatureWarning)
-                    spec.loader.exec_module(module)   # loads the kernel, or compiles it
-            except BaseException:
-                sys.modules.pop(module_name, None)
-                raise
+            cache.write_if_changed(path, text)
+            with warnings.catch_warnings():   # Numba's note on first-class functions, as for the shared kernels
+                warnings.simplefilter("ignore", NumbaExperimentalFeatureWarning)
+                module = cache.import_file(path, f"elimfast_kernel_{digest}")   # loads the kernel, or compiles it
             _MODULES[str(path)] = module
             cache.kernel_folder_used(in_package=False)
     entry = module.time_loop

@@ -47,11 +47,9 @@ from __future__ import annotations
 
 import ast
 import dataclasses
-import importlib.util
 import json
 import math
 import re
-import sys
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -263,14 +261,9 @@ def _load_by_key(key: str):
 def _import(path: Path):
     if str(path) in _MODULES:
         return _MODULES[str(path)]
-    module_name = f"elimfast_generated_{path.stem}"
-    spec = importlib.util.spec_from_file_location(module_name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module
     try:
-        spec.loader.exec_module(module)
+        module = cache.import_file(path, f"elimfast_generated_{path.stem}")
     except Exception as err:
-        sys.modules.pop(module_name, None)
         from numba.core.errors import NumbaError
         if isinstance(err, NumbaError):
             detail = " ".join(str(err).split())[:300]

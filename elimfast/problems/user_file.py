@@ -55,9 +55,7 @@ Example: ``configs/kepler_problem.py``.
 """
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -266,23 +264,17 @@ def _load_module(path: Path, text: str):
     copy = cache.problems_dir() / f"u_{digest}.py"
     if str(copy) in _MODULES and copy.exists():
         return _MODULES[str(copy)]
-    try:
-        current = copy.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
-        current = None
-    if current != text:
-        cache.write_atomic(copy, text)
+    cache.write_if_changed(copy, text)
     module_name = f"elimfast_user_{digest[:32]}"
-    spec = importlib.util.spec_from_file_location(module_name, copy)
-    module = importlib.util.module_from_spec(spec)
-    module.__file__ = str(path.resolve())  # the user's code sees its own location
-    sys.modules[module_name] = module
+
+    def own_location(module):   # the user's code sees its own location
+        module.__file__ = str(path.resolve())
+
     try:
-        spec.loader.exec_module(module)
+        module = cache.import_file(copy, module_name, prepare=own_location)
     except (Exception, SystemExit) as err:  # the user's file: report whatever it raised, in one line
         # SystemExit too: a sys.exit() in the file ended elimfast silently with its code (0 or 3, no
         # message, no file); KeyboardInterrupt is the user's Ctrl-C and stays one
-        sys.modules.pop(module_name, None)
         where = ""
         tb = err.__traceback__
         while tb is not None:
