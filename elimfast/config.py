@@ -624,7 +624,16 @@ class _Builder:
                 t0 = integration.t0
                 t_end = integration.t_end if integration.t_end is not None else t0 + n_steps * h
             every = resolve_store_every(config.output.every)
-            method.require_imposable(len(config.conserve))
+            try:
+                method.require_imposable(len(config.conserve))
+            except ParameterError as err:
+                error = self.parameter_error(err)
+                conserve_set = self.override_of(("conserve",))
+                if conserve_set is None:
+                    raise error from None
+                # a user trial's --set conserve=[...] was blamed on the config's method.s line alone
+                raise ConfigError(f"{error} (with --set {_clip(conserve_set)})", key=error.key,
+                                  line=error.line) from None
             t_eval = self.output_times(config.output.times, t0, t_end, every)
         except ParameterError as err:
             raise self.parameter_error(err) from None

@@ -463,6 +463,11 @@ def test_an_override_error_names_the_set_option_not_a_line(tmp_path):
                                       "output.times.step=1"])
     assert str(info.value).endswith("(with --set output.times.start=0, --set output.times.stop=2000, "
                                     "--set output.times.step=1)")
+    # s too small for a conserve given by --set: the file's method.s line, and the option that caused it
+    with pytest.raises(ConfigError) as info:
+        load_run(CONFIGS / "kepler.yaml", overrides=["conserve=[angular_momentum,lrl_x,lrl_y]"])
+    assert "method.s: must be >= 4 to impose 3 invariant(s)" in str(info.value)
+    assert str(info.value).endswith("(with --set conserve=[angular_momentum,lrl_x,lrl_y])"), str(info.value)
     # An override elsewhere leaves the file's lines in place
     with pytest.raises(ConfigError) as info:
         load_run(write(tmp_path, LINED.replace("  h: 0.1", "  h: [0.1]")), overrides=["method.k=8"])
