@@ -357,6 +357,10 @@ def parse_yaml_with_lines(text: str, source: str = "<text>"):
         mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(err, "problem", None) or getattr(err, "context", None) or str(err)
+        if str(source).endswith(".py"):   # a user trial gave a problem's Python file where a config goes
+            raise ConfigError(f"{source}: a Python file, not a YAML config; a problem written in Python is run "
+                              f"from a config that names it: problem: {{python: {Path(source).name}}} "
+                              "(configs/kepler_python.yaml)") from None
         raise ConfigError(f"{source}: {where}invalid YAML ({problem}); fix the syntax there") from None
     except (RecursionError, MemoryError):
         raise ConfigError(f"{source}: the YAML is nested too deeply; simplify the file") from None

@@ -45,6 +45,9 @@ def make_case(name, tmp: Path):
         "missing file": (["run", tmp / "nope.yaml", "-o", tmp / "o.h5"], "no such file"),
         "bad yaml": (["run", write(tmp, "bad.yaml", "problem: {builtin: kepler\nmethod: [\n"), "-o", tmp / "o.h5"],
                      "invalid YAML"),
+        "python file as config": (["check", write(tmp, "prob.py", "import math\n\ndef H(y, params):\n    return 0.0\n")],
+                                  "a Python file, not a YAML config; a problem written in Python is run from a "
+                                  "config that names it: problem: {python: prob.py}"),
         "unknown key": (["run", write(tmp, "key.yaml", GOOD + "solver: {tolerance: 1e-15}\n"), "-o", tmp / "o.h5"],
                         "unknown key"),
         "unknown key by --set": (["run", write(tmp, "g.yaml", GOOD), "-o", tmp / "o.h5", "--set", "method.kk=3"],
