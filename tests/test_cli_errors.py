@@ -118,7 +118,7 @@ CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad
          "empty output path", "duplicate section", "duplicate key in a flow mapping", "misspelt section",
          "misspelt event key", "run a sweep file", "check a sweep file", "sweep a run config",
          "output onto the config", "output.path onto the config", "output onto the sweep file",
-         "sweep --overwrite without -o"]
+         "sweep --overwrite without -o", "tableau nan eta", "python file as config"]
 
 
 def assert_one_line_error(stderr: str, fragment: str):
