@@ -151,7 +151,7 @@ class SolverSettings:
     invariant under rescaling the components, docs/methods.md#lim);
     kernel: 'shared' (the default: one compiled kernel for every problem) or 'per_problem'
     (fixed steps only: the kernel compiled once more for the problem's functions and cached,
-    about 100 s the first time; the same steps bit for bit, each iteration about 14% cheaper:
+    about 90 s the first time; the same steps bit for bit, each iteration about 10% cheaper:
     elimfast/per_problem.py, docs/solver.md#per-problem-kernel).
     """
 
@@ -198,7 +198,7 @@ class SolverSettings:
                                                f"(docs/methods.md#lim), got {self.lim_metric!r}")
         if self.kernel not in ("shared", "per_problem"):
             raise ParameterError("kernel", "must be 'shared' (the default: one compiled kernel for every problem) or "
-                                           "'per_problem' (compiled for the problem once, about 100 s; then faster: "
+                                           "'per_problem' (compiled for the problem once, about 90 s; then faster: "
                                            f"docs/solver.md#per-problem-kernel), got {self.kernel!r}")
         for name in ("predictor", "warm_start", "accelerate"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):

@@ -5,9 +5,9 @@ kernel serves every problem, and each of the ~2k function calls of an iteration 
 indirect call that LLVM can neither inline nor vectorise across. ``solver.kernel:
 per_problem`` (``SolverSettings.kernel``) compiles the fixed-step kernel once more for the
 problem, with its functions as compile-time constants (kernels/static.py), and caches it:
-the same arithmetic in the same order, so the same trajectory bit for bit, at about 0.86x the
-time per iteration (bench/per_problem_kernel.py), for about 100 s of compilation the first
-time a problem is run this way. Worth it for runs of more than a quarter of an hour.
+the same arithmetic in the same order, so the same trajectory bit for bit, at 0.88-0.93x the
+time per iteration on Kepler (bench/per_problem_kernel.py), for about 90 s of compilation the
+first time a problem is run this way. Worth it for runs of more than a quarter of an hour.
 
 The kernel is a generated module in elimfast's cache (``k_<digest>.py`` beside the generated
 problem modules), which imports the problem's functions by module and name and declares
@@ -117,7 +117,7 @@ def kernel_source(problem) -> tuple[str, str]:
 def time_loop_for(problem):
     """The per-problem kernel of ``problem``: a function with stepper.time_loop's arguments
     (the five function arguments are ignored: the kernel has its own). Importing the module
-    loads the kernel from Numba's cache, or compiles it (about 100 s)."""
+    loads the kernel from Numba's cache, or compiles it (about 90 s)."""
     from numba.core.errors import NumbaExperimentalFeatureWarning
     digest, text = kernel_source(problem)
     path = cache.problems_dir() / f"k_{digest}.py"
