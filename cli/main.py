@@ -211,7 +211,7 @@ def announce_compilation():
                 # it compiles elimfast's kernel code again for the problem, and the problem's functions
                 # once more for their calls there: one line says it all
                 self.said.update(("kernels", "user"))
-                click.echo("compiling the kernel for this problem (solver.kernel: per_problem; about 2 minutes, "
+                click.echo("compiling the kernel for this problem (solver.kernel: per_problem; about 90 s, "
                            "once: later runs of this problem load it from the cache) ...", err=True)
             elif kind == "kernels":
                 click.echo("compiling Numba kernels (once: later runs load them from the cache; "
@@ -831,8 +831,9 @@ def tableau(name, k, s, r, eta):
 
     Every number is printed with Python's repr, so reading it back gives the same
     double: the one the kernels use (a product of the method's matrices, which can be a
-    few units in the last place from the exact value, e.g. GAUSS(2)'s 1/4). Rows: c_i | a_i1 ... a_ik, then a rule and the weights b_j. LIM and GHBVM
-    have no fixed Runge-Kutta form.
+    few units in the last place from the exact value, e.g. GAUSS(2)'s 1/4). Rows: c_i |
+    a_i1 ... a_ik, then a rule and the weights b_j. LIM and GHBVM have no fixed
+    Runge-Kutta form.
 
     \b
     Examples:
