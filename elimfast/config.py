@@ -654,11 +654,13 @@ class _Builder:
         except ParameterError as err:
             raise self.parameter_error(err) from None
         events = self.events(problem, config.events)
-        if step_control is not None or t_eval is not None or events:
-            from .per_problem import refuse
-            try:
-                refuse(solver, "adaptive steps, output times and events")
-            except ParameterError as err:   # named at solver.kernel, with its line
+        if solver.kernel == "per_problem":
+            from .per_problem import kernel_source, refuse
+            try:   # what the run would refuse, named at solver.kernel with its line
+                if step_control is not None or t_eval is not None or events:
+                    refuse(solver, "adaptive steps, output times and events")
+                kernel_source(problem)   # the problem's functions can be imported by the kernel's module
+            except ParameterError as err:
                 raise self.parameter_error(err, ("solver",)) from None
         solver = solver.resolved_for(method, len(conserve), 2 * problem.degrees_of_freedom)
         integration_record = {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps}

@@ -30,7 +30,9 @@ from .errors import ParameterError
 
 KERNEL_CHOICES = ("shared", "per_problem")
 FUNCTIONS = ("H", "grad_H", "hess_H", "invariants", "grad_invariants")   # time_loop's first five arguments
-GENERATOR_VERSION = "1"
+SIGNATURES = {"H": "H_SIGNATURE", "grad_H": "GRAD_H_SIGNATURE", "hess_H": "HESS_H_SIGNATURE",   # kernels/signatures.py
+              "invariants": "INVARIANTS_SIGNATURE", "grad_invariants": "GRAD_INVARIANTS_SIGNATURE"}
+GENERATOR_VERSION = "2"
 
 _MODULES: dict[str, object] = {}   # path -> imported kernel module, in this process
 _LOCK = threading.Lock()
@@ -42,8 +44,14 @@ import importlib
 
 from numba import njit
 
-from elimfast.kernels import stepper
+from elimfast.kernels import signatures, stepper
 from elimfast.kernels.static import StaticFunction
+
+
+def _compiled(signature, function):
+    """A python: file's function compiled as elimfast compiled it for the problem (user_file._compile)."""
+    return njit(signature, cache=True, error_model="numpy")(getattr(function, "py_func", function))
+
 
 # the problem's functions as constants of the kernel (kernels/static.py)
 {assignments}
@@ -66,18 +74,23 @@ def refuse(solver, runs: str) -> None:
                                        f"events; {runs} run on other kernels: leave solver.kernel out")
 
 
-def _function_source(problem, name: str) -> tuple[str, str]:
-    """(module, attribute) through which the problem's function ``name`` can be imported again."""
+def _function_source(problem, name: str) -> tuple[str, str, bool]:
+    """(module, attribute, wrapped) through which the problem's function ``name`` can be made again:
+    the module's attribute itself, or (wrapped) the compiled function that elimfast made of it
+    with the signature of ``name`` (a python: file's functions, plain or @njit: user_file._compile)."""
     function = getattr(problem, name)
     python = getattr(function, "py_func", None)
     module_name = getattr(python, "__module__", None)
     attribute = getattr(python, "__qualname__", "")
     module = sys.modules.get(module_name or "")
-    if python is None or module is None or "." in attribute or getattr(module, attribute, None) is not function:
-        raise ParameterError("kernel", f"per_problem needs the problem's functions defined at the top of a module; "
-                                       f"{problem.name}'s {name} is not ({function!r}): leave solver.kernel out "
-                                       f"(the shared kernel runs every problem)")
-    return module_name, attribute
+    found = getattr(module, attribute, None) if module is not None and "." not in attribute else None
+    if python is not None and found is function:
+        return module_name, attribute, False
+    if python is not None and found is not None and getattr(found, "py_func", found) is python:
+        return module_name, attribute, True
+    raise ParameterError("kernel", f"per_problem needs the problem's functions defined at the top of a module; "
+                                   f"{problem.name}'s {name} is not ({function!r}): leave solver.kernel out "
+                                   f"(the shared kernel runs every problem)")
 
 
 def _module_texts(module_names) -> list[bytes]:
@@ -102,14 +115,21 @@ def kernel_source(problem) -> tuple[str, str]:
     arguments = list(inspect.signature(stepper.time_loop.py_func).parameters)[len(FUNCTIONS):]
     digest = hashlib.sha256(f"{GENERATOR_VERSION}\0{_cache.cache_key()}\0".encode())
     digest.update((Path(__file__).parent / "kernels" / "static.py").read_bytes())
-    for module_name, attribute in sources:
-        digest.update(f"{module_name}\0{attribute}\0".encode())
-    for text in _module_texts({module_name for module_name, _ in sources}):
+    for module_name, attribute, wrapped in sources:
+        digest.update(f"{module_name}\0{attribute}\0{wrapped}\0".encode())
+    for text in _module_texts({module_name for module_name, _, _ in sources}):
         digest.update(text)
+
+    def made(name, module, attribute, wrapped):
+        found = f"importlib.import_module({module!r}).{attribute}"
+        if wrapped:   # compiled as user_file._compile compiles it: the same code
+            found = f"_compiled(signatures.{SIGNATURES[name]}, {found})"
+        return f"{name} = StaticFunction({found})"
+
     text = TEMPLATE.format(
-        sources="".join(f"{name}: {module}.{attribute}\n" for name, (module, attribute) in zip(FUNCTIONS, sources)),
-        assignments="\n".join(f"{name} = StaticFunction(importlib.import_module({module!r}).{attribute})"
-                              for name, (module, attribute) in zip(FUNCTIONS, sources)),
+        sources="".join(f"{name}: {module}.{attribute}{' (compiled here)' if wrapped else ''}\n"
+                        for name, (module, attribute, wrapped) in zip(FUNCTIONS, sources)),
+        assignments="\n".join(made(name, *source) for name, source in zip(FUNCTIONS, sources)),
         skip=len(FUNCTIONS), functions=", ".join(FUNCTIONS), arguments=", ".join(arguments))
     return digest.hexdigest()[:32], text
 

@@ -31,11 +31,12 @@ def max_error(a, b):
 
 
 # --- the per-problem kernel, compiled beside the other tests ------------------------------------
-# tests/test_per_problem_kernel.py needs elimfast's fixed-step kernel compiled for one problem:
-# about 100 s on a cold cache (CI's), on one core. It is compiled in a process of its own from the
-# start of the session, on the second core (CI has two), while the other tests run; that module
-# waits for it (per_problem_kernel_compiled) and then loads the kernel from the cache.
-PER_PROBLEM_CONFIG = "configs/kepler_expressions.yaml"
+# tests/test_per_problem_kernel.py needs elimfast's fixed-step kernel compiled for two problems
+# (from expressions, from a Python file): about 90 s each on a cold cache (CI's), on one core.
+# They are compiled in a process of their own from the start of the session, on the second core
+# (CI has two), while the other tests run; that module waits for it (per_problem_kernel_compiled)
+# and then loads the kernels from the cache.
+PER_PROBLEM_CONFIGS = ("configs/kepler_expressions.yaml", "configs/kepler_python.yaml")
 _per_problem_compile = []
 
 
@@ -46,8 +47,9 @@ def pytest_collection_finish(session):
 
     if any(item.nodeid.startswith("tests/test_per_problem_kernel.py") for item in session.items):
         root = Path(__file__).resolve().parents[1]
-        code = ("from elimfast.config import load_run; from elimfast.per_problem import time_loop_for; "
-                f"time_loop_for(load_run({str(root / PER_PROBLEM_CONFIG)!r}).problem)")
+        code = ("from elimfast.config import load_run; from elimfast.per_problem import time_loop_for\n"
+                + "".join(f"time_loop_for(load_run({str(root / config)!r}).problem)\n"
+                          for config in PER_PROBLEM_CONFIGS))
         _per_problem_compile.append(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
                                                      stderr=subprocess.PIPE))
 
