@@ -1012,8 +1012,10 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
         fail(f"every run of the sweep failed to load its config, the first with: {shared}", EXIT_USAGE)
     if outcome.ensemble is not None:
         result = outcome.ensemble
+        # the title on stderr for csv, whose stdout a CSV reader takes whole (a user trial: pandas read
+        # the title as the header)
         click.echo(f"{result.method.name} on {result.problem.name}, {result.n_trajectories} trajectories "
-                   f"of {result.n_steps} steps, h = {result.h:g}")
+                   f"of {result.n_steps} steps, h = {result.h:g}", err=table_format == "csv")
     header, rows = outcome.table(table_format)
     click.echo(sweeps.format_table(header, rows, table_format), nl=False)
     for line in outcome.failures():

@@ -426,6 +426,24 @@ def test_bad_ensemble_sweeps_are_refused(tmp_path, ensemble, extra, match):
             run_ensemble_sweep(load_sweep(path))
 
 
+def test_an_ensemble_sweep_prints_csv_a_reader_takes_whole(tmp_path):
+    """A user trial: `--format csv` of an ensemble sweep printed its title line on stdout before
+    the header, and pandas read the title as the header. The title goes to stderr for csv."""
+    import csv
+    import io
+
+    from click.testing import CliRunner
+
+    from elimfast_cli.main import cli
+    path = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "2*pi/60", "t_end": "2*pi"}},
+                                  "ensemble": {"n": 3, "seed": 3, "spread": 0.02}})
+    result = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "-q", "--format", "csv"])
+    assert result.exit_code == 0, result.output
+    rows = list(csv.reader(io.StringIO(result.stdout)))
+    assert rows[0][0] == "quantity" and len({len(row) for row in rows}) == 1, result.stdout
+    assert "3 trajectories" in result.stderr
+
+
 def test_ensemble_numbers_are_written_as_everywhere_in_configs(tmp_path):
     """A user trial: spread: 1e-2 (a string to YAML), pi/100, seed: 1e3 and states holding 1e-1
     or pi/4 were refused ('must be a number'), where every other number of a config takes them."""
