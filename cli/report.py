@@ -517,8 +517,11 @@ def sweep_summary(path, attrs: dict, runs: list[tuple[str, bool, str]]) -> str:
     row("runs", f"{count} stored" + (f", {failed} failed" if failed else ", none failed" if stored else ""))
     if attrs.get("interrupted") or (planned and len(stored) < planned):
         state = "interrupted (its writer was killed)" if attrs.get("interrupted") else "incomplete"
+        # other HDF5 tools (h5py, h5netcdf) refuse a killed writer's file until it is repaired (a user trial)
+        repair = (f"; other HDF5 tools open it after elimfast repair {shlex.quote(str(path))}"
+                  if attrs.get("interrupted") else "")
         row("status", f"{state}: complete it with elimfast sweep {shlex.quote(source)} -o "
-                      f"{shlex.quote(str(path))} --resume")
+                      f"{shlex.quote(str(path))} --resume{repair}")
     row("wall time", f"{_fmt_time(wall)} in all (the runs' own, summed)")
     lines.append("")
     header = ["run", "status", "steps", "iterations/step", "max relative invariant error", "wall time"]

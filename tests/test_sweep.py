@@ -841,6 +841,8 @@ def test_a_killed_sweep_file_is_read_as_it_is_and_called_interrupted_with_the_co
     result = CliRunner().invoke(cli, ["inspect", str(out)])
     assert result.exit_code == 0, result.output
     assert f"status       interrupted (its writer was killed): complete it with {command}" in result.stdout
+    # other HDF5 tools refuse the killed writer's file (a user trial found h5py did): inspect names repair
+    assert f"; other HDF5 tools open it after elimfast repair {out}" in result.stdout
     assert "| 2*pi/100 " in result.stdout
     assert CliRunner().invoke(cli, ["inspect", f"{out}:/runs/2*pi/100"]).exit_code == 0
     with elimfast.open_datatree(out) as tree:
