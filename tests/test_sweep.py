@@ -1077,3 +1077,16 @@ def test_a_missing_base_file_is_named_at_the_sweep_files_key(tmp_path):
         load_sweep(path)
     assert str(info.value).startswith(f"{path}: base: {tmp_path / 'nosuch.yaml'}: no such file; give the path of a "
                                       "run config, relative to the sweep file's folder"), str(info.value)
+
+
+def test_a_run_whose_config_is_refused_makes_the_sweep_a_usage_error(tmp_path):
+    """A user trial: a grid value h = -0.05 was refused for its run, and the sweep exited 1, the code
+    of a failed integration. The other runs are in the table; the exit code is 2."""
+    from click.testing import CliRunner
+
+    from elimfast_cli.main import cli
+    path = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": 0.1, "t_end": 2}},
+                                  "grid": [{"key": "integration.h", "values": [0.1, -0.05]}]})
+    result = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "-q"])
+    assert result.exit_code == 2, result.output
+    assert "integration.h: must be > 0" in result.stdout and "| complete" in result.stdout
