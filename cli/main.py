@@ -1108,8 +1108,9 @@ def cache_info():
     data = info()
     where, files = kernel_cache_files()
     size = sum(f.stat().st_size for f in files if f.exists())
-    click.echo(f"problem cache:  {data['path']}  ({data['entries']} generated problems, {_size(data['bytes'])}; "
-               f"set {ENV_VAR} to move it)")
+    kernels = f", {data['kernels']} per-problem kernels" if data.get("kernels") else ""
+    click.echo(f"problem cache:  {data['path']}  ({data['entries']} generated problems{kernels}, "
+               f"{_size(data['bytes'])}; set {ENV_VAR} to move it)")
     click.echo(f"kernel cache:   {where}  ({len(files)} Numba files, {_size(size)}; "
                "set NUMBA_CACHE_DIR to move it)")
     stale = [folder for root in kernel_roots() for folder in stale_kernel_folders(root)]

@@ -7,6 +7,7 @@ Layout (everything elimfast writes lives in these two folders; nothing else is t
     <cache>/problems/p_<sha256>.py        code generated from expressions (symbolic.py)
     <cache>/problems/f_<sha256>.py        events and time scales from expressions (symbolic.py)
     <cache>/problems/u_<sha256>.py        copies of ``python:`` problem files (user_file.py)
+    <cache>/problems/k_<digest>.py        per-problem kernels (solver.kernel: per_problem; per_problem.py)
     <cache>/keys/<sha256>                 input key -> generated file name (skips sympy when warm)
     <cache>/configs/<sha256>              a config file's validated sections (skips pydantic when
                                           the same config runs again; config.load_run)
@@ -218,9 +219,10 @@ def _our_files():
 
 
 def cache_info() -> dict:
-    """{'path': cache root, 'entries': generated problem modules, 'bytes': total size of our files}."""
+    """{'path': cache root, 'entries': generated problem modules, 'kernels': per-problem kernel
+    modules, 'bytes': total size of our files}."""
     root = cache_dir()
-    entries = 0
+    entries = kernels = 0
     size = 0
     problems = root / PROBLEMS_SUBDIR
     for path in _our_files():
@@ -228,9 +230,10 @@ def cache_info() -> dict:
             size += path.stat().st_size
         except OSError:
             continue
-        if path.parent == problems and path.suffix == ".py" and path.name[:2] in ("p_", "u_", "f_"):
-            entries += 1
-    return {"path": str(root), "entries": entries, "bytes": size}
+        if path.parent == problems and path.suffix == ".py":
+            entries += path.name[:2] in ("p_", "u_", "f_")
+            kernels += path.name[:2] == "k_"
+    return {"path": str(root), "entries": entries, "kernels": kernels, "bytes": size}
 
 
 def kernel_cache_files(only_problems: bool = False) -> tuple[Path, list[Path]]:

@@ -449,12 +449,14 @@ def test_cache_info_and_clear(tmp_path):
     problems_dir = tmp_path / "cache" / "problems"
     problems_dir.mkdir(parents=True)
     (problems_dir / "p_0123.py").write_text("# generated\n")
+    (problems_dir / "k_4567.py").write_text("# a per-problem kernel\n")   # counted apart (a user trial)
     info = invoke("cache", "info", env=env)
-    assert info.exit_code == 0 and str(tmp_path / "cache") in info.stdout and "1 generated problems" in info.stdout
+    assert info.exit_code == 0 and str(tmp_path / "cache") in info.stdout
+    assert "(1 generated problems, 1 per-problem kernels, " in info.stdout, info.stdout
     assert "kernel cache" in info.stdout
     cleared = invoke("cache", "clear", env=env)
-    assert cleared.exit_code == 0 and "removed 1 files" in cleared.stdout
-    assert not (problems_dir / "p_0123.py").exists()
+    assert cleared.exit_code == 0 and "removed 2 files" in cleared.stdout
+    assert not (problems_dir / "p_0123.py").exists() and not (problems_dir / "k_4567.py").exists()
 
 
 def test_a_real_process_runs_inspects_and_plots(tmp_path):

@@ -168,7 +168,7 @@ def test_a_corrupted_cache_file_is_regenerated(cache_root):
 
 def test_cache_info_and_clear_touch_only_our_files(cache_root):
     assert cache.cache_dir() == cache_root
-    assert cache.cache_info() == {"path": str(cache_root), "entries": 0, "bytes": 0}
+    assert cache.cache_info() == {"path": str(cache_root), "entries": 0, "kernels": 0, "bytes": 0}
     problem_from_expressions(**KEPLER)
     problem_from_file(CONFIGS / "kepler_problem.py")
     info = cache.cache_info()
