@@ -162,3 +162,4 @@ def test_a_config_asking_for_it_with_adaptive_steps_is_refused_at_the_key():
         load_run_from_dict(data, source="run.yaml")
     assert str(info.value).startswith("run.yaml: solver.kernel: per_problem compiles the kernel of fixed steps"), \
         str(info.value)
+    assert "adaptive steps (integration.rtol) run on other kernels" in str(info.value)   # what conflicts, named
