@@ -83,10 +83,16 @@ def _function_source(problem, name: str) -> tuple[str, str, bool]:
     module_name = getattr(python, "__module__", None)
     attribute = getattr(python, "__qualname__", "")
     module = sys.modules.get(module_name or "")
+    from .problems import symbolic, user_file
     found = getattr(module, attribute, None) if module is not None and "." not in attribute else None
     if python is not None and found is function:
         return module_name, attribute, False
-    if python is not None and found is not None and getattr(found, "py_func", found) is python:
+    # elimfast's modules in the cache are named by their content: one registered under the name later
+    # (the same file loaded again, from another cache folder) holds the same code
+    if python is not None and found is not None and module_name.startswith(symbolic.MODULE_PREFIX):
+        return module_name, attribute, False
+    if python is not None and found is not None and (module_name.startswith(user_file.MODULE_PREFIX)
+                                                     or getattr(found, "py_func", found) is python):
         return module_name, attribute, True
     raise ParameterError("kernel", f"per_problem needs the problem's functions defined at the top of a module; "
                                    f"{problem.name}'s {name} is not ({function!r}): leave solver.kernel out "

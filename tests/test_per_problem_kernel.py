@@ -163,3 +163,17 @@ def test_a_config_asking_for_it_with_adaptive_steps_is_refused_at_the_key():
     assert str(info.value).startswith("run.yaml: solver.kernel: per_problem compiles the kernel of fixed steps"), \
         str(info.value)
     assert "adaptive steps (integration.rtol) run on other kernels" in str(info.value)   # what conflicts, named
+
+
+def test_a_python_file_loaded_again_elsewhere_still_gives_its_kernel(tmp_path, monkeypatch):
+    """On a clean clone a python: problem was refused ('H is not at the top of a module') after an
+    earlier test had loaded the same file from another cache folder: its module name (the content's
+    hash) then named the later module object. Content-named modules hold the same code under the
+    name, so the kernel's module may import them by it."""
+    from elimfast.problems import problem_from_file
+    monkeypatch.setenv("ELIMFAST_CACHE_DIR", str(tmp_path / "first"))
+    first = problem_from_file(ROOT / "configs" / "kepler_problem.py")
+    monkeypatch.setenv("ELIMFAST_CACHE_DIR", str(tmp_path / "second"))
+    second = problem_from_file(ROOT / "configs" / "kepler_problem.py")
+    assert first.grad_H.py_func is not second.grad_H.py_func   # two loads of the same file
+    assert kernel_source(first)[0] == kernel_source(second)[0]

@@ -960,7 +960,9 @@ def test_a_sweep_whose_every_run_fails_to_load_is_one_error(tmp_path):
     some = write_sweep(tmp_path, {"base": BASE, "grid": [{"name": "h", "key": "integration.h",
                                                           "values": ["2*pi/40", -1]}]}, name="some.yaml")
     mixed = CliRunner().invoke(cli, ["sweep", str(some), "--workers", "1", "--quiet"])
-    assert mixed.exit_code == 1 and "complete" in mixed.stdout and "1 of 2 runs failed" in mixed.stderr
+    # a refused config is a usage error, even beside runs that completed (a later user trial: exit 1 read
+    # as a failed integration)
+    assert mixed.exit_code == 2 and "complete" in mixed.stdout and "1 of 2 runs failed" in mixed.stderr
 
 
 def adaptive_sweep(tmp_path):

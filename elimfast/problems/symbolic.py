@@ -63,6 +63,7 @@ from .expressions import (ExpressionError, ProblemDefinitionError, canonical, ch
 GENERATOR_VERSION = 4   # 2: hess_H; 3: zero entries by a fill; 4: a few zeros one by one. Part of the cache key
 #                         and of the generated text.
 EXPLICIT_ZEROS = 32     # zero entries of a matrix written one by one; more: a fill of the whole matrix first
+MODULE_PREFIX = "elimfast_generated_"   # + the file's name (its content's hash): the name a generated module has
 FUNCTIONS = ("H", "grad_H", "hess_H", "invariants", "grad_invariants")   # what a generated module defines
 # Bounds of the symbolic work (issue 9, point 6). Measured here: sympy differentiates about
 # 45,000 nodes/s and cse handles about 100,000 nodes/s, so MAX_DERIVATIVE_NODES keeps an
@@ -262,7 +263,7 @@ def _import(path: Path):
     if str(path) in _MODULES:
         return _MODULES[str(path)]
     try:
-        module = cache.import_file(path, f"elimfast_generated_{path.stem}")
+        module = cache.import_file(path, f"{MODULE_PREFIX}{path.stem}")
     except Exception as err:
         from numba.core.errors import NumbaError
         if isinstance(err, NumbaError):

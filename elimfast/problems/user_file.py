@@ -115,6 +115,8 @@ class UserProblemError(ProblemDefinitionError):
 _MODULES: dict[str, object] = {}
 _COMPILED: dict[tuple[str, str], object] = {}
 
+MODULE_PREFIX = "elimfast_user_"   # + its content's hash: the name a copied python: file has
+
 _SIGNATURES = {
     "H": (signatures.H_SIGNATURE, "H(y, params) -> float"),
     "grad_H": (signatures.GRAD_H_SIGNATURE, "grad_H(y, params, out)"),
@@ -265,7 +267,7 @@ def _load_module(path: Path, text: str):
     if str(copy) in _MODULES and copy.exists():
         return _MODULES[str(copy)]
     cache.write_if_changed(copy, text)
-    module_name = f"elimfast_user_{digest[:32]}"
+    module_name = f"{MODULE_PREFIX}{digest[:32]}"
 
     def own_location(module):   # the user's code sees its own location
         module.__file__ = str(path.resolve())
