@@ -202,8 +202,9 @@ def announce_compilation():
         def on_start(self, ev):
             dispatcher = (ev.data or {}).get("dispatcher") if isinstance(ev.data, dict) else None
             module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
+            from elimfast.per_problem import MODULE_PREFIX as PER_PROBLEM_PREFIX
             kind = ("kernels" if module == "elimfast" or module.startswith("elimfast.")
-                    else "per_problem" if module.startswith("elimfast_kernel_") else "user")
+                    else "per_problem" if module.startswith(PER_PROBLEM_PREFIX) else "user")
             if kind in self.said:
                 return
             self.said.add(kind)

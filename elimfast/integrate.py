@@ -37,6 +37,7 @@ SOLVERS = {"newton": codes.SOLVER_NEWTON, "fixed_point": codes.SOLVER_FIXED_POIN
 # steps are hard Newton wins at small n: Kepler e = 0.6, h = 0.1 (n = 4) 1.55x faster, the solar
 # system at h = 50 (n = 36) 1.15x, the pendulum 1.1x.
 SOLVER_CHOICES = ("auto", *SOLVERS)
+KERNEL_CHOICES = ("shared", "per_problem")   # SolverSettings.kernel (per_problem.py)
 DEFAULT_SOLVER = "auto"
 AUTO_NEWTON_MAX_DIMENSION = 48
 DEFAULT_TOL = 2.0 ** -52          # relative increment at round-off (machine epsilon): accept at once
@@ -196,7 +197,7 @@ class SolverSettings:
         if self.lim_metric not in ("euclidean", "scaled"):
             raise ParameterError("lim_metric", "must be 'euclidean' (the spec's, the default) or 'scaled' "
                                                f"(docs/methods.md#lim), got {self.lim_metric!r}")
-        if self.kernel not in ("shared", "per_problem"):
+        if self.kernel not in KERNEL_CHOICES:
             raise ParameterError("kernel", "must be 'shared' (the default: one compiled kernel for every problem) or "
                                            "'per_problem' (compiled for the problem once, about 90 s; then faster: "
                                            f"docs/solver.md#per-problem-kernel), got {self.kernel!r}")

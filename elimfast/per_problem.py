@@ -28,7 +28,7 @@ from pathlib import Path
 from . import cache
 from .errors import ParameterError
 
-KERNEL_CHOICES = ("shared", "per_problem")
+MODULE_PREFIX = "elimfast_kernel_"   # + the digest: the name a per-problem kernel's module has
 FUNCTIONS = ("H", "grad_H", "hess_H", "invariants", "grad_invariants")   # time_loop's first five arguments
 SIGNATURES = {"H": "H_SIGNATURE", "grad_H": "GRAD_H_SIGNATURE", "hess_H": "HESS_H_SIGNATURE",   # kernels/signatures.py
               "invariants": "INVARIANTS_SIGNATURE", "grad_invariants": "GRAD_INVARIANTS_SIGNATURE"}
@@ -153,7 +153,7 @@ def time_loop_for(problem):
             cache.write_if_changed(path, text)
             with warnings.catch_warnings():   # Numba's note on first-class functions, as for the shared kernels
                 warnings.simplefilter("ignore", NumbaExperimentalFeatureWarning)
-                module = cache.import_file(path, f"elimfast_kernel_{digest}")   # loads the kernel, or compiles it
+                module = cache.import_file(path, f"{MODULE_PREFIX}{digest}")   # loads the kernel, or compiles it
             _MODULES[str(path)] = module
             cache.kernel_folder_used(in_package=False)
     entry = module.time_loop
@@ -162,5 +162,4 @@ def time_loop_for(problem):
     def time_loop(*arguments):
         return entry(*arguments[skip:])
 
-    time_loop.entry = entry
     return time_loop
