@@ -375,7 +375,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
                          and solver.get("accelerate") else "")
                       + (f", lim_metric {solver['lim_metric']}" if solver.get("lim_metric", "euclidean") != "euclidean"
                          else "")
-                      + (", kernel per_problem" if solver.get("kernel") == "per_problem" else ""))
+                      + (", kernel per_problem" if solver.get("kernel") == "per_problem" else "")
+                      + (", project_energy true" if solver.get("project_energy") else ""))
     substeps = run_file.substep_stats()
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"

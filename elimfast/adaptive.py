@@ -478,14 +478,15 @@ class AdaptiveIntegration:
         if control is None:   # fixed steps (with output times or events)
             self.n_steps = int(n_steps)
             self.h = float(h)
-            self.controls = np.array([0.0, 0.0, 0.0, self.t0 + self.n_steps * self.h, np.inf])
+            self.controls = np.array([0.0, 0.0, 0.0, self.t0 + self.n_steps * self.h, np.inf, math.nan])
             self.options = np.array([kernel.CONTROL_FIXED, 0, store_every, self.n_steps], dtype=np.int64)
         else:
             self.n_steps = None
             self.h = control.first_step(problem, method, self.y, self.t_end - self.t0)
             self.controls = np.array([control.rtol or 0.0, control.atol or 0.0, control.epsilon or 0.0, self.t_end,
-                                      np.inf if control.h_max is None else control.h_max])
+                                      np.inf if control.h_max is None else control.h_max, math.nan])
             self.options = np.array([control.code, int(control.verify), store_every, 0], dtype=np.int64)
+        self.controls[kernel.CTL_H_TARGET] = solver.energy_target(problem, self.y0)
         self.last_h = np.array([self.h if self.h > 0 else 1.0])
         self.status = codes.STATUS_OK
         self.finished_flag = False
@@ -713,4 +714,6 @@ class AdaptiveIntegration:
             ordered[key] = value
             if key == "iterations":
                 ordered["grad_H_evaluations"], ordered["grad_L_evaluations"] = per_grad_H * value, per_grad_L * value
+                if self.solver.project_energy:   # one grad H per accepted step (stepper.project_energy)
+                    ordered["grad_H_evaluations"] += stats.get("steps", 0)
         return ordered

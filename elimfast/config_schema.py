@@ -140,6 +140,7 @@ class SolverSection(_Section):
     accelerate: StrictBool = True
     lim_metric: Literal["euclidean", "scaled"] = "euclidean"
     kernel: Literal["shared", "per_problem"] = "shared"
+    project_energy: StrictBool = False
 
 
 class OutputSection(_Section):

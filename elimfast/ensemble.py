@@ -22,7 +22,7 @@ from typing import Iterable, Iterator
 import numba
 import numpy as np
 
-from .errors import exact_time
+from .errors import ParameterError, exact_time
 from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
@@ -214,6 +214,9 @@ class EnsembleRun:
                                        predictor=predictor, max_halvings=max_halvings, check_y0=False)
         from .per_problem import refuse
         refuse(self.integration.solver, "ensembles")
+        if self.integration.solver.project_energy:
+            raise ParameterError("project_energy", "is not available for ensembles (their kernel has no energy "
+                                                   "projection, docs/methods.md#energy-projection): leave it out")
         self.problem, self.method, self.t0 = problem, method, float(t0)
         self.n_threads = _thread_count(n_threads)
 

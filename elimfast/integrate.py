@@ -153,7 +153,10 @@ class SolverSettings:
     kernel: 'shared' (the default: one compiled kernel for every problem) or 'per_problem'
     (fixed steps only: the kernel compiled once more for the problem's functions and cached,
     about 90 s the first time; the same steps bit for bit, each iteration about 10% cheaper:
-    elimfast/per_problem.py, docs/solver.md#per-problem-kernel).
+    elimfast/per_problem.py, docs/solver.md#per-problem-kernel);
+    project_energy: after every step, move the state along grad H back to H(y0)
+    (docs/methods.md#energy-projection): removes the random walk of H's round-off, whose phase
+    error grows like t^(3/2) and is the floor of long runs; one H and one grad H evaluation a step.
     """
 
     method: str = DEFAULT_SOLVER
@@ -166,6 +169,7 @@ class SolverSettings:
     accelerate: bool = True
     lim_metric: str = "euclidean"
     kernel: str = "shared"
+    project_energy: bool = False
 
     def __post_init__(self):
         if self.method not in SOLVER_CHOICES:
@@ -201,7 +205,7 @@ class SolverSettings:
             raise ParameterError("kernel", "must be 'shared' (the default: one compiled kernel for every problem) or "
                                            "'per_problem' (compiled for the problem once, about 90 s; then faster: "
                                            f"docs/solver.md#per-problem-kernel), got {self.kernel!r}")
-        for name in ("predictor", "warm_start", "accelerate"):
+        for name in ("predictor", "warm_start", "accelerate", "project_energy"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ParameterError(name, f"must be true or false, got {getattr(self, name)!r}")
             object.__setattr__(self, name, bool(getattr(self, name)))
@@ -227,7 +231,15 @@ class SolverSettings:
         """The settings as plain data (the resolved config's solver section)."""
         return {"method": self.method, "tol": self.tol, "max_iter": self.max_iter, "max_halvings": self.max_halvings,
                 "predictor": self.predictor, "warm_start": self.warm_start, "rhs": self.rhs,
-                "accelerate": self.accelerate, "lim_metric": self.lim_metric, "kernel": self.kernel}
+                "accelerate": self.accelerate, "lim_metric": self.lim_metric, "kernel": self.kernel,
+                # only when on: the config stored by every earlier run stays what it was
+                **({"project_energy": True} if self.project_energy else {})}
+
+    def energy_target(self, problem: Problem, y0) -> float:
+        """The H the energy projection keeps (H(y0) of the run, whose y0 is the state at t0 also
+        for a resumed run), or NaN when it is off: the kernels' H_target."""
+        return float(problem.H(np.ascontiguousarray(y0, dtype=np.float64), problem.params)) if self.project_energy \
+            else math.nan
 
     @property
     def code(self) -> int:
@@ -897,6 +909,7 @@ class Integration:
         self.multipliers = np.zeros(method.multiplier_count(len(self.conserve)))
         self.last_h = np.array([self.signed_h])
         self.newton_base = np.zeros(n + 3)   # where the Newton matrix was factorised (kernels/stepper.py)
+        self.H_target = self.solver.energy_target(problem, self.y0)
         self.steps_done = 0
         self.status = codes.STATUS_OK
         self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
@@ -1021,7 +1034,7 @@ class Integration:
             status = self._time_loop(
                 *self.kernel_settings(),
                 self.y, self.y_comp, self.clock, self.coef, self.coef_extra, self.multipliers, self.last_h,
-                self.newton_base, self.steps_done, n_run, self.n_steps, self.store_every,
+                self.newton_base, self.H_target, self.steps_done, n_run, self.n_steps, self.store_every,
                 t_out, y_out, inv_out, mult_out, iter_out, substeps_out, self._progress, self.diagnostics)
         done, samples = int(self._progress[0]), int(self._progress[1])
         first = self.steps_done

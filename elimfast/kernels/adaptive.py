@@ -38,8 +38,8 @@ from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
-                      _sample, extrapolate, kahan_add, newton_eigenvalues, record_multipliers, restore_newton_matrix,
-                      try_step)
+                      _sample, extrapolate, kahan_add, newton_eigenvalues, project_energy, record_multipliers,
+                      restore_newton_matrix, try_step)
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -51,8 +51,8 @@ CONTROL_TIME_SCALE = 1
 CONTROL_FIXED = 2
 
 # controls (float64): the run's real parameters.
-CTL_RTOL, CTL_ATOL, CTL_EPSILON, CTL_T_END, CTL_H_MAX = range(5)
-N_CONTROLS = 5
+CTL_RTOL, CTL_ATOL, CTL_EPSILON, CTL_T_END, CTL_H_MAX, CTL_H_TARGET = range(6)
+N_CONTROLS = 6
 # options (int64): the run's integer parameters.
 OPT_CONTROL, OPT_VERIFY, OPT_STORE_EVERY, OPT_N_TOTAL = range(4)
 N_OPTIONS = 4
@@ -332,6 +332,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     store_every = options[OPT_STORE_EVERY]
     rtol, atol, epsilon, t_end, h_max = (controls[CTL_RTOL], controls[CTL_ATOL], controls[CTL_EPSILON],
                                          controls[CTL_T_END], controls[CTL_H_MAX])
+    H_target = controls[CTL_H_TARGET]   # the energy projection's (NaN: none; stepper.project_energy)
     # Main steps: the error controller halves a failing step itself; the others split it.
     main_halvings = 0 if control == CONTROL_ERROR else max_halvings
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, main_halvings)
@@ -368,6 +369,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     g_old, g_new, g_side = np.empty(n_events), np.empty(n_events), np.empty(n_events)
     terminal_y, terminal_comp = np.empty(n), np.empty(n)   # the earliest terminal event of a step
     poly_state = np.empty(n)
+    projection_gradient = np.empty(n)
     side_diagnostics = np.empty(N_DIAGNOSTICS)
     order_exponent = 1.0 / (2.0 * s + 1.0)
 
@@ -542,6 +544,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             else:
                 control_state[CS_RHO] += epsilon * rate
         consecutive_failures = 0
+        project_energy(H, grad_H, params_view, y_view, y_comp_view, H_target, projection_gradient)
         if last and control != CONTROL_FIXED:
             clock[0] = t_end   # exactly, whatever the rounding of the sum of the steps
             clock[1] = 0.0

@@ -100,6 +100,31 @@ def add_product(value, compensation, h, x):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def project_energy(H, grad_H, params, y, y_comp, H_target, gradient):
+    """The energy projection of docs/methods.md#energy-projection (solver.project_energy): moves the
+    state (y + y_comp, its compensated sum) along grad H(y) so that H is H_target again,
+    y <- y - (H(y) - H_target) grad H / |grad H|^2, one Newton step (the error is at round-off,
+    so its square is far below it). H_target NaN: off (nothing is evaluated). Without it the
+    round-off of every step moves H by about eps |H|, a random walk whose phase error grows
+    like t^(3/2) (Brouwer's law) and sets the floor of long runs (docs/adaptive.md)."""
+    if H_target != H_target:
+        return
+    grad_H(y, params, gradient)
+    norm2 = 0.0
+    tilt = 0.0
+    for i in range(y.shape[0]):
+        norm2 += gradient[i] * gradient[i]
+        tilt += gradient[i] * y_comp[i]   # H(y + y_comp) - H(y), to first order
+    if not norm2 > 0.0:
+        return
+    shift = ((H(y, params) - H_target) + tilt) / norm2
+    if not (shift == shift and abs(shift) < np.inf):
+        return
+    for i in range(y.shape[0]):
+        y[i], y_comp[i] = kahan_add(y[i], y_comp[i], -shift * gradient[i])
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def extrapolate(tables, work, offset, theta, base, extra, n_extra, out):
     """The predictor of docs/solver.md: out_i = sum_j E_ij base_j + sum_j E_i,s+j extra_j,
     E_ij = int_0^1 P_i(tau) P_j(offset + theta tau) dtau by (s+1)-point Gauss (exact:
@@ -551,6 +576,7 @@ TIME_LOOP_SIGNATURE = types.int64(
     VECTOR, VECTOR, VECTOR, MATRIX, MATRIX, VECTOR, VECTOR, VECTOR,                    # y, y_comp, clock, coef,
     #                                                                                    coef_extra, multipliers,
     #                                                                                    last_h, newton_base
+    types.float64,                                                                     # H_target
     types.int64, types.int64, types.int64, types.int64,                                # step_start, n_steps,
     #                                                                                    n_total, store_every
     VECTOR, MATRIX, MATRIX, MATRIX, INT_VECTOR, INT_VECTOR, INT_VECTOR, VECTOR,        # outputs, progress, diagnostics
@@ -563,7 +589,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
               h, projection, Is, projection_hat, Ihat, X, abs_projection_hat, predictor_nodes, predictor_basis,
               newton_values, newton_vectors, newton_inverse, newton_weights, Is_low, Ihat_low,
               conserve_idx,
-              y, y_comp, clock, coef, coef_extra, multipliers, last_h, newton_base,
+              y, y_comp, clock, coef, coef_extra, multipliers, last_h, newton_base, H_target,
               step_start, n_steps, n_total, store_every,
               t_out, y_out, inv_out, mult_out, iter_out, substeps_out, progress, diagnostics):
     """Run n_steps steps of one method in one call (docs/methods.md and docs/solver.md).
@@ -579,6 +605,8 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
       Newton matrix was last factorised ([valid, h, last iterations, y...]; the call
       factorises it there again first, so that a run continued in a later call, or
       resumed, solves with the same matrix as an uninterrupted one).
+    H_target: H(y0) of the run for the energy projection after every step (project_energy),
+    NaN for none.
     Steps are numbered globally from step_start (0 for a new run) to step_start +
     n_steps; n_total is the run's total. The first step of a run (and every step without
     warm_start) starts cold, from coef = 0.
@@ -613,6 +641,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                             newton_eigenvalues(settings, newton_values))
     work = by_ref(borrow_workspace(owners))   # owners stays alive in this frame until the loop is done
     inv_values = np.zeros(n_inv)
+    gradient = np.empty(n)   # the energy projection's grad H
 
     n_samples = 0
     progress[0] = 0
@@ -634,6 +663,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         if status != STATUS_OK:
             break
         substeps_out[step] = substeps
+        project_energy(H, grad_H, params_view, y_view, y_comp_view, H_target, gradient)
         record_multipliers(work.info[5], multipliers, mult_out[step])
         progress[0] = step + 1
         done = global_step + 1
