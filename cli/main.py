@@ -391,8 +391,8 @@ def _stored_spec(path, overrides, config):
     from elimfast.config import ConfigError, _clip, load_run_from_dict, parse_yaml, read_text_file
     from elimfast.io.hdf5 import RunFile
     from elimfast.io.layout import stored_set_overrides
-    from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_differences,
-                                    keys_overlap, resume_refusal)
+    from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, STEP_SOLVER_KEYS,
+                                    config_differences, keys_overlap, resume_refusal)
 
     with RunFile(path) as run_file:
         text = str(run_file.attrs.get("config", ""))
@@ -414,9 +414,15 @@ def _stored_spec(path, overrides, config):
         else:
             rank[key], where[key] = (1 if _writes_out(written, key) else 2), f"in {config}"
         if value is ABSENT:   # a key CONFIG leaves out, as --set KEY=null leaves it out
-            if key.split(".")[0] in SOLVER_SECTIONS or key in LOAD_ONLY_KEYS:
+            if key in STEP_SOLVER_KEYS:
+                # left out for its default (SolverSettings.as_dict writes project_energy only when on):
+                # the default, which the rule on them then compares (a user trial: switched off at
+                # --resume, project_energy was silently kept on)
+                value = STEP_SOLVER_KEYS[key]
+            elif key.split(".")[0] in SOLVER_SECTIONS or key in LOAD_ONLY_KEYS:
                 continue
-            value = None
+            else:
+                value = None
         if key == "integration.n_steps" and "integration.t_end" in {_set_key(item) for item in changes}:
             continue   # follows from t_end
         item = f"{key}={_yaml_value(value)}"

@@ -432,6 +432,7 @@ def counted_stats(counters) -> dict:
         "iterations": int(c[kernel.CNT_ITERATIONS] + c[kernel.CNT_SIDE_ITERATIONS]),
         "hessian_evaluations": int(c[kernel.CNT_FACTORISATIONS] + c[kernel.CNT_ESTIMATE_HESSIANS]),
         "events": int(c[kernel.CNT_EVENTS]), "polynomial_samples": int(c[kernel.CNT_SIDE_FALLBACKS]),
+        "energy_projections": int(c[kernel.CNT_ENERGY_PROJECTIONS]),
     }
 
 
@@ -486,7 +487,7 @@ class AdaptiveIntegration:
             self.controls = np.array([control.rtol or 0.0, control.atol or 0.0, control.epsilon or 0.0, self.t_end,
                                       np.inf if control.h_max is None else control.h_max, math.nan])
             self.options = np.array([control.code, int(control.verify), store_every, 0], dtype=np.int64)
-        self.controls[kernel.CTL_H_TARGET] = solver.energy_target(problem, self.y0)
+        self.controls[kernel.CTL_H_TARGET] = solver.energy_target(problem, method, self.y0)
         self.last_h = np.array([self.h if self.h > 0 else 1.0])
         self.status = codes.STATUS_OK
         self.finished_flag = False
@@ -621,6 +622,9 @@ class AdaptiveIntegration:
                     "control_state", "counters"):
             target = getattr(self, key)
             value = np.asarray(state[key], dtype=target.dtype)
+            if key == "counters" and value.ndim == 1 and value.size < target.size:
+                # saved before the last counters were added (counted_stats): they start at 0
+                value = np.concatenate([value, np.zeros(target.size - value.size, dtype=target.dtype)])
             if value.shape != target.shape:
                 raise ValueError(f"saved state {key!r} has shape {value.shape}, expected {target.shape}")
             target[...] = value
@@ -714,6 +718,6 @@ class AdaptiveIntegration:
             ordered[key] = value
             if key == "iterations":
                 ordered["grad_H_evaluations"], ordered["grad_L_evaluations"] = per_grad_H * value, per_grad_L * value
-                if self.solver.project_energy:   # one grad H per accepted step (stepper.project_energy)
-                    ordered["grad_H_evaluations"] += stats.get("steps", 0)
+                # one grad H for each state the energy projection checked (stepper.project_energy)
+                ordered["grad_H_evaluations"] += stats["energy_projections"]
         return ordered

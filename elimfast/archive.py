@@ -79,15 +79,13 @@ def _adaptive_parts(stored, spec) -> dict:
     if stored.step_sizes() is None:
         return {}
     from .adaptive import AdaptiveIntegration, EventRecord
-    from .kernels import adaptive as kernel
 
     parts = {"step_t": stored.step_times(), "step_h": stored.step_sizes(), "step_control": spec.step_control,
              "events": {name: EventRecord(*stored.event(name)) for name in stored.event_names()}}
     counters = stored.saved_state().get("counters")
     if counters is not None:
         run = AdaptiveIntegration.from_spec(spec)
-        run.counters[...] = np.asarray(counters, dtype=np.int64)[:kernel.N_COUNTERS]
-        parts["stats"] = run.stats()
+        parts["stats"] = run.stats(counters)   # a file's counters may be fewer (counted_stats)
     elif stored.stored_stats():   # a sweep run (no /state; files written before they were stored: none)
         parts["stats"] = stored.stored_stats()
     return parts

@@ -666,6 +666,12 @@ class _Builder:
                 kernel_source(problem)   # the problem's functions can be imported by the kernel's module
             except ParameterError as err:
                 raise self.parameter_error(err, ("solver",)) from None
+        if solver.project_energy:   # refused with its line, as the run would refuse it
+            from .integrate import refuse_energy_projection
+            try:
+                refuse_energy_projection(problem, method)
+            except ParameterError as err:
+                raise self.parameter_error(err, ("solver",)) from None
         solver = solver.resolved_for(method, len(conserve), 2 * problem.degrees_of_freedom)
         integration_record = {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps}
         if step_control is not None:

@@ -235,11 +235,14 @@ class SolverSettings:
                 # only when on: the config stored by every earlier run stays what it was
                 **({"project_energy": True} if self.project_energy else {})}
 
-    def energy_target(self, problem: Problem, y0) -> float:
+    def energy_target(self, problem: Problem, method: Method, y0) -> float:
         """The H the energy projection keeps (H(y0) of the run, whose y0 is the state at t0 also
-        for a resumed run), or NaN when it is off: the kernels' H_target."""
-        return float(problem.H(np.ascontiguousarray(y0, dtype=np.float64), problem.params)) if self.project_energy \
-            else math.nan
+        for a resumed run), or NaN when it is off: the kernels' H_target. ParameterError where
+        the method cannot take it (refuse_energy_projection)."""
+        if not self.project_energy:
+            return math.nan
+        refuse_energy_projection(problem, method)
+        return float(problem.H(np.ascontiguousarray(y0, dtype=np.float64), problem.params))
 
     @property
     def code(self) -> int:
@@ -252,6 +255,20 @@ class SolverSettings:
     @property
     def description(self) -> str:
         return "simplified Newton" if self.method == "newton" else "fixed-point iteration"
+
+
+def refuse_energy_projection(problem: Problem, method: Method) -> None:
+    """ParameterError for solver.project_energy with a method of k = s (GAUSS(s), HBVM(s,s)) on an H
+    that its s-node quadrature does not integrate exactly: such a method does not keep H, but keeps
+    every quadratic and linear invariant (L of Kepler, the momenta of N bodies), and projecting H
+    back would spend them at the size of its own error of H (a user trial: GAUSS(2) on Kepler, L
+    from 2e-16 to 4e-6; docs/methods.md#energy-projection)."""
+    if method.k == method.s and not methods.integrates_exactly(problem.hamiltonian_degree, method.k, method.s):
+        raise ParameterError("project_energy", f"{method.name} does not keep this H (its {method.s} nodes integrate "
+                                               "it inexactly) but keeps every quadratic and linear invariant, which "
+                                               "projecting H would spend (docs/methods.md#energy-projection): take "
+                                               f"HBVM(k,{method.s}) with k > {method.s}, or leave project_energy out")
+
 
 
 @dataclass
@@ -909,7 +926,7 @@ class Integration:
         self.multipliers = np.zeros(method.multiplier_count(len(self.conserve)))
         self.last_h = np.array([self.signed_h])
         self.newton_base = np.zeros(n + 3)   # where the Newton matrix was factorised (kernels/stepper.py)
-        self.H_target = self.solver.energy_target(problem, self.y0)
+        self.H_target = self.solver.energy_target(problem, method, self.y0)
         self.steps_done = 0
         self.status = codes.STATUS_OK
         self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)

@@ -559,7 +559,11 @@ LOAD_ONLY_KEYS = ("problem.check",)
 
 # solver.* keys that change the steps themselves, not only how each step's system is solved
 # (with their defaults, for configs stored before the key existed): --resume may not change them.
-STEP_SOLVER_KEYS = {"solver.lim_metric": "euclidean"}
+STEP_SOLVER_KEYS = {"solver.lim_metric": "euclidean", "solver.project_energy": False}
+# what each of them changes, for the refusal
+STEP_SOLVER_EFFECTS = {"solver.lim_metric": "LIM's correction, docs/methods.md#the-metric-of-the-correction",
+                       "solver.project_energy": "every state is projected onto H(y0), "
+                                                "docs/methods.md#energy-projection"}
 
 
 def step_solver_change(stored: str, current: str) -> str | None:
@@ -576,9 +580,9 @@ def step_solver_change(stored: str, current: str) -> str | None:
 
 
 def step_solver_refusal(path, key: str) -> OutputError:
-    return OutputError(f"{path}: {key} changes the steps themselves (LIM's correction, "
-                       "docs/methods.md#the-metric-of-the-correction), not only how each is solved, so --resume may "
-                       "not change it: start a new run (-o NEW.h5), or replace this one with --overwrite")
+    return OutputError(f"{path}: {key} changes the steps themselves ({STEP_SOLVER_EFFECTS[key]}), not only how "
+                       "each is solved, so --resume may not change it: start a new run (-o NEW.h5), or replace this "
+                       "one with --overwrite")
 
 
 def resume_refusal(path, key: str, prefix: str = "", configs=(), origins=None) -> OutputError:

@@ -859,20 +859,24 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     result = run.result(chunks) if run.adaptive_kernel else collect_result(run, chunks)
     if run.status != 0:
         outcome.status = result.status = "failed: " + for_sweep(run.failure_message())
-    _summarise(outcome, result, spec.solver.rhs)
+    _summarise(outcome, result, spec.solver)
     if store_arrays:
         outcome.result = result
     return outcome
 
 
-def _summarise(outcome: RunOutcome, result, rhs: str) -> None:
-    """The table's numbers of one run, from its Result (fresh, or read back from a sweep file)."""
+def _summarise(outcome: RunOutcome, result, solver) -> None:
+    """The table's numbers of one run, from its Result (fresh, or read back from a sweep file), run
+    with ``solver`` (its SolverSettings)."""
     # An adaptive run's stats count every iteration (rejected steps' and side steps' too), as its grad H
     # evaluations do; its per-step record has the accepted steps' only. A row had 2495 iterations beside
     # 22,952 evaluations for k = 8 (a user trial): both now count the same iterations.
     outcome.iterations_total = int(result.stats.get("iterations", result.iterations.sum()))
-    outcome.grad_H_evaluations = int(result.stats.get("grad_H_evaluations", outcome.iterations_total * (
-        result.method.evaluations_per_iteration(len(result.conserve), rhs == "stable")[0])))
+    if "grad_H_evaluations" in result.stats:   # adaptive runs count their own
+        outcome.grad_H_evaluations = int(result.stats["grad_H_evaluations"])
+    else:   # fixed steps: the iterations', and the energy projection's one a step (stepper.project_energy)
+        outcome.grad_H_evaluations = outcome.iterations_total * result.method.evaluations_per_iteration(
+            len(result.conserve), solver.rhs == "stable")[0] + (result.steps_done if solver.project_energy else 0)
     outcome.n_steps = result.n_steps
     multipliers = result.alpha if result.alpha is not None else result.lam
     if multipliers is not None and multipliers.size:
@@ -899,7 +903,7 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
                          resolved=resolved.resolved, n_steps=result.n_steps, steps_done=result.steps_done,
                          h=resolved.h, wall_time=wall_time_s, y_initial=result.y[0].copy(),
                          y_final=result.y_final.copy(), t_final=result.t_final)
-    _summarise(outcome, result, resolved.solver.rhs)
+    _summarise(outcome, result, resolved.solver)
     if keep_result:
         outcome.result = result
     return outcome
@@ -1171,7 +1175,8 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
             if axis in expanded:
                 value = _axis_value(outcome.resolved, spec.axis_keys[axis])
                 as_written = str(written.get(outcome.label, {}).get(axis, label))
-                row += [_number(value, csv) if isinstance(value, (int, float)) else as_written, as_written]
+                number = isinstance(value, (int, float)) and not isinstance(value, bool)   # True is not 1.0
+                row += [_number(value, csv) if number else as_written, as_written]
                 row += [label] if axis in labelled else []
             else:
                 row.append(label)

@@ -38,8 +38,8 @@ from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
 from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
-                      _sample, extrapolate, kahan_add, newton_eigenvalues, project_energy, record_multipliers,
-                      restore_newton_matrix, try_step)
+                      _sample, energy_projection_arrays, extrapolate, kahan_add, newton_eigenvalues, project_energy,
+                      record_multipliers, restore_newton_matrix, try_step)
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -66,11 +66,13 @@ N_CONTROL_STATE = 5
 # counters (int64), saved with the run: steps accepted, steps rejected by the estimate,
 # failed solves (h halved), split steps, iterations of accepted and rejected steps,
 # side steps and their iterations, the next requested time, events found,
-# Newton factorisations (Hessian evaluations), Hessians of the error estimate, and
-# states taken from the stage polynomial because both side steps failed.
+# Newton factorisations (Hessian evaluations), Hessians of the error estimate,
+# states taken from the stage polynomial because both side steps failed, and states
+# checked by the energy projection (one grad H each; solver.project_energy).
 (CNT_STEPS, CNT_REJECTED, CNT_FAILED, CNT_SPLIT, CNT_ITERATIONS, CNT_SIDE_STEPS, CNT_SIDE_ITERATIONS,
- CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS, CNT_SIDE_FALLBACKS) = range(12)
-N_COUNTERS = 12
+ CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS, CNT_SIDE_FALLBACKS,
+ CNT_ENERGY_PROJECTIONS) = range(13)
+N_COUNTERS = 13
 # progress (int64) of one call: steps, samples, events written; 1 when the run is finished
 # (t_end reached or a terminal event).
 N_PROGRESS = 4
@@ -333,6 +335,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     rtol, atol, epsilon, t_end, h_max = (controls[CTL_RTOL], controls[CTL_ATOL], controls[CTL_EPSILON],
                                          controls[CTL_T_END], controls[CTL_H_MAX])
     H_target = controls[CTL_H_TARGET]   # the energy projection's (NaN: none; stepper.project_energy)
+    projecting = H_target == H_target
     # Main steps: the error controller halves a failing step itself; the others split it.
     main_halvings = 0 if control == CONTROL_ERROR else max_halvings
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, main_halvings)
@@ -369,7 +372,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     g_old, g_new, g_side = np.empty(n_events), np.empty(n_events), np.empty(n_events)
     terminal_y, terminal_comp = np.empty(n), np.empty(n)   # the earliest terminal event of a step
     poly_state = np.empty(n)
-    projection_gradient = np.empty(n)
+    projection_arrays = energy_projection_arrays(n, n_inv, conserve_idx.shape[0])
     side_diagnostics = np.empty(N_DIAGNOSTICS)
     order_exponent = 1.0 / (2.0 * s + 1.0)
 
@@ -452,6 +455,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 break
             control_state[CS_H_NEXT] = 0.5 * h
             continue
+        estimate = 0.0   # the error controller's, set below
         if control == CONTROL_ERROR:
             if verify:
                 # Step doubling: two half steps from the same start (exact to 0.2%, docs/adaptive.md).
@@ -508,6 +512,13 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                     diagnostics[DIAG_ITERATIONS] = iterations
                     break
                 continue
+        # Accepted: its end state is projected onto H(y0) first (solver.project_energy), so that the
+        # controllers below, and all that follows, see the state the run goes on from.
+        project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_view, y_comp_view, H_target,
+                       projection_arrays)
+        if projecting:
+            counters[CNT_ENERGY_PROJECTIONS] += 1
+        if control == CONTROL_ERROR:
             # Accepted: the next step (Gustafsson's controller).
             safe = max(estimate, 1e-300)
             factor = SAFETY * safe ** (-order_exponent)
@@ -544,7 +555,6 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
             else:
                 control_state[CS_RHO] += epsilon * rate
         consecutive_failures = 0
-        project_energy(H, grad_H, params_view, y_view, y_comp_view, H_target, projection_gradient)
         if last and control != CONTROL_FIXED:
             clock[0] = t_end   # exactly, whatever the rounding of the sum of the steps
             clock[1] = 0.0
@@ -615,6 +625,10 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                                     coef, coef_extra, multipliers, tau * h, side_base, y_side, side_comp, side_clock,
                                     side_coef, side_extra, side_mult, side_last_h, side_diagnostics, integrals,
                                     counters)
+                        project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_side, side_comp,
+                                       H_target, projection_arrays)
+                        if projecting:
+                            counters[CNT_ENERGY_PROJECTIONS] += 1
                     events(y_side, params, g_side)
                     if slope == 0.0 or g_side[e] == 0.0:
                         break
@@ -676,6 +690,10 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                                 h, coef, coef_extra, multipliers, offset, side_base, y_side, side_comp, side_clock,
                                 side_coef, side_extra, side_mult, side_last_h, side_diagnostics, integrals,
                                 counters)
+                    project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_side, side_comp,
+                                   H_target, projection_arrays)
+                    if projecting:
+                        counters[CNT_ENERGY_PROJECTIONS] += 1
                     _sample(H, invariants, params, y_side, t_wanted, n_samples, t_out, y_out, inv_out,
                             inv_values)
                 n_samples += 1

@@ -24,6 +24,7 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
                     STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
+from .linalg import cholesky_factor, cholesky_solve_factored
 from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table, two_prod, two_sum
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
@@ -100,28 +101,67 @@ def add_product(value, compensation, h, x):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def project_energy(H, grad_H, params, y, y_comp, H_target, gradient):
-    """The energy projection of docs/methods.md#energy-projection (solver.project_energy): moves the
-    state (y + y_comp, its compensated sum) along grad H(y) so that H is H_target again,
-    y <- y - (H(y) - H_target) grad H / |grad H|^2, one Newton step (the error is at round-off,
-    so its square is far below it). H_target NaN: off (nothing is evaluated). Without it the
-    round-off of every step moves H by about eps |H|, a random walk whose phase error grows
-    like t^(3/2) (Brouwer's law) and sets the floor of long runs (docs/adaptive.md)."""
+def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, H_target, projection):
+    """The energy projection of docs/methods.md#energy-projection (solver.project_energy): one
+    Newton step of the projection of the state (y + y_comp, its compensated sum) onto
+    H = H_target, along the shortest move that leaves the imposed invariants unchanged to
+    first order: delta = G^T w, (G G^T) w = (H_target - H, 0, ..., 0), G the rows grad H and
+    the imposed invariants' gradients. Without it each step rounds H by about eps |H|, a
+    random walk whose phase error grows like t^(3/2) (Brouwer's law), the floor of long
+    runs (docs/adaptive.md). Nothing moves when H_target is NaN (off), when H is off by no
+    more than its own evaluation can tell, eps (|H| + sum |y_i dH/dy_i|), or when G G^T is
+    singular or the move not finite. projection: an EnergyProjection's arrays (workspace
+    of the loops): rows (1 + r, n), inv_gradients (n_inv, n), gram (1 + r, 1 + r), weights."""
     if H_target != H_target:
         return
-    grad_H(y, params, gradient)
-    norm2 = 0.0
+    rows, inv_gradients, gram, weights = projection
+    n = y.shape[0]
+    grad_H(y, params, rows[0])
     tilt = 0.0
-    for i in range(y.shape[0]):
-        norm2 += gradient[i] * gradient[i]
-        tilt += gradient[i] * y_comp[i]   # H(y + y_comp) - H(y), to first order
-    if not norm2 > 0.0:
+    scale = 0.0
+    for i in range(n):
+        tilt += rows[0, i] * y_comp[i]   # H(y + y_comp) - H(y), to first order
+        scale += abs(rows[0, i] * y[i])
+    value = H(y, params)
+    deviation = (value - H_target) + tilt
+    if not abs(deviation) > EPS * (abs(value) + scale):
         return
-    shift = ((H(y, params) - H_target) + tilt) / norm2
-    if not (shift == shift and abs(shift) < np.inf):
+    imposed = conserve_idx.shape[0]
+    if imposed > 0:
+        grad_invariants(y, params, inv_gradients)
+        for a in range(imposed):
+            for i in range(n):
+                rows[1 + a, i] = inv_gradients[conserve_idx[a], i]
+    for a in range(imposed + 1):
+        for b in range(a + 1):
+            acc = 0.0
+            for i in range(n):
+                acc += rows[a, i] * rows[b, i]
+            gram[a, b] = acc
+            gram[b, a] = acc
+        weights[a] = 0.0
+    weights[0] = -deviation
+    if cholesky_factor(gram) != 0:
         return
-    for i in range(y.shape[0]):
-        y[i], y_comp[i] = kahan_add(y[i], y_comp[i], -shift * gradient[i])
+    cholesky_solve_factored(gram, weights)
+    for i in range(n):
+        move = 0.0
+        for a in range(imposed + 1):
+            move += weights[a] * rows[a, i]
+        if not abs(move) < np.inf:
+            return
+    for i in range(n):
+        move = 0.0
+        for a in range(imposed + 1):
+            move += weights[a] * rows[a, i]
+        y[i], y_comp[i] = kahan_add(y[i], y_comp[i], move)
+
+
+@njit(cache=True, inline="always")
+def energy_projection_arrays(n, n_inv, n_imposed):
+    """The arrays project_energy works in: (rows, inv_gradients, gram, weights)."""
+    return (np.empty((1 + n_imposed, n)), np.empty((max(n_inv, 1), n)), np.empty((1 + n_imposed, 1 + n_imposed)),
+            np.empty(1 + n_imposed))
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -641,7 +681,7 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                             newton_eigenvalues(settings, newton_values))
     work = by_ref(borrow_workspace(owners))   # owners stays alive in this frame until the loop is done
     inv_values = np.zeros(n_inv)
-    gradient = np.empty(n)   # the energy projection's grad H
+    projection_arrays = energy_projection_arrays(n, n_inv, conserve_idx.shape[0])
 
     n_samples = 0
     progress[0] = 0
@@ -663,7 +703,8 @@ def time_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         if status != STATUS_OK:
             break
         substeps_out[step] = substeps
-        project_energy(H, grad_H, params_view, y_view, y_comp_view, H_target, gradient)
+        project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_view, y_comp_view, H_target,
+                       projection_arrays)
         record_multipliers(work.info[5], multipliers, mult_out[step])
         progress[0] = step + 1
         done = global_step + 1
