@@ -55,6 +55,7 @@ def time_scale_at(problem: Problem, y) -> float:
 # A time scale below this fraction of its value at t0 where a time-reversible run fails: the orbit
 # is falling into what sigma measures the distance to (failure_message says so).
 COLLAPSED_TIME_SCALE = 0.05
+SMALLER_TIME_SCALE = 0.5   # a failure on time-reversible steps gives sigma's figures below this times sigma(y0)
 
 
 def require_defined_at_start(parameter: str, value: float, y, why: str, positive: bool = False) -> None:
@@ -136,8 +137,9 @@ class StepControl:
                 raise ParameterError("epsilon", _EPSILON_WITH_ERROR_CONTROL)
         else:
             if self.rtol is not None or self.atol is not None:
-                raise ParameterError("rtol" if self.rtol is not None else "atol",
-                                     "belongs to step_control = 'error'; time-scale steps take epsilon")
+                name = "rtol" if self.rtol is not None else "atol"
+                raise ParameterError(name, f"belongs to step_control = 'error'; time-scale steps take epsilon: "
+                                           f"leave {name} out (on the command line: --set integration.{name}=null)")
             if self.verify:
                 raise ParameterError("verify", "belongs to step_control = 'error' (step doubling checks its "
                                                "estimate)")
@@ -567,9 +569,27 @@ class AdaptiveIntegration:
             step_h=np.concatenate([c.step_h for c in chunks]), step_control=self.control, stats=self.stats(),
             events=found, y0=self.y0.copy(), t0=self.t0, events_not_finite=dict(self.events_not_finite))
 
+    def collapsed_steps(self) -> bool:
+        """Whether the run failed because the error controller's steps collapsed (the kernel's check
+        with COLLAPSED_STEP: a failure with no iterations, at a step below 4 eps max(|t|, |t_end|))."""
+        d = self.diagnostics
+        return (self.control is not None and self.control.controller != "time_scale"
+                and self.status == codes.STATUS_NOT_CONVERGED and d[stepper.DIAG_ITERATIONS] == 0
+                and not abs(d[stepper.DIAG_STEP]) > kernel.COLLAPSED_STEP * max(abs(self.t), abs(self.t_end)))
+
     def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message
-        step = float(self.diagnostics[stepper.DIAG_STEP])   # the failed (sub)step's h
+        d = self.diagnostics
+        if self.collapsed_steps():
+            return (f"{self.method.name}: the steps collapsed at step {self.steps_done + 1} (t = {exact_time(self.t)}): "
+                    f"the error controller came down to h = {d[stepper.DIAG_STEP]:.3g}, below 4 eps of t_end = "
+                    f"{self.t_end:.6g}: at that size t_end is more than 10^15 steps away; "
+                    "the solution is likely nearing a singularity of H (a collision, or a fall into a centre), which "
+                    "no tolerance or solver setting gets through; check the initial state and the problem's "
+                    "parameters")
+        # the failed step's h: DIAG_STEP is its failed substep's, 2^depth times smaller (a user trial read
+        # "t = 12.5663689 -> 12.5663691, in its substep from t = 12.5663705": h/16 for the step)
+        step = float(d[stepper.DIAG_STEP]) * 2.0 ** int(d[stepper.DIAG_DEPTH])
         if self.control is None:
             # fixed steps (with output times or events): the step is h, DIAG_STEP its failed substep's
             # (a user trial read "t = 6.45 -> 6.453125, in its substep from t = 6.471875")
@@ -582,9 +602,12 @@ class AdaptiveIntegration:
             # The steps are epsilon sigma(y): a sigma that nears zero along the orbit makes them collapse
             # until some solve fails, with a message about the solver or Gamma (a time scale q1 on an orbit
             # crossing q1 = 0 failed at h = 2.6e-10 with "Assumption 1 fails"). The figures show it.
+            # Only where sigma has shrunk: with sigma as at t0 the figures are noise beside the message (a
+            # user trial: Kepler e = 0.999, Gamma singular at a pericentre, sigma 3.17e-5 against 3.16e-5).
             here, start = time_scale_at(self.problem, self.y), time_scale_at(self.problem, self.y0)
-            message += (f" (time scale sigma(y) = {here:.3g} there, {start:.3g} at t0: steps are epsilon sigma; "
-                        "a sigma that nears zero along the orbit makes them collapse)")
+            if not here >= SMALLER_TIME_SCALE * start:
+                message += (f" (time scale sigma(y) = {here:.3g} there, {start:.3g} at t0: steps are epsilon sigma; "
+                            "a sigma that nears zero along the orbit makes them collapse)")
             if here < COLLAPSED_TIME_SCALE * start:
                 # A user trial: perturbed Kepler e = 0.9, delta = 0.01 falls into the centre (its -delta/r^3
                 # wins at r = 0.1); the run failed at t = 0.037 and was told to raise solver.max_iter.

@@ -71,14 +71,17 @@ _FAILURE_TEXT = {
 _FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "reduce h or raise solver.max_halvings",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
-                            "impose fewer or other invariants, or change h"),
+                            "impose fewer or other invariants, or change h, or take GHBVM (LIM), whose Gram "
+                            "matrix does not degenerate with Gamma (docs/methods.md#lim)"),
     codes.STATUS_NONFINITE: "reduce h; check the initial state and the problem's singularities",
 }
 # Adaptive runs choose h themselves: the step control has shrunk it already.
 _ADAPTIVE_FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "the step control found no step that converges; raise solver.max_iter",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
-                            "impose fewer or other invariants"),
+                            "impose fewer or other invariants, or take GHBVM (LIM), whose Gram matrix does not "
+                            "degenerate with Gamma (docs/methods.md#lim; a user trial: Kepler e = 0.999 on "
+                            "time-reversible steps, EHBVM(8,4) failed, GHBVM(8,4) did not)"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
     codes.STATUS_TIME_SCALE: ("sigma must stay positive and finite along the whole orbit: take a power of a "
                               "distance, e.g. (q1**2 + q2**2)**0.75, or use step_control: error "
@@ -99,7 +102,8 @@ _LITERAL_RHS_ADVICE = ("the literal right-hand side's multipliers are rounding n
                        "one (solver.rhs: stable, the default; docs/methods.md#stable-right-hand-side)")
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
                            "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
-                           "other invariants, whose gradients stay independent along the orbit")
+                           "other invariants, whose gradients stay independent along the orbit, or take GHBVM "
+                           "(LIM), whose Gram matrix does not degenerate with Gamma (docs/methods.md#lim)")
 STATUS_NAMES = {
     codes.STATUS_OK: "ok",
     codes.STATUS_NOT_CONVERGED: "not converged",
@@ -1143,7 +1147,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         if start > 0 and size > GROWN_STATE * start:
             # a user trial: a Henon-Heiles variant with an unbounded potential was told to reduce h
             advice = (f"the state has grown to {size:.3g} ({size / start:.2g} times its initial size): the orbit is "
-                      f"likely escaping to infinity, which no step size gets through; otherwise {advice}")
+                      f"likely escaping to infinity, or its momenta blowing up in a fall into a singularity of H, "
+                      f"which no step size gets through; otherwise {advice}")
     if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive and run_file:
         advice += "; a failed run can be continued with --resume after changing solver settings"
     return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"

@@ -837,3 +837,39 @@ def test_an_event_that_turns_nan_along_the_orbit_is_named():
     assert len(result.events["q2"].t) >= 7   # q2 = 0 at every n pi (8 pi, the end, a draw of rounding)
     clean = elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=PERIOD, rtol=1e-12, events={"q2": "q2"})
     assert clean.events_not_finite == {}
+
+
+def test_steps_that_collapse_under_the_error_controller_stop_the_run_and_say_why():
+    """Perturbed Kepler e = 0.9, delta = 0.01 falls into its centre (the -delta/r^3 term wins near
+    r = 0.1). The error controller kept halving and accepting steps until they no longer advanced
+    t (a user trial: 19,410 steps at t = 0.0365, h down to 4e-113, H off by 1e115), then failed
+    saying the orbit was escaping. It now stops once a step falls below 4 eps |t_end| (over 2^50
+    steps to go), naming the collapse and a singularity."""
+    from elimfast.errors import ConvergenceError
+    from elimfast.problems import perturbed_kepler
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(perturbed_kepler(eccentricity=0.9, delta=0.01), ehbvm(8, 4), t_end=2000 * math.pi,
+                           rtol=1e-13, conserve=(L1,))
+    message = str(failed.value)
+    assert "the steps collapsed" in message and "singularity of H" in message, message
+    result = failed.value.result
+    assert result.steps_done < 2000 and result.t[-1] < 0.1
+    assert result.relative_invariant_errors()["H"] < 1e-3   # stopped before the steps lost H
+
+
+def test_a_split_adaptive_steps_failure_names_its_whole_step():
+    """Kepler e = 0.999 on time-reversible steps, EHBVM(8,4) imposing L and A_y, fails at a
+    pericentre with Gamma singular, in a substep after 4 halvings. The message gave the step as
+    t -> t + (the substep's h), so that its substep started after the step's end (a user trial)."""
+    from elimfast.errors import ConvergenceError
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(kepler(0.999), ehbvm(8, 4), t_end=20 * PERIOD, step_control="time_scale", epsilon=0.1,
+                           conserve=(L1, AY))
+    message = str(failed.value)
+    found = re.search(r"\(t = ([0-9.e+-]+) -> ([0-9.e+-]+)\), in its substep from t = ([0-9.e+-]+) of h = "
+                      r"([0-9.e+-]+) after (\d+) halvings", message)
+    assert found, message
+    start, end, sub_start, sub_h, depth = (float(v) for v in found.groups())
+    assert start <= sub_start and sub_start + sub_h <= end * (1 + 1e-15), message
+    assert end - start == pytest.approx(sub_h * 2 ** depth, rel=1e-5)   # h is printed to 6 digits
+    assert "GHBVM" in message   # the method that gets through there (GHBVM(8,4) does)

@@ -81,8 +81,9 @@ SAFETY = 0.9
 MIN_FACTOR = 0.2
 MAX_FACTOR = 2.0
 MAX_CONSECUTIVE_FAILURES = 40      # halvings of one step before the run fails
-# A time-reversible step below this times |t| (or |t_end|) no longer advances the clock: sigma has
-# collapsed (STATUS_TIME_SCALE).
+# A step below this times |t| (or |t_end|) no longer advances the clock: time-reversible steps'
+# sigma has collapsed (STATUS_TIME_SCALE), or the error controller's steps have (a failure of
+# STATUS_NOT_CONVERGED with no iterations: collapsed_steps).
 COLLAPSED_STEP = 4.0 * 2.0 ** -52
 # The solver's convergence limits the step too (docs/adaptive.md#controller): an accepted step
 # whose solve took more than this fraction of max_iter iterations makes the next one smaller
@@ -418,6 +419,18 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 break
         else:
             h = control_state[CS_H_NEXT]
+            if control == CONTROL_ERROR and not (h > COLLAPSED_STEP * max(abs(clock[0]), abs(t_end))):
+                # The error controller's steps have collapsed: ever smaller steps were accepted and
+                # rejected until they no longer advance t (a user trial: perturbed Kepler falling
+                # into its centre took 19,410 steps at one t, down to h = 4e-113, H drifting to 1e115,
+                # before a solve failed). Such a step would need over 2^50 steps to reach t_end.
+                status = STATUS_NOT_CONVERGED
+                diagnostics[DIAG_TIME] = clock[0]
+                diagnostics[DIAG_STEP] = h
+                diagnostics[DIAG_INCREMENT] = 0.0
+                diagnostics[DIAG_DEPTH] = 0
+                diagnostics[DIAG_ITERATIONS] = 0
+                break
         # A time-scale step cut by h_max is not the controller's: it starts afresh after it (below).
         capped = control == CONTROL_TIME_SCALE and h > h_max
         h = min(h, h_max)
