@@ -274,7 +274,6 @@ def refuse_energy_projection(problem: Problem, method: Method) -> None:
                                                f"HBVM(k,{method.s}) with k > {method.s}, or leave project_energy out")
 
 
-
 @dataclass
 class Chunk:
     """What one kernel call produced: samples, per-step data and the status."""

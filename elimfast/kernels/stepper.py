@@ -110,8 +110,9 @@ def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, 
     random walk whose phase error grows like t^(3/2) (Brouwer's law), the floor of long
     runs (docs/adaptive.md). Nothing moves when H_target is NaN (off), when H is off by no
     more than its own evaluation can tell, eps (|H| + sum |y_i dH/dy_i|), or when G G^T is
-    singular or the move not finite. projection: an EnergyProjection's arrays (workspace
-    of the loops): rows (1 + r, n), inv_gradients (n_inv, n), gram (1 + r, 1 + r), weights."""
+    singular or the move not finite. projection: the loop's work arrays, from
+    energy_projection_arrays: rows (1 + r, n), inv_gradients (n_inv, n), gram (1 + r, 1 + r),
+    weights (1 + r,)."""
     if H_target != H_target:
         return
     rows, inv_gradients, gram, weights = projection
