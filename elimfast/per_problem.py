@@ -30,9 +30,7 @@ from .errors import ParameterError
 
 MODULE_PREFIX = "elimfast_kernel_"   # + the digest: the name a per-problem kernel's module has
 FUNCTIONS = ("H", "grad_H", "hess_H", "invariants", "grad_invariants")   # time_loop's first five arguments
-SIGNATURES = {"H": "H_SIGNATURE", "grad_H": "GRAD_H_SIGNATURE", "hess_H": "HESS_H_SIGNATURE",   # kernels/signatures.py
-              "invariants": "INVARIANTS_SIGNATURE", "grad_invariants": "GRAD_INVARIANTS_SIGNATURE"}
-GENERATOR_VERSION = "2"
+GENERATOR_VERSION = "3"
 
 _MODULES: dict[str, object] = {}   # path -> imported kernel module, in this process
 _LOCK = threading.Lock()
@@ -44,13 +42,9 @@ import importlib
 
 from numba import njit
 
-from elimfast.kernels import signatures, stepper
+from elimfast.kernels import stepper
 from elimfast.kernels.static import StaticFunction
-
-
-def _compiled(signature, function):
-    """A python: file's function compiled as elimfast compiled it for the problem (user_file._compile)."""
-    return njit(signature, cache=True, error_model="numpy")(getattr(function, "py_func", function))
+from elimfast.problems.user_file import compiled_function
 
 
 # the problem's functions as constants of the kernel (kernels/static.py)
@@ -77,7 +71,7 @@ def refuse(solver, runs: str) -> None:
 def _function_source(problem, name: str) -> tuple[str, str, bool]:
     """(module, attribute, wrapped) through which the problem's function ``name`` can be made again:
     the module's attribute itself, or (wrapped) the compiled function that elimfast made of it
-    with the signature of ``name`` (a python: file's functions, plain or @njit: user_file._compile)."""
+    with the signature of ``name`` (a python: file's functions, plain or @njit: user_file.compiled_function)."""
     function = getattr(problem, name)
     python = getattr(function, "py_func", None)
     module_name = getattr(python, "__module__", None)
@@ -128,8 +122,8 @@ def kernel_source(problem) -> tuple[str, str]:
 
     def made(name, module, attribute, wrapped):
         found = f"importlib.import_module({module!r}).{attribute}"
-        if wrapped:   # compiled as user_file._compile compiles it: the same code
-            found = f"_compiled(signatures.{SIGNATURES[name]}, {found})"
+        if wrapped:   # compiled as the problem's own (user_file.compiled_function): the same code
+            found = f"compiled_function({name!r}, {found})"
         return f"{name} = StaticFunction({found})"
 
     text = TEMPLATE.format(

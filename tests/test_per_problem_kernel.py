@@ -74,11 +74,11 @@ def test_the_per_problem_kernel_takes_the_shared_kernels_steps_bit_for_bit(user_
 def test_a_python_file_problem_runs_on_its_kernel_bit_for_bit(per_problem_kernel_compiled):
     """A user trial: a python: problem was refused ('H is not at the top of a module'): elimfast
     compiles such a file's functions itself (user_file._compile), so they are no attribute of their
-    module. The kernel's module compiles them the same way; the run is the shared kernel's, bit for
-    bit."""
+    module. The kernel's module takes them through the same compilation (user_file.compiled_function);
+    the run is the shared kernel's, bit for bit."""
     problem = load_run(ROOT / "configs" / "kepler_python.yaml").problem
     _, text = kernel_source(problem)
-    assert "grad_H = StaticFunction(_compiled(signatures.GRAD_H_SIGNATURE, importlib.import_module(" in text
+    assert "grad_H = StaticFunction(compiled_function('grad_H', importlib.import_module(" in text
     runs = [elimfast.integrate(problem, ehbvm(12, 3), 0.1, n_steps=2000, conserve=(L, AY),
                                solver=SolverSettings(method="newton", kernel=kernel), store_every=5)
             for kernel in ("shared", "per_problem")]

@@ -110,7 +110,7 @@ def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, 
     random walk whose phase error grows like t^(3/2) (Brouwer's law), the floor of long
     runs (docs/adaptive.md). Nothing moves when H_target is NaN (off), when H is off by no
     more than its own evaluation can tell, eps (|H| + sum |y_i dH/dy_i|), or when G G^T is
-    singular or the move not finite. projection: the loop's work arrays, from
+    singular or its solution not finite. projection: the loop's work arrays, from
     energy_projection_arrays: rows (1 + r, n), inv_gradients (n_inv, n), gram (1 + r, 1 + r),
     weights (1 + r,)."""
     if H_target != H_target:
@@ -142,14 +142,11 @@ def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, 
             gram[b, a] = acc
         weights[a] = 0.0
     weights[0] = -deviation
-    if cholesky_factor(gram) != 0:
+    if cholesky_factor(gram) != 0:   # also where a gradient is not finite (its diagonal entry)
         return
     cholesky_solve_factored(gram, weights)
-    for i in range(n):
-        move = 0.0
-        for a in range(imposed + 1):
-            move += weights[a] * rows[a, i]
-        if not abs(move) < np.inf:
+    for a in range(imposed + 1):
+        if not abs(weights[a]) < np.inf:
             return
     for i in range(n):
         move = 0.0

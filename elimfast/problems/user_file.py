@@ -382,6 +382,13 @@ def _dry_run(label, functions, y0, params, n, n_inv) -> None:
                                    f"state; it must fill all of out, shape {outputs[fname].shape}", key="python")
 
 
+def compiled_function(fname, function):
+    """A python: file's function compiled as the problem's ``fname`` (H, grad_H, ...): the dispatcher
+    the problem itself has once it is loaded in this process. The per-problem kernel's module
+    (per_problem.py) takes the file's functions through it, with the same code."""
+    return _compile(f"the per-problem kernel's {fname}", None, fname, function)
+
+
 def _compile(label, path, fname, function):
     from numba import njit
     from numba.core.errors import NumbaError
