@@ -483,11 +483,12 @@ class AdaptiveRun:
     """elimfast with adaptive steps: rtol (error controller) or epsilon (time_scale)."""
     family = "elimfast adaptive"
 
-    def __init__(self, method, conserve=(), rtol=None, epsilon=None, orbit=E06, verify=None):
+    def __init__(self, method, conserve=(), rtol=None, epsilon=None, orbit=E06, verify=None, project_energy=False):
         self.method, self.conserve, self.rtol, self.epsilon, self.orbit = method, tuple(conserve), rtol, epsilon, orbit
-        self.verify = verify
+        self.verify, self.project_energy = verify, project_energy
         self.label = (f"{method.name}{imposed(conserve)}" + (" time_scale" if epsilon is not None else "")
-                      + {None: "", False: " cheap estimate", True: " step doubling"}[verify])
+                      + {None: "", False: " cheap estimate", True: " step doubling"}[verify]
+                      + (" projected" if project_energy else ""))
         self.stats = None
 
     def setting(self):
@@ -496,6 +497,8 @@ class AdaptiveRun:
     def _integrate(self, T, store_every):
         control = ({"rtol": self.rtol, "verify": self.verify} if self.epsilon is None
                    else {"step_control": "time_scale", "epsilon": self.epsilon})
+        if self.project_energy:    # docs/methods.md#energy-projection
+            control["solver"] = {"project_energy": True}
         return elimfast.integrate(self.orbit.problem, self.method, t_end=T, conserve=self.conserve,
                                   store_every=store_every, **control)
 
@@ -595,7 +598,10 @@ def eccentric_long_runs(orbit):
             AdaptiveRun(hbvm(8, 4), (), rtol=1e-14, orbit=orbit),
             AdaptiveRun(hbvm(12, 6), (), rtol=1e-14, orbit=orbit, verify=False),
             AdaptiveRun(hbvm(8, 4), (), epsilon=0.05, orbit=orbit),
-            AdaptiveRun(ehbvm(8, 4), CONSERVE, epsilon=0.05, orbit=orbit)]
+            AdaptiveRun(ehbvm(8, 4), CONSERVE, epsilon=0.05, orbit=orbit),
+            # H's round-off walk removed (solver.project_energy): the 1e-8 of issue 11 at <= 100 steps per period
+            AdaptiveRun(ehbvm(8, 4), CONSERVE, rtol=1e-14, orbit=orbit, project_energy=True),
+            AdaptiveRun(ehbvm(8, 4), CONSERVE, epsilon=0.1, orbit=orbit, project_energy=True)]
     if orbit.e == 0.9:
         runs.append(labelled(ElimfastRun(ehbvm(12, 4), math.pi / FIXED_LONG_DIVISOR, CONSERVE, orbit),
                              "elimfast fixed"))

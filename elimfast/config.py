@@ -53,6 +53,7 @@ import functools
 import inspect
 import json
 import pickle
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,7 +69,7 @@ from .integrate import compact_number as _count
 from .integrate import compact_number
 from .methods import Method
 from .problems.base import Problem
-from .problems.expressions import ProblemDefinitionError, evaluate_number
+from .problems.expressions import ProblemDefinitionError, did_you_mean, evaluate_number
 
 MAX_FILE_BYTES = 1 << 20     # a config (or sweep, or python: problem file) larger than 1 MiB is a mistake
 MAX_YAML_NODES = 100_000     # scalars + containers in one config
@@ -458,6 +459,8 @@ def _apply_overrides(data, overrides, source):
 # --- validation ----------------------------------------------------------------------------
 
 def _short(value, limit: int = 60) -> str:
+    if value is None:   # YAML's null: what an empty value reads as (key: or --set key=)
+        return "an empty value (null)"
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
@@ -645,7 +648,7 @@ class _Builder:
         if config.output.path is not None and not config.output.path.strip():
             raise self.error(("output", "path"), "is empty; give a file name such as out/run.h5, or leave it out")
 
-        problem, resolved_problem = self.problem(config.problem)
+        problem, resolved_problem = self.problem(config.problem, config.events)
         try:
             resolve_initial_state(problem)
             conserve = resolve_conserve(problem, method, config.conserve, problem.y0)[0]
@@ -841,7 +844,7 @@ class _Builder:
         return f"{error['msg']}, got {_short(value)}"
 
     # problem
-    def problem(self, section: Section):
+    def problem(self, section: Section, events=None):
         modes = [m for m, present in (("builtin", section.builtin is not None), ("python", section.python is not None),
                                       ("expressions", section.hamiltonian is not None or section.coordinates
                                        is not None)) if present]
@@ -858,6 +861,8 @@ class _Builder:
                                                         f"a {mode} problem defines its own: remove it")
         if mode == "builtin" and section.name is not None:
             raise self.error(("problem", "name"), "a built-in problem keeps its name; remove name")
+        if mode == "expressions":
+            self.unused_parameters(section, events)
         try:
             if mode == "builtin":
                 problem, resolved = self.builtin(section)
@@ -884,6 +889,27 @@ class _Builder:
             raise self.error(path, str(err)) from None
         resolved["check"] = section.check
         return problem, resolved
+
+    def unused_parameters(self, section: Section, events):
+        """Refuse a parameter of a problem by expressions that a --set gives and no expression uses: a
+        misspelt name (--set problem.parameters.eccc=0.7 where the config says ecc) would otherwise add
+        a parameter that changes nothing, and the run would go on with the config's value. (A misspelt
+        parameter in the config itself leaves the expressions' name unknown, which is refused; a
+        resolved config keeps parameters its evaluated initial values no longer show.)"""
+        texts = [section.hamiltonian or "", section.time_scale or ""]
+        texts += list((section.invariants or {}).values()) + list((section.initial or {}).values())
+        texts += [event.expression for event in (events or {}).values()]
+        used = set()
+        for text in texts:
+            if isinstance(text, str):
+                used.update(re.findall(r"[A-Za-z_][A-Za-z_0-9]*", text))
+        parameters = section.parameters or {}
+        for pname in parameters:
+            if pname not in used and self.override_of(("problem", "parameters", pname)) is not None:
+                candidates = sorted(name for name in parameters if name in used)
+                raise self.error(("problem", "parameters", pname),
+                                 f"no expression uses it (hamiltonian, invariants, initial, time_scale, events); "
+                                 f"remove it or fix its name{did_you_mean(str(pname), candidates)}")
 
     def builtin(self, section: Section):
         from . import problems as library

@@ -80,8 +80,8 @@ _ADAPTIVE_FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "the step control found no step that converges; raise solver.max_iter",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
                             "impose fewer or other invariants, or take GHBVM (LIM), whose Gram matrix does not "
-                            "degenerate with Gamma (docs/methods.md#lim; a user trial: Kepler e = 0.999 on "
-                            "time-reversible steps, EHBVM(8,4) failed, GHBVM(8,4) did not)"),
+                            "degenerate with Gamma (docs/methods.md#lim; Kepler e = 0.9999 on time-reversible "
+                            "steps: EHBVM(8,4) fails at the pericentre, GHBVM(8,4) does not)"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
     codes.STATUS_TIME_SCALE: ("sigma must stay positive and finite along the whole orbit: take a power of a "
                               "distance, e.g. (q1**2 + q2**2)**0.75, or use step_control: error "
@@ -95,9 +95,8 @@ _LIM_SINGULAR_ADVICE = ("the gradients of H and the imposed invariants are (near
                         "impose fewer or other invariants")
 # The paper's right-hand side of the multipliers' system cancels O(h^2) terms down to O(h^(2s)):
 # its rounding turns alpha into noise as h shrinks (docs/methods.md#stable-right-hand-side), so a
-# smaller h or more halvings make it worse. A user trial: EHBVM(12,3) imposing L and A_y, going
-# back over steps of 0.2 that the stable form retraces to 1.7e-13, failed "after 4 halvings" and
-# was told to reduce h.
+# smaller h or more halvings make it worse: EHBVM(12,3) imposing L and A_y fails at h = 1e-5 on
+# Kepler e = 0.6, after 4 halvings (tests/test_step_engine.py).
 _LITERAL_RHS_ADVICE = ("the literal right-hand side's multipliers are rounding noise at small steps: use the stable "
                        "one (solver.rhs: stable, the default; docs/methods.md#stable-right-hand-side)")
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "

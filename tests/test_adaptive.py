@@ -858,12 +858,14 @@ def test_steps_that_collapse_under_the_error_controller_stop_the_run_and_say_why
 
 
 def test_a_split_adaptive_steps_failure_names_its_whole_step():
-    """Kepler e = 0.999 on time-reversible steps, EHBVM(8,4) imposing L and A_y, fails at a
-    pericentre with Gamma singular, in a substep after 4 halvings. The message gave the step as
-    t -> t + (the substep's h), so that its substep started after the step's end (a user trial)."""
+    """Kepler e = 0.9999 on time-reversible steps, EHBVM(8,4) imposing L and A_y, fails at the
+    pericentre with Gamma singular, in a substep after 4 halvings (e = 0.999 did too, until steps
+    were split on alpha's rounding rather than on cond(Gamma) alone; it now completes). The message
+    gave the step as t -> t + (the substep's h), so that its substep started after the step's end
+    (a user trial)."""
     from elimfast.errors import ConvergenceError
     with pytest.raises(ConvergenceError) as failed:
-        elimfast.integrate(kepler(0.999), ehbvm(8, 4), t_end=20 * PERIOD, step_control="time_scale", epsilon=0.1,
+        elimfast.integrate(kepler(0.9999), ehbvm(8, 4), t_end=20 * PERIOD, step_control="time_scale", epsilon=0.1,
                            conserve=(L1, AY))
     message = str(failed.value)
     found = re.search(r"\(t = ([0-9.e+-]+) -> ([0-9.e+-]+)\), in its substep from t = ([0-9.e+-]+) of h = "
@@ -872,4 +874,4 @@ def test_a_split_adaptive_steps_failure_names_its_whole_step():
     start, end, sub_start, sub_h, depth = (float(v) for v in found.groups())
     assert start <= sub_start and sub_start + sub_h <= end * (1 + 1e-15), message
     assert end - start == pytest.approx(sub_h * 2 ** depth, rel=1e-5)   # h is printed to 6 digits
-    assert "GHBVM" in message   # the method that gets through there (GHBVM(8,4) does)
+    assert "GHBVM" in message   # the method that gets through there (GHBVM(8,4) does: 20 periods, no split)

@@ -274,6 +274,24 @@ def test_expression_problem_faults(label, path, value, key, match):
     assert __import__("re").search(match, str(err)), str(err)
 
 
+def test_a_misspelt_parameter_by_set_is_refused_and_one_an_event_or_time_scale_uses_is_not():
+    """A user trial: --set problem.parameters.eccc=0.7 on a problem by expressions added a parameter
+    that no expression uses, and the run went on with the config's ecc. The refusal reads every
+    expression a parameter can appear in: the time scale and the events too."""
+    err = config_error(expressions_data(), overrides=["problem.parameters.eccc=0.7"])
+    assert err.key == "problem.parameters.eccc", str(err)
+    assert re.search("no expression uses it .*did you mean 'ecc'", str(err)), str(err)
+    data = expressions_data()
+    data["problem"]["time_scale"] = "(q1**2 + q2**2)**w"
+    data["events"] = {"crossing": {"expression": "q1**2 + q2**2 - r0**2"}}
+    data["integration"] = {"rtol": 1e-10, "t_end": 10}
+    spec = load_run_from_dict(data, overrides=["problem.parameters.w=0.75", "problem.parameters.r0=0.5"])
+    assert spec.problem.parameters["r0"] == 0.5
+    del data["events"]
+    with pytest.raises(ConfigError, match="problem.parameters.r0: no expression uses it"):
+        load_run_from_dict(data, overrides=["problem.parameters.w=0.75", "problem.parameters.r0=0.5"])
+
+
 # --- errors name the line of the key --------------------------------------------------------
 
 LINED = """\

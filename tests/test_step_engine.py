@@ -95,6 +95,26 @@ def test_the_hard_step_of_the_long_run_is_solved_to_the_reference():
     assert np.max(np.abs(in_doubles - data["exact_whole"][2])) > 5e-14
 
 
+def test_well_scaled_steps_through_an_e099_pericentre_are_taken_whole_and_exact():
+    """Kepler e = 0.99, EHBVM(8,4) imposing L and A_y: next to the pericentre cond(Gamma) is 1e6 to 1e9
+    on every step, growing like 1/h, from Gamma's scaling alone, while the rounding alpha carries into
+    the step is below an ulp (solver.alpha_rounding). Such steps are taken whole, and they equal their
+    40-digit solutions (tests/data/pericentre_steps.npz) to an ulp of the state. Splitting them on
+    cond(Gamma) alone (before solver.SPLIT_ROUNDING) cascaded to the deepest level: 24 of one period's
+    115 time-reversible steps, 5x the gradient evaluations of the whole run, for the same solution."""
+    data = np.load(Path(__file__).parent / "data" / "pericentre_steps.npz")
+    p, method = kepler(0.99), ehbvm(8, 4)
+    for y0, h, exact in zip(data["states"], data["steps"], data["exact_whole"]):
+        result = elimfast.integrate(p, method, h, n_steps=1, y0=y0, conserve=[L1, AY])
+        assert result.substeps[0] == 1
+        assert np.max(np.abs(result.y_final - exact)) <= 2 * np.spacing(np.max(np.abs(exact)))
+    run = elimfast.integrate(p, method, t_end=2 * math.pi, conserve=[L1, AY], step_control="time_scale",
+                             epsilon=0.1)
+    assert run.stats["split_steps"] == 0
+    assert run.stats["grad_H_evaluations"] < 8 * 8 * run.stats["steps"]   # 8 nodes, about 5.8 iterations a step
+    assert max(run.invariant_errors().values()) < 1e-13
+
+
 def test_an_exactly_symmetric_step_is_split_not_accepted_with_a_spurious_alpha():
     """Spec 8: a step symmetric about the pericentre has a spurious solution (Gamma's row of
     A_y zero); the solver must not accept it. The step is split, and its halves agree
@@ -400,17 +420,30 @@ def test_a_singular_newton_matrix_of_a_method_that_imposes_nothing_is_named_as_s
 
 
 def test_a_failure_with_the_literal_right_hand_side_advises_the_stable_one():
-    """A user trial: going back over 100 steps of 0.2 with the paper's literal right-hand side failed
-    'after 4 halvings' and was told to 'reduce h, or allow more step halvings', which makes its
-    noise worse (docs/methods.md#stable-right-hand-side); the stable form retraces them."""
-    forward = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, conserve=(L1, AY))
+    """The paper's literal right-hand side turns alpha into rounding noise at small steps
+    (docs/methods.md#stable-right-hand-side): EHBVM(12,3) imposing L and A_y fails at h = 1e-5, and
+    smaller steps or more halvings only make that worse; the message says to take the stable one."""
     with pytest.raises(elimfast.errors.ConvergenceError) as failure:
-        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, y0=forward.y[-1], backward=True,
-                           conserve=(L1, AY), rhs="literal")
+        elimfast.integrate(kepler(0.6), ehbvm(12, 3), 1e-5, n_steps=10, conserve=(L1, AY), rhs="literal")
     message = str(failure.value)
     assert "use the stable one (solver.rhs: stable" in message and "reduce h" not in message
-    back = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, y0=forward.y[-1], backward=True,
-                              conserve=(L1, AY))
+
+
+@pytest.mark.parametrize("rhs", ["literal", "stable"])
+def test_a_backward_run_is_the_mirror_image_of_the_forward_run_bit_for_bit(rhs):
+    """Going back from y equals going forward from y with its momenta reversed (Kepler's H is even
+    in p, its flow reversible), so the kernel must give the mirror image, bit for bit. A user trial
+    went back over 100 steps of 0.2 with the literal right-hand side and failed 'after 4 halvings',
+    where the mirrored forward run passes: the rounding band of the stopping rule, eps h F / sc, took
+    h with its sign, and a backward run's band collapsed to 4 eps (solver._rounding_level)."""
+    forward = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, conserve=(L1, AY))
+    end, flip = forward.y[-1], np.array([1.0, 1.0, -1.0, -1.0])
+    back = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, y0=end, backward=True,
+                              conserve=(L1, AY), rhs=rhs)
+    mirrored = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.2, n_steps=100, y0=end * flip,
+                                  conserve=(L1, AY), rhs=rhs)
+    assert np.array_equal(back.y * flip, mirrored.y)
+    assert np.array_equal(back.iterations, mirrored.iterations)
     assert np.max(np.abs(back.y[-1] - kepler(0.6).y0)) < 1e-11
 
 

@@ -43,6 +43,13 @@ NEARLY_SINGULAR_GAMMA = 1e6
 # from t = 83610.3 of the README's run x100 (cond ~ 1e7) converged whole to 1.6e-14 of its 40-digit
 # solution, where the NumPy reference in doubles misses it by 1.1e-13; split, 2e-16.
 SPLIT_CONDITION = 1e6
+# ... unless the rounding its alpha carries into the step (alpha_rounding: spec 8's share of omega, the
+# componentwise |Gamma^-1| (db + dGamma |alpha|) in units of the state) is at most this. cond(Gamma) alone
+# also grows with a poor scaling of Gamma's rows and columns, which pivoting does not mind: at e = 0.99
+# (pericentre distance 0.01) every step near the pericentre has cond(Gamma) 1e6 to 1e9, growing like 1/h,
+# with alpha's share at most 2.4e-16 (1.1 eps); splitting cascaded to the deepest level, 16 substeps
+# each, for a fifth of the time-scale controller's steps. The hard step above: cond 6.3e6, share 4.2e-11.
+SPLIT_ROUNDING = 4.0 * EPS
 # The secant acceleration of simplified Newton (docs/solver.md#secant-acceleration; measured there,
 # not tunables): used only while the increment is above ACCEL_FLOOR (below it the increments carry
 # rounding that an extrapolation would amplify; at 1e-14 the slowest solve of the README's run took 16
@@ -464,14 +471,14 @@ def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
     a tighter bound, see maps._dot_rounding). solved: the last map solved its small system
     (else only the first term).
     """
-    scale, level, rounding, phi, gamma, h_powers, sizes = (work.scale, work.rounding_level, work.small_rounding,
-                                                           work.phi, work.gamma, work.h_powers, work.sizes)
+    scale, level, rounding, phi, sizes = work.scale, work.rounding_level, work.small_rounding, work.phi, work.sizes
     n = scale.shape[0]
     is_lim = settings.family == FAMILY_LIM
     n_rows = nu + 1 if is_lim else nu
     gradient_sizes(work, n_rows if solved else 0, tables.Ihat.shape[0])
+    # |h|: a backward run's h is negative, and its band must be the forward run's
     for p in range(n):
-        level[p] = 4.0 * EPS * h * sizes[0, p] / scale[p]
+        level[p] = 4.0 * EPS * abs(h) * sizes[0, p] / scale[p]
     if solved and is_lim:
         lim_rounding(tables, n_rows, s, settings.stable_rhs, work)
         metric = work.metric
@@ -479,18 +486,40 @@ def _rounding_level(h, mult, solved, settings, tables, nu, s, work):
             acc = 0.0
             for a in range(n_rows):
                 acc += rounding[0, a] * metric[p] * abs(phi[a, 0, p])
-            level[p] += h * acc / scale[p]
+            level[p] += abs(h) * acc / scale[p]
     elif solved and nu > 0:
         elim_rounding(h, mult, (settings.stable_rhs & RHS_STABLE) != 0, tables, nu, s, work)
         for p in range(n):
-            share = 0.0
-            for c in range(nu):
-                share = max(share, h_powers[c] * rounding[0, c] * abs(gamma[s - nu + c, p]))
-            level[p] += h * share / scale[p]
+            level[p] += _alpha_share(h, nu, s, work, p)
     omega = 0.0
     for p in range(n):
         omega = max(omega, level[p])
     return omega
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _alpha_share(h, nu, s, work, p):
+    """ELIM's share of omega_p (docs/solver.md): |h| max_c w_c dalpha_c |gamma_{j_c,p}| / sc_p, j_c = s - nu + c,
+    with dalpha in work.small_rounding[0] (maps.elim_rounding)."""
+    rounding, gamma, h_powers = work.small_rounding, work.gamma, work.h_powers
+    share = 0.0
+    for c in range(nu):
+        share = max(share, h_powers[c] * rounding[0, c] * abs(gamma[s - nu + c, p]))
+    return abs(h) * share / work.scale[p]
+
+
+@internal
+def alpha_rounding(h, mult, settings, tables, nu, s, work):
+    """The rounding an accepted ELIM solve's alpha carries into its step: max_p of _alpha_share, the
+    multipliers' part of docs/solver.md's omega, from the last map's gradients and Gamma (nu >= 1).
+    stepper._attempt splits a solve with cond(Gamma) above SPLIT_CONDITION only when this exceeds
+    SPLIT_ROUNDING."""
+    gradient_sizes(work, nu, tables.Ihat.shape[0])
+    elim_rounding(h, mult, (settings.stable_rhs & RHS_STABLE) != 0, tables, nu, s, work)
+    largest = 0.0
+    for p in range(work.scale.shape[0]):
+        largest = max(largest, _alpha_share(h, nu, s, work, p))
+    return largest
 
 
 @internal

@@ -29,7 +29,8 @@ from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table, two_prod, two_sum
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE, INT_VECTOR,
                          INVARIANTS_TYPE, MATRIX, VECTOR)
-from .solver import BAND_CAP, NEARLY_SINGULAR_GAMMA, SPLIT_CONDITION, accelerates, newton_factor, solve
+from .solver import (BAND_CAP, NEARLY_SINGULAR_GAMMA, SPLIT_CONDITION, SPLIT_ROUNDING, accelerates, alpha_rounding,
+                     newton_factor, solve)
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
@@ -248,7 +249,8 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
              y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base, may_split):
     """Solve one (sub)step from y with step h: predicted guess, then the unextrapolated one.
     may_split: the caller can still halve this (sub)step, and a solve that converged with
-    cond(Gamma) above SPLIT_CONDITION counts as failed (STATUS_SINGULAR) so that it is.
+    cond(Gamma) above SPLIT_CONDITION, whose alpha carries more than SPLIT_ROUNDING of rounding into
+    the step (solver.alpha_rounding), counts as failed (STATUS_SINGULAR) so that it is.
 
     coef/mult hold the previous (sub)step's coefficients and multipliers on entry (when
     have_prev) and the solution on success; on failure they are left as on entry.
@@ -298,7 +300,8 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             break
     if newton:
         newton_base[2] = work.info[2]
-    if status == STATUS_OK and may_split and work.info[1] > SPLIT_CONDITION:
+    if (status == STATUS_OK and may_split and work.info[1] > SPLIT_CONDITION
+            and alpha_rounding(h, mult, settings, tables, conserve_idx.shape[0], coef.shape[0], work) > SPLIT_ROUNDING):
         status = STATUS_SINGULAR
     if status == STATUS_OK:
         if settings.predictor != 0:

@@ -12,7 +12,13 @@ NumPy reference in doubles (tests/reference.py) is itself 1.1e-13 from it, more 
 kernel (tests/test_step_engine.py).
 
     .venv/bin/python tests/data/make_hard_steps.py [--exact]   (--exact alone: keeps the states)
+
+With --pericentre it writes pericentre_steps.npz instead: steps of EHBVM(8,4) through the pericentre
+of Kepler e = 0.99, where cond(Gamma) reaches 1e6-1e9 from Gamma's scaling alone, and their 40-digit
+solutions (tests/test_step_engine.py: they are taken whole, and exactly).
 """
+import functools
+import math
 import sys
 from pathlib import Path
 
@@ -25,22 +31,26 @@ from elimfast.problems import kepler
 
 STEP = 836103   # the state before step 836104 (1-based), t = 83610.3
 OUT = Path(__file__).with_name("hard_steps.npz")
+PERICENTRE_OUT = Path(__file__).with_name("pericentre_steps.npz")
 
 mp.mp.dps = 40
-k = r = 12
-s = 3
 nu = 2
-_roots = sorted(mp.polyroots(mp.taylor(lambda x: mp.legendre(k, x), 0, k)[::-1], maxsteps=500, extraprec=800))
-c = [(1 + x) / 2 for x in _roots]
-b = [1 / ((1 - x ** 2) * mp.diff(lambda t: mp.legendre(k, t), x) ** 2) for x in _roots]
+
+
+@functools.lru_cache(maxsize=None)
+def tables(k, s):
+    """HBVM(k, s)'s tables in 40 digits: the Gauss-Legendre nodes c and weights b, P_j(c_l) and
+    int_0^c_l P_j (j < s)."""
+    roots = sorted(mp.polyroots(mp.taylor(lambda x: mp.legendre(k, x), 0, k)[::-1], maxsteps=500, extraprec=800))
+    c = [(1 + x) / 2 for x in roots]
+    b = [1 / ((1 - x ** 2) * mp.diff(lambda t: mp.legendre(k, t), x) ** 2) for x in roots]
+    Pk = [[P(j, c[l]) for j in range(k)] for l in range(k)]
+    Ik = [[mp.quad(lambda t, j=j: P(j, t), [0, c[l]]) for j in range(s)] for l in range(k)]
+    return c, b, Pk, Ik
 
 
 def P(j, x):
     return mp.sqrt(2 * j + 1) * mp.legendre(j, 2 * x - 1)
-
-
-Pk = [[P(j, c[l]) for j in range(k)] for l in range(k)]
-Ik = [[mp.quad(lambda t, j=j: P(j, t), [0, c[l]]) for j in range(s)] for l in range(k)]
 
 
 def grad_H(y):
@@ -63,9 +73,10 @@ def J(v):
     return [v[2], v[3], -v[0], -v[1]]
 
 
-def exact_step(y0, h, iterations=5000):
-    """One step of EHBVM(12,3) imposing L and A_y (stable right-hand side, docs/methods.md#elim) in
+def exact_step(y0, h, k=12, s=3, iterations=5000):
+    """One step of EHBVM(k,s) imposing L and A_y (stable right-hand side, docs/methods.md#elim) in
     40-digit arithmetic: the fixed point, alpha = 0 for two sweeps, to increments below 1e-36."""
+    c, b, Pk, Ik = tables(k, s)
     y0 = [mp.mpf(float(v)) for v in y0]
     h = mp.mpf(float(h))
     coef = [[mp.mpf(0)] * 4 for _ in range(s)]
@@ -98,7 +109,24 @@ def exact_step(y0, h, iterations=5000):
     raise RuntimeError("the 40-digit fixed point did not converge")
 
 
+def pericentre_steps():
+    """Kepler e = 0.99, EHBVM(8,4) imposing L and A_y on time-reversible steps (epsilon = 0.1), one
+    period: the states and steps of the first three and the last three steps, the passages of the
+    pericentre, where cond(Gamma) is 1e6 to 1e9 (docs/solver.md), and each step solved in 40 digits."""
+    run = elimfast.integrate(kepler(0.99), ehbvm(8, 4), t_end=2 * math.pi, conserve=["angular_momentum", "lrl_y"],
+                             step_control="time_scale", epsilon=0.1, store_every=1)
+    picks = [0, 1, 2, len(run.t) - 4, len(run.t) - 3, len(run.t) - 2]
+    states, steps = run.y[picks], (run.t[1:] - run.t[:-1])[picks]
+    return {"states": states, "steps": steps,
+            "exact_whole": np.array([exact_step(y0, h, k=8, s=4) for y0, h in zip(states, steps)]),
+            "source": f"elimfast {elimfast.__version__}, Kepler e = 0.99, time_scale epsilon 0.1, steps {picks}"}
+
+
 def main():
+    if "--pericentre" in sys.argv:
+        np.savez(PERICENTRE_OUT, **pericentre_steps())
+        print(f"stored {PERICENTRE_OUT}")
+        return
     if "--exact" in sys.argv and OUT.exists():
         stored = dict(np.load(OUT))
     else:
