@@ -319,6 +319,12 @@ class EventSpec:
         y0 (problem.y0 by default; require_defined_at_start, the time scale's rule)."""
         from .problems.symbolic import compile_state_functions
 
+        if events is not None and not isinstance(events, Mapping):
+            # dict() of a list of strings reads each string's characters as (key, value) pairs: events=["q1"]
+            # became an event 'q' of expression '1' that never fired (a user trial)
+            raise ParameterError("events", "must be a mapping of event names to expressions, e.g. "
+                                           "{'pericentre': 'q1*p1 + q2*p2'} or {'pericentre': {'expression': "
+                                           f"'q1*p1 + q2*p2', 'direction': 1}}}}, got {type(events).__name__}")
         events = dict(events or {})
         names, expressions, directions, terminal = [], [], [], []
         for name, entry in events.items():

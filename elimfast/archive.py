@@ -22,8 +22,8 @@ def load(path, run: str | None = None):
     file (``path`` may also be given as ``"sweep.h5:/runs/<label>"``).
 
     y_final and t_final are the saved state of a run file (what --resume continues from),
-    and the last sample of a sweep run (a failed run ends with a sample of its last good
-    state). The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
+    and a sweep run's state after its last completed step (its attributes; the last sample in
+    files written before they were kept, which is that state unless output.times end early). The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
     Raises OutputError (an ElimfastError) for a file or run that cannot be read.
     """
     from .config import load_run_from_dict, parse_yaml
@@ -52,6 +52,8 @@ def load(path, run: str | None = None):
         if run is None:
             saved = stored.saved_state()
             y_final, t_final = saved["y"].copy(), float(saved["clock"][0])
+        elif "y_final" in stored.attrs:
+            y_final, t_final = np.array(stored.attrs["y_final"], dtype=np.float64), float(stored.attrs["t_final"])
         else:
             y_final, t_final = y[-1].copy(), float(t[-1])
         name = stored.multiplier_name

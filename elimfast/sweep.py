@@ -355,6 +355,14 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             if not isinstance(axis["key"], str) or not all(axis["key"].split(".")):
                 _fail(source, f"{key}.key", "must be a dotted key such as integration.h")
             _check_axis_key(source, f"{key}.key", base, axis["key"], values[0])
+            parts = axis["key"].split(".")
+            for other, other_key in axis_keys.items():
+                shared = min(len(parts), len(other_key.split(".")))
+                if parts[:shared] == other_key.split(".")[:shared]:
+                    # the later axis overwrote the earlier one's value: runs labelled apart were the same
+                    # run, and the earlier axis's column showed the later one's values (a user trial)
+                    _fail(source, f"{key}.key", f"{axis['key']} is also set by the axis {other!r} "
+                                                f"(grid[{axis_names.index(other)}], key {other_key}); one axis per key")
             labels = axis.get("labels") or [str(v) for v in values]
             if not isinstance(labels, list) or len(labels) != len(values):
                 _fail(source, f"{key}.labels", f"has {len(labels) if isinstance(labels, list) else 'no list of'} "
@@ -531,6 +539,18 @@ def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
     fault of the sweep file. Only that: the values themselves are the runs' to judge."""
     from .config import unknown_key_text
     from .config_schema import RunConfig, ValidationError, config_location
+    from .problems.expressions import did_you_mean
+    parts = dotted.split(".")
+    problem = base.get("problem") if isinstance(base, dict) else None
+    if (len(parts) == 3 and parts[:2] == ["problem", "parameters"] and isinstance(problem, dict)
+            and ("hamiltonian" in problem or "coordinates" in problem)):
+        # A problem by expressions uses only the parameters its base declares (the base loads alone):
+        # an axis over a new, misspelt one ran the same run under every label (a user trial).
+        declared = sorted(map(str, problem.get("parameters") or {}))
+        if parts[2] not in declared:
+            _fail(source, key, f"{dotted}: the base's problem has no parameter {parts[2]!r}, so no expression "
+                               f"uses it{did_you_mean(parts[2], declared)} (its parameters: "
+                               f"{', '.join(declared) or 'none'})")
     config = copy.deepcopy(base)
     _set_path(config, dotted, value, source)
     try:
@@ -901,7 +921,7 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
                                   base_dir=Path(path).parent)
     outcome = RunOutcome(label=run.label, coordinates=run.coordinates, status="complete",
                          resolved=resolved.resolved, n_steps=result.n_steps, steps_done=result.steps_done,
-                         h=resolved.h, wall_time=wall_time_s, y_initial=result.y[0].copy(),
+                         h=resolved.h, wall_time=wall_time_s, y_initial=result.y0.copy(),
                          y_final=result.y_final.copy(), t_final=result.t_final)
     _summarise(outcome, result, resolved.solver)
     if keep_result:

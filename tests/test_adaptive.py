@@ -437,6 +437,15 @@ def test_bad_events_name_the_key():
             load_run_from_dict(config, source="run.yaml")
 
 
+@pytest.mark.parametrize("events", [["q1"], "q1*p1 + q2*p2", [("q1*p1", 1)]])
+def test_events_that_are_not_a_mapping_are_refused(events):
+    """A user trial: events=["q1"] ran with an event 'q' of expression '1' (dict() reads each string's
+    characters as a key-value pair), which never fired; a longer string gave a bare ValueError."""
+    with pytest.raises(ParameterError, match="must be a mapping of event names to expressions") as info:
+        elimfast.integrate(kepler(0.6), ehbvm(8, 4), t_end=1.0, rtol=1e-10, events=events)
+    assert info.value.parameter == "events"
+
+
 def test_lim_and_nbody_adaptive():
     from elimfast.problems import nbody
     p = nbody()

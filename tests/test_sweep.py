@@ -10,6 +10,7 @@ import yaml
 from elimfast.io.hdf5 import OutputError
 
 from elimfast import paper
+from elimfast.archive import load
 from elimfast.sweep import SweepError, load_sweep, orders_of, errors_of, run_sweep, table_rows, format_table
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,6 +105,17 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
     ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30"]},
                              {"name": "h", "key": "integration.t_end", "values": ["2*pi"]}]},
      r"grid\[1\]\.name: repeats the axis name 'h' of grid\[0\]"),
+    # a user trial: two axes on one key ran the later axis's values under the earlier one's labels
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30"]},
+                             {"name": "h2", "key": "integration.h", "values": ["pi/60"]}]},
+     r"grid\[1\]\.key: integration\.h is also set by the axis 'h' \(grid\[0\], key integration\.h\)"),
+    ({"base": BASE, "grid": [{"name": "s", "key": "method.s", "values": [3]},
+                             {"name": "m", "key": "method", "values": ["GAUSS(2)"]}]},
+     r"grid\[1\]\.key: method is also set by the axis 's'"),
+    # ... and an axis over a misspelt parameter of a problem by expressions ran one run under every label
+    ({"base": str(ROOT / "configs" / "kepler_expressions.yaml"),
+      "grid": [{"name": "mu", "key": "problem.parameters.mux", "values": [1.0, 2.0]}]},
+     r"grid\[0\]\.key: problem\.parameters\.mux: the base's problem has no parameter 'mux'.*did you mean 'mu'"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)
@@ -550,6 +562,25 @@ def test_resume_runs_the_failed_runs_of_a_sweep_again_with_an_edited_solver_sect
         assert [int(f["runs"][name].attrs[RUN_INDEX]) for name in ("2*pi|4", "pi|30")] == [0, 1]
     fresh = sweeps.run_to_file(edited, tmp_path / "fresh.h5", workers=1)
     assert resumed.table() == fresh.table()   # (no step of the kept run was split: max_halvings did not matter)
+
+
+def test_a_stored_run_keeps_its_final_state_when_its_output_times_end_before_t_end(tmp_path):
+    """A user trial: output.times ending before t_end (every 3 up to 20 pi), error against the initial
+    state. The sweep printed 6.5e-8 and 1.3e-9; --resume, which reads the stored runs back, printed 2.494
+    for both, the last sample's distance from y0, and load(run=...) gave t_final 60. The final state is
+    stored with each run (attributes t_final, y_final) and read back."""
+    from elimfast import sweep as sweeps
+    base = {"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}}, "method": {"name": "hbvm", "s": 3},
+            "integration": {"rtol": 1e-10, "t_end": "4*pi"}, "output": {"times": {"start": 0, "stop": "4*pi", "step": 3}}}
+    path = write_sweep(tmp_path, {"base": base, "grid": [{"name": "rtol", "key": "integration.rtol",
+                                                          "values": [1e-10, 1e-12]}], "error": {"exact": "initial"}})
+    out = tmp_path / "out.h5"
+    first = sweeps.run_to_file(path, out, workers=1)
+    resumed = sweeps.run_to_file(path, out, resume=True, workers=1)
+    assert resumed.table() == first.table()
+    stored = load(out, run="1e-12")
+    assert stored.t_final == pytest.approx(4 * math.pi, rel=1e-14) and stored.t[-1] == 12.0
+    assert np.max(np.abs(stored.y_final - stored.y0)) < 1e-7
 
 
 def test_resume_refuses_a_base_config_file_edited_under_an_unedited_sweep_file(tmp_path):

@@ -400,6 +400,11 @@ class SweepWriter:
                     step_t=result.step_t, step_h=result.step_h, **_event_rows(result))
         if result.iterations.size > done:
             group.attrs["failed_step_iterations"] = int(result.iterations[done])
+        # The state after the last completed step: the last sample is not it when output.times end
+        # before t_end (a user trial: a resumed sweep's errors, taken from the last sample, were 2.5
+        # where the run's were 1e-9). archive.load reads them back.
+        group.attrs["t_final"] = float(result.t_final)
+        group.attrs["y_final"] = np.asarray(result.y_final, dtype=np.float64)
         self._file.flush()
         # Written only once the run's data are on disk: --resume keeps the runs marked so.
         group.attrs["stored"] = flag_attribute(True)
