@@ -879,6 +879,12 @@ def test_a_killed_sweep_file_is_read_as_it_is_and_called_interrupted_with_the_co
     with elimfast.open_datatree(out) as tree:
         np.testing.assert_array_equal(tree["runs/2*pi|100"]["y"].values, stored.y)
     assert consistency_flags(out)   # reading touched nothing
+    # A user trial: a script that loads a run of the killed file and opens its tree, leaving both open,
+    # crashed at its exit (segmentation fault): HDF5's close at exit called back into a view already gone.
+    script = (f"import elimfast; r = elimfast.load({str(out)!r}, run='2*pi/100'); "
+              f"t = elimfast.open_datatree({str(out)!r}); print(t['runs/2*pi|100']['y'].shape)")
+    ran = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert ran.returncode == 0 and ran.stdout.strip() == str(stored.y.shape), (ran.returncode, ran.stderr[-500:])
     run_to_file(path, out, resume=True, workers=1)
     np.testing.assert_array_equal(elimfast.load(out, run="2*pi/100").y, stored.y)
     with pytest.raises(OutputError, match="4 of 4 runs stored"):

@@ -28,6 +28,7 @@ allow ``METADATA_READ_ATTEMPTS``.
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import ctypes.util
@@ -41,6 +42,7 @@ import socket
 import stat
 import struct
 import typing
+import weakref
 from pathlib import Path
 
 import h5py
@@ -710,7 +712,22 @@ def _open_interrupted_sweep(path: Path) -> h5py.File | None:
         f.close()
         view.close()
         return None
+    _VIEW_FILES.add(f)
     return f   # the view is closed with the last reference to it (h5py's file-object driver holds it)
+
+
+# The files open through an _UnflaggedView, closed at exit before the interpreter tears down: HDF5's
+# own close at exit calls back into the view (h5py's file-object driver), and where the view, or the
+# Python machinery it needs, went first, the process crashed (a user trial: load(run=...) and
+# open_datatree of one killed sweep file, exit code 139 after the script's last line).
+_VIEW_FILES: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register   # registered after h5py's import, so run before h5py's own handler (last in, first out)
+def _close_view_files() -> None:
+    for f in list(_VIEW_FILES):
+        with contextlib.suppress(Exception):
+            f.close()
 
 
 class _UnflaggedView(io.FileIO):
