@@ -365,8 +365,14 @@ def summary(run_file, integrity: dict | None = None) -> str:
     solver = (config_of(run_file).get("solver") or {})
     stats = run_file.iteration_stats()
     if stats.get("count"):
-        row("iterations", f"mean {stats['mean']:.2f}, median {stats['median']}, 99% <= {stats['p99']}, "
-                          f"min {stats['min']}, max {stats['max']}, total {stats['total']:,}")
+        every = a.get("stats_iterations")
+        # An adaptive run's total counts every solve (rejected steps', side steps'), as its grad H count and
+        # the sweep table do; the per-step figures are the accepted steps' (a user trial read two totals)
+        whole = (f"; all solves, rejected and side steps too: {int(every):,}"
+                 if every is not None and int(every) != stats["total"] else "")
+        row("iterations", f"{'of the accepted steps: ' if whole else ''}mean {stats['mean']:.2f}, median "
+                          f"{stats['median']}, 99% <= {stats['p99']}, min {stats['min']}, max {stats['max']}, "
+                          f"total {stats['total']:,}{whole}")
         max_iter = solver.get("max_iter")
         if isinstance(max_iter, int) and stats["max"] > max_iter:
             # max_iter bounds one solve; a step's count is every solve it took

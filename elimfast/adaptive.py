@@ -75,6 +75,11 @@ def require_defined_at_start(parameter: str, value: float, y, why: str, positive
 _EPSILON_WITH_ERROR_CONTROL = "belongs to step_control = 'time_scale'; the error controller takes rtol (and atol)"
 
 
+# The failure of steps that collapsed says so; --resume, which reads it from the file, then advises no
+# other solver settings (streaming.py; a user trial followed that advice and failed the same way).
+NO_SETTING_GETS_THROUGH = "no tolerance or solver setting gets through"
+
+
 @dataclass(frozen=True)
 class StepControl:
     """How the step size is chosen (docs/adaptive.md).
@@ -591,8 +596,7 @@ class AdaptiveIntegration:
                     f"the error controller came down to h = {d[stepper.DIAG_STEP]:.3g}, below 4 eps of t_end = "
                     f"{self.t_end:.6g}: at that size t_end is more than 10^15 steps away; "
                     "the solution is likely nearing a singularity of H (a collision, or a fall into a centre), which "
-                    "no tolerance or solver setting gets through; check the initial state and the problem's "
-                    "parameters")
+                    f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
         # the failed step's h: DIAG_STEP is its failed substep's, 2^depth times smaller (a user trial read
         # "t = 12.5663689 -> 12.5663691, in its substep from t = 12.5663705": h/16 for the step)
         step = float(d[stepper.DIAG_STEP]) * 2.0 ** int(d[stepper.DIAG_DEPTH])
@@ -616,10 +620,15 @@ class AdaptiveIntegration:
                             "a sigma that nears zero along the orbit makes them collapse)")
             if here < COLLAPSED_TIME_SCALE * start:
                 # A user trial: perturbed Kepler e = 0.9, delta = 0.01 falls into the centre (its -delta/r^3
-                # wins at r = 0.1); the run failed at t = 0.037 and was told to raise solver.max_iter.
+                # wins at r = 0.1); the run failed at t = 0.037 and was told to raise solver.max_iter, which a
+                # later trial found still said beside this note: the solver's advice is dropped here.
+                from .integrate import _ADAPTIVE_FAILURE_ADVICE
+                advice = _ADAPTIVE_FAILURE_ADVICE.get(self.status)
+                if advice:
+                    message = message.replace(f"; {advice}", "", 1)
                 message += (f"; sigma has fallen to {here / start:.2g} of its value at t0: the orbit is nearing "
-                            "where sigma vanishes (a collision or a fall into a singularity of H), which no solver "
-                            "setting passes; check the initial state and the problem's parameters")
+                            f"where sigma vanishes (a collision or a fall into a singularity of H), which "
+                            f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
         return message
 
     @property

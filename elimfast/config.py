@@ -365,6 +365,13 @@ def parse_yaml_with_lines(text: str, source: str = "<text>"):
         raise ConfigError(f"{source}: {where}invalid YAML ({problem}); fix the syntax there") from None
     except (RecursionError, MemoryError):
         raise ConfigError(f"{source}: the YAML is nested too deeply; simplify the file") from None
+    except ValueError as err:
+        # Python refuses to read an integer of more than 4300 digits (a user trial's h: 1000...0 gave an
+        # internal error); no number of a config needs that many
+        if "integer string conversion" not in str(err):
+            raise
+        raise ConfigError(f"{source}: a whole number of more than 4300 digits, which Python does not read and "
+                          "no config value needs; write numbers with an exponent, e.g. 1e30") from None
 
 
 def _refuse_duplicate_keys(loader: yaml.SafeLoader, root, source: str) -> None:

@@ -846,6 +846,10 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                                kernel_time_s=float(attrs.get("kernel_time_s", 0.0)),
                                note=done)
             if status.startswith(FAILED_PREFIX) and not solver_changed:
+                from .adaptive import NO_SETTING_GETS_THROUGH
+                if NO_SETTING_GETS_THROUGH in status:
+                    raise OutputError(f"{path}: the run {status}; resuming it would fail the same way: start again "
+                                      "with --overwrite, from another initial state or with other parameters")
                 raise OutputError(f"{path}: the run {status}; resuming with the same solver settings would fail the "
                                   "same way: resume with other ones (e.g. --set solver.max_halvings=8), or start "
                                   "again with --overwrite")

@@ -174,6 +174,21 @@ def test_many_unimposed_steps_of_an_adaptive_run_name_its_shortest_steps(tmp_pat
     assert "too short for Gamma" in invoke("inspect", out).stdout
 
 
+def test_inspect_says_which_iterations_its_figures_count(tmp_path):
+    """A user trial: inspect's total for an adaptive run (the accepted steps') differed from the sweep
+    table's (every solve, rejected and side steps too, as grad H counts them), and neither said which."""
+    out = tmp_path / "adaptive.h5"
+    done = invoke("run", str(ROOT / "configs" / "kepler_adaptive.yaml"), "-o", out, "--set", "integration.t_end=20*pi",
+                  "--quiet")
+    assert done.exit_code == 0, done.output
+    line = next(line for line in invoke("inspect", out).stdout.splitlines() if line.startswith("iterations "))
+    with h5py.File(out, "r") as f:
+        every, accepted = int(f.attrs["stats_iterations"]), int(f["steps/iterations"][:].sum())
+    assert every > accepted, (every, accepted)   # rejected steps and side steps (the events') solve too
+    assert line.startswith("iterations   of the accepted steps: mean ") and f"total {accepted:,}; all solves, " \
+        f"rejected and side steps too: {every:,}" in line, line
+
+
 def test_inspect_says_the_initial_state_comes_from_problem_initial(kepler_file, tmp_path):
     """problem.initial replaces the state kepler's eccentricity chooses: inspect said
     'kepler (eccentricity = 0.6)' as if the parameter described the orbit."""

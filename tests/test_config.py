@@ -559,6 +559,8 @@ def write(tmp_path, text, name="run.yaml"):
     ("problem: !!python/object/apply:os.system ['true']\n", "invalid YAML .*python/object/apply"),
     ("problem: !!python/name:os.system\n", "invalid YAML"),
     ("problem: !custom 3\n", "invalid YAML"),
+    # a user trial: an integer of 5000 digits gave an internal error (Python's int conversion limit)
+    ("problem: kepler\nintegration: {h: 1" + "0" * 5000 + ", t_end: 1}\n", "a whole number of more than 4300 digits"),
 ])
 def test_yaml_faults_are_config_errors_with_line_numbers(tmp_path, text, match):
     path = write(tmp_path, text)

@@ -451,8 +451,9 @@ def write_yaml(path: Path, data) -> Path:
 def test_huge_grids_and_ensembles_are_refused_before_anything_is_allocated(tmp_path):
     base = {"problem": {"builtin": "henon_heiles"}, "method": {"name": "hbvm", "k": 6, "s": 3},
             "integration": {"h": 0.1, "n_steps": 100}}
+    # ten axes of ten variants each (ten plain axes on one key are refused for that: one axis per key)
     grid = write_yaml(tmp_path / "grid.yaml", {"base": base, "grid": [
-        {"name": f"a{i}", "key": "solver.tol", "values": [f"{j}e-16" for j in range(1, 11)]} for i in range(10)]})
+        {"name": f"a{i}", "values": [{"label": f"v{j}", "set": {}} for j in range(10)]} for i in range(10)]})
     ensemble = write_yaml(tmp_path / "ensemble.yaml", {"base": base, "ensemble": {"n": "1e8"}})
     wide = write_yaml(tmp_path / "wide.yaml", {"base": base, "ensemble": {"n": 10 ** 12}})
     cases = [

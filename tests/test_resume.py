@@ -380,6 +380,21 @@ FAILING = ("problem: {builtin: kepler, parameters: {eccentricity: 0.95}}\nconser
            "output: {every: 10}\n")
 
 
+def test_resume_of_a_run_whose_steps_collapsed_advises_no_other_solver_settings(tmp_path):
+    """A user trial: a radial fall into Kepler's centre stopped with 'the steps collapsed ... which no
+    tolerance or solver setting gets through'; --resume then advised '--set solver.max_halvings=8', and
+    following that failed the same way. The refusal now says to start again from another state."""
+    config, path = tmp_path / "fall.yaml", tmp_path / "fall.h5"
+    config.write_text("problem: {builtin: kepler, initial: {q1: 1.0, q2: 0.0, p1: -0.1, p2: 0.0}}\n"
+                      "method: {name: hbvm, s: 3}\nintegration: {rtol: 1e-10, t_end: 10}\n")
+    failed = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--quiet"])
+    assert failed.exit_code == 1 and "the steps collapsed" in failed.stderr, failed.stderr
+    refused = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
+    assert refused.exit_code == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert "resuming it would fail the same way: start again with --overwrite, from another initial state" \
+        in refused.stderr and "max_halvings" not in refused.stderr, refused.stderr
+
+
 def test_resume_applies_the_config_files_edits_as_set_would(tmp_path):
     """A user trial: a run failed with max_halvings: 1; the user edited the YAML to 8 and ran
     --resume, which refused 'resuming with the same solver settings would fail the same way'
