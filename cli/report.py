@@ -146,8 +146,9 @@ def run_notes(run_file) -> list[str]:
     notes = []
     substeps = run_file.substep_stats()
     if substeps["split"]:
-        notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}) because the "
-                     "solver could not converge them whole; every invariant is kept there too")
+        notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}): the solver "
+                     "could not converge them whole, or could only with alpha carrying rounding into the step "
+                     "(docs/solver.md#when-a-step-fails-retry-then-split); every invariant is kept there too")
     if substeps.get("unimposed"):
         notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive))
     spikes = run_file.alpha_spikes()

@@ -903,20 +903,14 @@ class _Builder:
         a parameter that changes nothing, and the run would go on with the config's value. (A misspelt
         parameter in the config itself leaves the expressions' name unknown, which is refused; a
         resolved config keeps parameters its evaluated initial values no longer show.)"""
-        texts = [section.hamiltonian or "", section.time_scale or ""]
-        texts += list((section.invariants or {}).values()) + list((section.initial or {}).values())
-        texts += [event.expression for event in (events or {}).values()]
-        used = set()
-        for text in texts:
-            if isinstance(text, str):
-                used.update(re.findall(r"[A-Za-z_][A-Za-z_0-9]*", text))
-        parameters = section.parameters or {}
-        for pname in parameters:
-            if pname not in used and self.override_of(("problem", "parameters", pname)) is not None:
-                candidates = sorted(name for name in parameters if name in used)
-                raise self.error(("problem", "parameters", pname),
-                                 f"no expression uses it (hamiltonian, invariants, initial, time_scale, events); "
-                                 f"remove it or fix its name{did_you_mean(str(pname), candidates)}")
+        texts = {"hamiltonian": section.hamiltonian, "time_scale": section.time_scale,
+                 "invariants": section.invariants, "initial": section.initial,
+                 "parameters": section.parameters}
+        unused, used = unused_parameters(texts, {name: {"expression": event.expression}
+                                                 for name, event in (events or {}).items()})
+        for pname in unused:
+            if self.override_of(("problem", "parameters", pname)) is not None:
+                raise self.error(("problem", "parameters", pname), unused_parameter_text(pname, used))
 
     def builtin(self, section: Section):
         from . import problems as library
@@ -1020,6 +1014,29 @@ class _Builder:
         return problem, {"name": name, "coordinates": {k: list(v) for k, v in coordinates.items()},
                          "hamiltonian": section.hamiltonian, "invariants": dict(section.invariants or {}),
                          "parameters": dict(problem.parameters), "initial": _initial_dict(problem)}
+
+
+def unused_parameters(problem: dict, events: dict | None) -> tuple[list[str], list[str]]:
+    """(unused, used): the parameters of a problem by expressions (a config's problem section as
+    data) that no expression names (hamiltonian, invariants, initial, time_scale, events), and those
+    that one does. Parameters cannot use each other, so a parameter no expression names changes
+    nothing: a misspelt name, which _Builder.unused_parameters and the sweep refuse."""
+    texts = [problem.get("hamiltonian"), problem.get("time_scale")]
+    for key in ("invariants", "initial"):
+        texts += list((problem.get(key) or {}).values()) if isinstance(problem.get(key), dict) else []
+    texts += [event.get("expression") if isinstance(event, dict) else event for event in (events or {}).values()]
+    named = set()
+    for text in texts:
+        if isinstance(text, str):
+            named.update(re.findall(r"[A-Za-z_][A-Za-z_0-9]*", text))
+    parameters = [str(name) for name in (problem.get("parameters") or {})]
+    return [p for p in parameters if p not in named], [p for p in parameters if p in named]
+
+
+def unused_parameter_text(pname: str, used) -> str:
+    """The refusal of a parameter no expression uses (unused_parameters), with the closest used name."""
+    return (f"no expression uses it (hamiltonian, invariants, initial, time_scale, events); remove it or fix "
+            f"its name{did_you_mean(str(pname), sorted(used))}")
 
 
 def _initial_dict(problem: Problem) -> dict:

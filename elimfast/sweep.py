@@ -327,6 +327,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     elif not isinstance(base, dict):
         _fail(source, "base", "give a run config: a path to a YAML file or an inline mapping")
     base = copy.deepcopy(_written_out(source, "base.", base))
+    base_alone = copy.deepcopy(base)   # before the sweep's set: whose parameters are the base's own
     common = data.get("set") or {}
     if not isinstance(common, dict):
         _fail(source, "set", "must be a mapping of overrides, e.g. {integration: {t_end: 20*pi}}")
@@ -338,6 +339,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     axis_points = []
     axis_names = []
     axis_keys = {}
+    variant_sections: dict[str, list[str]] = {}
     for index, axis in enumerate(axes):
         key = f"grid[{index}]"
         if not isinstance(axis, dict) or "values" not in axis:
@@ -382,6 +384,19 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         axis_names.append(name)
         if "key" in axis:
             axis_keys[name] = axis["key"]
+        else:
+            variant_sections[name] = sorted({top for _, change in points for top in change["replace"]})
+    # A variant replaces whole sections: one that holds the key of a plain axis before it (the axes are
+    # applied in order) overwrites that axis's value (a user trial: an integration.h axis, then a variant
+    # setting integration, ran the same run under both h labels; a method.s axis, then a GAUSS(2)
+    # variant, ran GAUSS(2) labelled s = 3). A plain axis after the variant sets its key on top.
+    for variant_axis, sections in variant_sections.items():
+        for plain_axis, dotted in axis_keys.items():
+            if axis_names.index(plain_axis) < axis_names.index(variant_axis) and dotted.split(".")[0] in sections:
+                index = axis_names.index(variant_axis)
+                _fail(source, f"grid[{index}]", f"its variants set {dotted.split('.')[0]}, which holds the key "
+                                                f"{dotted} of the axis {plain_axis!r} (grid[{axis_names.index(plain_axis)}]) "
+                                                "and would overwrite its values; one axis per key")
 
     # Count (and size) the grid before expanding it: the product of the axes' lengths grows
     # fast, and each point holds a copy of the base config.
@@ -405,6 +420,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                     config[top_key] = copy.deepcopy(value)
         label = "/".join(f"{label}" for label in coordinates.values()) or "run"
         runs.append(SweepRun(label=label, coordinates=coordinates, config=config))
+    _refuse_unused_parameters(source, base_alone, runs)
     labels = [r.label for r in runs]
     if len(set(labels)) != len(labels):
         _fail(source, "grid", "two runs get the same label; give the variants distinct labels")
@@ -533,24 +549,33 @@ def _written_out(source: str, where: str, config: dict) -> dict:
     return write_out_shorthands(config, lambda path, text: SweepError(f"{source}: {where}{_join(path)}: {text}"))
 
 
+def _refuse_unused_parameters(source: str, base: dict, runs) -> None:
+    """A parameter that the sweep (its set, an axis or a variant) gives a problem by expressions and
+    that no expression uses changes nothing: a misspelt name, and every label would run the same run
+    (a user trial). Refused, as --set refuses it (config.unused_parameters); parameters the base
+    declares are the base's own business."""
+    from .config import unused_parameter_text, unused_parameters
+    base_problem = base.get("problem") if isinstance(base, dict) else None
+    declared = set(map(str, (base_problem or {}).get("parameters") or {})) if isinstance(base_problem, dict) else set()
+    for run in runs:
+        problem = run.config.get("problem")
+        if not (isinstance(problem, dict) and ("hamiltonian" in problem or "coordinates" in problem)
+                and isinstance(problem.get("parameters") or {}, dict)):
+            continue
+        unused, used = unused_parameters(problem, run.config.get("events") if isinstance(run.config.get("events"),
+                                                                                         dict) else None)
+        for pname in unused:
+            if pname not in declared:
+                _fail(source, f"problem.parameters.{pname}", f"(run {run.label!r}, from the sweep's set or an axis) "
+                                                             + unused_parameter_text(pname, used))
+
+
 def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
     """A plain axis sets ``dotted`` in every run: a key that no config has (integration.hh)
     would fail every run alike, one line each and exit code 1, so it is refused here as a
     fault of the sweep file. Only that: the values themselves are the runs' to judge."""
     from .config import unknown_key_text
     from .config_schema import RunConfig, ValidationError, config_location
-    from .problems.expressions import did_you_mean
-    parts = dotted.split(".")
-    problem = base.get("problem") if isinstance(base, dict) else None
-    if (len(parts) == 3 and parts[:2] == ["problem", "parameters"] and isinstance(problem, dict)
-            and ("hamiltonian" in problem or "coordinates" in problem)):
-        # A problem by expressions uses only the parameters its base declares (the base loads alone):
-        # an axis over a new, misspelt one ran the same run under every label (a user trial).
-        declared = sorted(map(str, problem.get("parameters") or {}))
-        if parts[2] not in declared:
-            _fail(source, key, f"{dotted}: the base's problem has no parameter {parts[2]!r}, so no expression "
-                               f"uses it{did_you_mean(parts[2], declared)} (its parameters: "
-                               f"{', '.join(declared) or 'none'})")
     config = copy.deepcopy(base)
     _set_path(config, dotted, value, source)
     try:

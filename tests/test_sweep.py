@@ -112,10 +112,22 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
     ({"base": BASE, "grid": [{"name": "s", "key": "method.s", "values": [3]},
                              {"name": "m", "key": "method", "values": ["GAUSS(2)"]}]},
      r"grid\[1\]\.key: method is also set by the axis 's'"),
-    # ... and an axis over a misspelt parameter of a problem by expressions ran one run under every label
+    # ... so did a variant setting the section of a plain axis's key (h ran 0.05 under the labels 0.1, 0.2)
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60"]},
+                             {"name": "v", "values": [{"label": "x", "set": {"integration": {"h": 0.05}}}]}]},
+     r"grid\[1\]: its variants set integration, which holds the key integration\.h of the axis 'h'"),
+    # ... and a misspelt parameter of a problem by expressions, by an axis, a whole-section axis or the set
     ({"base": str(ROOT / "configs" / "kepler_expressions.yaml"),
       "grid": [{"name": "mu", "key": "problem.parameters.mux", "values": [1.0, 2.0]}]},
-     r"grid\[0\]\.key: problem\.parameters\.mux: the base's problem has no parameter 'mux'.*did you mean 'mu'"),
+     r"problem\.parameters\.mux: \(run '1\.0', from the sweep's set or an axis\) no expression uses it.*"
+     r"did you mean 'mu'"),
+    ({"base": str(ROOT / "configs" / "kepler_expressions.yaml"),
+      "grid": [{"name": "p", "key": "problem.parameters", "values": [{"mu": 1, "ecc": 0.5},
+                                                                     {"mu": 1, "ecc": 0.5, "eccc": 0.7}],
+                "labels": ["a", "b"]}]},
+     r"problem\.parameters\.eccc: \(run 'b'.*did you mean 'ecc'"),
+    ({"base": str(ROOT / "configs" / "kepler_expressions.yaml"), "set": {"problem": {"parameters": {"muu": 2}}}},
+     r"problem\.parameters\.muu: .*no expression uses it"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)

@@ -26,6 +26,8 @@ STATUS_NOT_CONVERGED = 1   # the iteration did not reach its stopping rule (docs
 STATUS_SINGULAR = 2        # Gamma (ELIM) or the Gram matrix (LIM) singular, or a spurious alpha
 STATUS_NONFINITE = 3       # NaN or infinity in the iteration or the state
 STATUS_EXCEPTION = 4       # a problem function raised (ensembles only: a single run raises it)
+STATUS_SPLIT = 6           # internal to stepper.try_step: an ELIM solve that converged, but whose alpha carries
+#                            rounding into the step (stepper._attempt): split it, never take it unimposed
 STATUS_TIME_SCALE = 5      # time-reversible steps: sigma(y) not positive and finite, or h = epsilon sigma too
 #                            small to advance t (adaptive kernel, docs/adaptive.md#time-reversible-steps-step_controltime_scale)
 

@@ -23,7 +23,7 @@ from numba.extending import overload
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
-                    STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR)
+                    STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR, STATUS_SPLIT)
 from .linalg import cholesky_factor, cholesky_solve_factored
 from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table, two_prod, two_sum
@@ -250,7 +250,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     """Solve one (sub)step from y with step h: predicted guess, then the unextrapolated one.
     may_split: the caller can still halve this (sub)step, and a solve that converged with
     cond(Gamma) above SPLIT_CONDITION, whose alpha carries more than SPLIT_ROUNDING of rounding into
-    the step (solver.alpha_rounding), counts as failed (STATUS_SINGULAR) so that it is.
+    the step (solver.alpha_rounding), counts as failed (STATUS_SPLIT) so that it is.
 
     coef/mult hold the previous (sub)step's coefficients and multipliers on entry (when
     have_prev) and the solution on success; on failure they are left as on entry.
@@ -302,7 +302,7 @@ def _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
         newton_base[2] = work.info[2]
     if (status == STATUS_OK and may_split and work.info[1] > SPLIT_CONDITION
             and alpha_rounding(h, mult, settings, tables, conserve_idx.shape[0], coef.shape[0], work) > SPLIT_ROUNDING):
-        status = STATUS_SINGULAR
+        status = STATUS_SPLIT
     if status == STATUS_OK:
         if settings.predictor != 0:
             # Without the predictor coef_extra stays zero, and every start (side steps' too)
@@ -496,7 +496,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
         status, used = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                                 y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base, may_split)
         iterations += used
-        if status != STATUS_OK and retry_plain:
+        if status != STATUS_OK and status != STATUS_SPLIT and retry_plain:
             # The secant steps can carry a hard solve to a spurious alpha, which is rejected
             # (docs/solver.md#secant-acceleration): plain Newton tries the substep before it is split.
             status, used = _attempt(grad_H, hess_H, grad_invariants, params, plain, tables, conserve_idx, work,

@@ -450,8 +450,8 @@ def evaluate_number(value, names: Mapping[str, float] | None = None, what: str =
             raise ExpressionError(f"{what} must be finite, got {value!r}")
         return result
     if not isinstance(value, str):
-        raise ExpressionError(f"{what} must be a number or an arithmetic expression such as 'pi/30', "
-                              f"got {type(value).__name__}")
+        got = "an empty value (null)" if value is None else type(value).__name__   # key: or --set key=
+        raise ExpressionError(f"{what} must be a number or an arithmetic expression such as 'pi/30', got {got}")
     tree = parse(value, names=tuple(names or ()), what=what)
     return evaluate(tree, names, what=what, text=value)
 
