@@ -23,7 +23,8 @@ def load(path, run: str | None = None):
 
     y_final and t_final are the saved state of a run file (what --resume continues from),
     and a sweep run's state after its last completed step (its attributes; the last sample in
-    files written before they were kept, which is that state unless output.times end early). The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
+    files written before they were kept, which is that state unless output.times end early).
+    The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
     Raises OutputError (an ElimfastError) for a file or run that cannot be read.
     """
     from .config import load_run_from_dict, parse_yaml

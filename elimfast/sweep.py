@@ -393,10 +393,10 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     for variant_axis, sections in variant_sections.items():
         for plain_axis, dotted in axis_keys.items():
             if axis_names.index(plain_axis) < axis_names.index(variant_axis) and dotted.split(".")[0] in sections:
-                index = axis_names.index(variant_axis)
+                index, other = axis_names.index(variant_axis), axis_names.index(plain_axis)
                 _fail(source, f"grid[{index}]", f"its variants set {dotted.split('.')[0]}, which holds the key "
-                                                f"{dotted} of the axis {plain_axis!r} (grid[{axis_names.index(plain_axis)}]) "
-                                                "and would overwrite its values; one axis per key")
+                                                f"{dotted} of the axis {plain_axis!r} (grid[{other}]) and would "
+                                                "overwrite its values; one axis per key")
 
     # Count (and size) the grid before expanding it: the product of the axes' lengths grows
     # fast, and each point holds a copy of the base config.
