@@ -257,6 +257,17 @@ def dense_state(grad_H, hess_H, grad_invariants, params, settings, tables, conse
     stage_at(offset / h, y_start, h, coef, integrals, y_side)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _whole_step_failure(diagnostics, t, h, increment, iterations):
+    """diagnostics of a failure of the controller itself, at a whole step (depth 0) from t of size h:
+    increment is what the status reports there (integrate.failure_message)."""
+    diagnostics[DIAG_TIME] = t
+    diagnostics[DIAG_STEP] = h
+    diagnostics[DIAG_INCREMENT] = increment
+    diagnostics[DIAG_DEPTH] = 0
+    diagnostics[DIAG_ITERATIONS] = iterations
+
+
 @internal
 def _crossed(direction, g_old, g_new):
     """g went from g_old to g_new through 0 in the event's direction (+1 up, -1 down, 0 both)."""
@@ -336,7 +347,6 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
     rtol, atol, epsilon, t_end, h_max = (controls[CTL_RTOL], controls[CTL_ATOL], controls[CTL_EPSILON],
                                          controls[CTL_T_END], controls[CTL_H_MAX])
     H_target = controls[CTL_H_TARGET]   # the energy projection's (NaN: none; stepper.project_energy)
-    projecting = H_target == H_target
     # Main steps: the error controller halves a failing step itself; the others split it.
     main_halvings = 0 if control == CONTROL_ERROR else max_halvings
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, main_halvings)
@@ -411,11 +421,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 # collapse, and the solver would fail on a step of 1e-300 blaming Gamma or NaN.
                 sigma, _ = _time_scale_rate(grad_H, time_scale, params, y, scale_scratch)
                 status = STATUS_TIME_SCALE
-                diagnostics[DIAG_TIME] = clock[0]
-                diagnostics[DIAG_STEP] = h
-                diagnostics[DIAG_INCREMENT] = sigma   # for this status: sigma(y) (integrate.failure_message)
-                diagnostics[DIAG_DEPTH] = 0
-                diagnostics[DIAG_ITERATIONS] = 0
+                _whole_step_failure(diagnostics, clock[0], h, sigma, 0)   # for this status: sigma(y)
                 break
         else:
             h = control_state[CS_H_NEXT]
@@ -425,11 +431,7 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 # into its centre took 19,410 steps at one t, down to h = 4e-113, H drifting to 1e115,
                 # before a solve failed). Such a step would need over 2^50 steps to reach t_end.
                 status = STATUS_NOT_CONVERGED
-                diagnostics[DIAG_TIME] = clock[0]
-                diagnostics[DIAG_STEP] = h
-                diagnostics[DIAG_INCREMENT] = 0.0
-                diagnostics[DIAG_DEPTH] = 0
-                diagnostics[DIAG_ITERATIONS] = 0
+                _whole_step_failure(diagnostics, clock[0], h, 0.0, 0)
                 break
         # A time-scale step cut by h_max is not the controller's: it starts afresh after it (below).
         capped = control == CONTROL_TIME_SCALE and h > h_max
@@ -518,19 +520,13 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                 consecutive_failures += 1
                 if consecutive_failures >= MAX_CONSECUTIVE_FAILURES:
                     status = STATUS_NOT_CONVERGED
-                    diagnostics[DIAG_TIME] = clock[0]
-                    diagnostics[DIAG_STEP] = h
-                    diagnostics[DIAG_INCREMENT] = estimate
-                    diagnostics[DIAG_DEPTH] = 0
-                    diagnostics[DIAG_ITERATIONS] = iterations
+                    _whole_step_failure(diagnostics, clock[0], h, estimate, iterations)
                     break
                 continue
         # Accepted: its end state is projected onto H(y0) first (solver.project_energy), so that the
         # controllers below, and all that follows, see the state the run goes on from.
-        project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_view, y_comp_view, H_target,
-                       projection_arrays)
-        if projecting:
-            counters[CNT_ENERGY_PROJECTIONS] += 1
+        counters[CNT_ENERGY_PROJECTIONS] += project_energy(H, grad_H, grad_invariants, params_view, conserve_view,
+                                                           y_view, y_comp_view, H_target, projection_arrays)
         if control == CONTROL_ERROR:
             # Accepted: the next step (Gustafsson's controller).
             safe = max(estimate, 1e-300)
@@ -638,10 +634,9 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                                     coef, coef_extra, multipliers, tau * h, side_base, y_side, side_comp, side_clock,
                                     side_coef, side_extra, side_mult, side_last_h, side_diagnostics, integrals,
                                     counters)
-                        project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_side, side_comp,
-                                       H_target, projection_arrays)
-                        if projecting:
-                            counters[CNT_ENERGY_PROJECTIONS] += 1
+                        counters[CNT_ENERGY_PROJECTIONS] += project_energy(
+                            H, grad_H, grad_invariants, params_view, conserve_view, y_side, side_comp, H_target,
+                            projection_arrays)
                     events(y_side, params, g_side)
                     if slope == 0.0 or g_side[e] == 0.0:
                         break
@@ -703,10 +698,9 @@ def adaptive_loop(H, grad_H, hess_H, invariants, grad_invariants, params, time_s
                                 h, coef, coef_extra, multipliers, offset, side_base, y_side, side_comp, side_clock,
                                 side_coef, side_extra, side_mult, side_last_h, side_diagnostics, integrals,
                                 counters)
-                    project_energy(H, grad_H, grad_invariants, params_view, conserve_view, y_side, side_comp,
-                                   H_target, projection_arrays)
-                    if projecting:
-                        counters[CNT_ENERGY_PROJECTIONS] += 1
+                    counters[CNT_ENERGY_PROJECTIONS] += project_energy(
+                        H, grad_H, grad_invariants, params_view, conserve_view, y_side, side_comp, H_target,
+                        projection_arrays)
                     _sample(H, invariants, params, y_side, t_wanted, n_samples, t_out, y_out, inv_out,
                             inv_values)
                 n_samples += 1

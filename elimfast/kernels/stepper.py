@@ -113,9 +113,10 @@ def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, 
     more than its own evaluation can tell, eps (|H| + sum |y_i dH/dy_i|), or when G G^T is
     singular or its solution not finite. projection: the loop's work arrays, from
     energy_projection_arrays: rows (1 + r, n), inv_gradients (n_inv, n), gram (1 + r, 1 + r),
-    weights (1 + r,)."""
+    weights (1 + r,). Returns the evaluations of grad H it made: 1, or 0 when off (the adaptive
+    loop's CNT_ENERGY_PROJECTIONS)."""
     if H_target != H_target:
-        return
+        return 0
     rows, inv_gradients, gram, weights = projection
     n = y.shape[0]
     grad_H(y, params, rows[0])
@@ -127,7 +128,7 @@ def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, 
     value = H(y, params)
     deviation = (value - H_target) + tilt
     if not abs(deviation) > EPS * (abs(value) + scale):
-        return
+        return 1
     imposed = conserve_idx.shape[0]
     if imposed > 0:
         grad_invariants(y, params, inv_gradients)
@@ -144,16 +145,17 @@ def project_energy(H, grad_H, grad_invariants, params, conserve_idx, y, y_comp, 
         weights[a] = 0.0
     weights[0] = -deviation
     if cholesky_factor(gram) != 0:   # also where a gradient is not finite (its diagonal entry)
-        return
+        return 1
     cholesky_solve_factored(gram, weights)
     for a in range(imposed + 1):
         if not abs(weights[a]) < np.inf:
-            return
+            return 1
     for i in range(n):
         move = 0.0
         for a in range(imposed + 1):
             move += weights[a] * rows[a, i]
         y[i], y_comp[i] = kahan_add(y[i], y_comp[i], move)
+    return 1
 
 
 @njit(cache=True, inline="always")
