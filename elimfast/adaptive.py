@@ -604,9 +604,8 @@ class AdaptiveIntegration:
             # fixed steps (with output times or events): the step is h, DIAG_STEP its failed substep's
             # (a user trial read "t = 6.45 -> 6.453125, in its substep from t = 6.471875")
             step = math.copysign(self.h, step) if step else self.h
-        message = failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
-                                  step, self.diagnostics, adaptive=self.control is not None, run_file=run_file,
-                                  y=self.y, y0=self.y0)
+        notes = ""
+        collapsed = False
         if self.control is not None and self.control.controller == "time_scale" \
                 and self.status != codes.STATUS_TIME_SCALE:
             # The steps are epsilon sigma(y): a sigma that nears zero along the orbit makes them collapse
@@ -616,20 +615,19 @@ class AdaptiveIntegration:
             # user trial: Kepler e = 0.999, Gamma singular at a pericentre, sigma 3.17e-5 against 3.16e-5).
             here, start = time_scale_at(self.problem, self.y), time_scale_at(self.problem, self.y0)
             if not here >= SMALLER_TIME_SCALE * start:
-                message += (f" (time scale sigma(y) = {here:.3g} there, {start:.3g} at t0: steps are epsilon sigma; "
-                            "a sigma that nears zero along the orbit makes them collapse)")
-            if here < COLLAPSED_TIME_SCALE * start:
+                notes += (f" (time scale sigma(y) = {here:.3g} there, {start:.3g} at t0: steps are epsilon sigma; "
+                          "a sigma that nears zero along the orbit makes them collapse)")
+            collapsed = here < COLLAPSED_TIME_SCALE * start
+            if collapsed:
                 # A user trial: perturbed Kepler e = 0.9, delta = 0.01 falls into the centre (its -delta/r^3
                 # wins at r = 0.1); the run failed at t = 0.037 and was told to raise solver.max_iter, which a
-                # later trial found still said beside this note: the solver's advice is dropped here.
-                from .integrate import _ADAPTIVE_FAILURE_ADVICE
-                advice = _ADAPTIVE_FAILURE_ADVICE.get(self.status)
-                if advice:
-                    message = message.replace(f"; {advice}", "", 1)
-                message += (f"; sigma has fallen to {here / start:.2g} of its value at t0: the orbit is nearing "
-                            f"where sigma vanishes (a collision or a fall into a singularity of H), which "
-                            f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
-        return message
+                # later trial found still said beside this note: the solver's advice is left out here.
+                notes += (f"; sigma has fallen to {here / start:.2g} of its value at t0: the orbit is nearing "
+                          f"where sigma vanishes (a collision or a fall into a singularity of H), which "
+                          f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
+        return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
+                               step, self.diagnostics, adaptive=self.control is not None, run_file=run_file,
+                               y=self.y, y0=self.y0, advise=not collapsed) + notes
 
     @property
     def t(self) -> float:

@@ -68,20 +68,20 @@ _FAILURE_TEXT = {
     codes.STATUS_NONFINITE: "the solution became NaN or infinite",
     codes.STATUS_TIME_SCALE: "the problem's time scale collapsed (time-reversible steps h = epsilon sigma(y))",
 }
+# The method where ELIM's Gamma degenerates: every advice on a singular Gamma ends with it.
+_TAKE_GHBVM = "take GHBVM (LIM), whose Gram matrix does not degenerate with Gamma (docs/methods.md#lim"
 _FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "reduce h or raise solver.max_halvings",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
-                            "impose fewer or other invariants, or change h, or take GHBVM (LIM), whose Gram "
-                            "matrix does not degenerate with Gamma (docs/methods.md#lim)"),
+                            f"impose fewer or other invariants, or change h, or {_TAKE_GHBVM})"),
     codes.STATUS_NONFINITE: "reduce h; check the initial state and the problem's singularities",
 }
 # Adaptive runs choose h themselves: the step control has shrunk it already.
 _ADAPTIVE_FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "the step control found no step that converges; raise solver.max_iter",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
-                            "impose fewer or other invariants, or take GHBVM (LIM), whose Gram matrix does not "
-                            "degenerate with Gamma (docs/methods.md#lim; Kepler e = 0.9999 on time-reversible "
-                            "steps: EHBVM(8,4) fails at the pericentre, GHBVM(8,4) does not)"),
+                            f"impose fewer or other invariants, or {_TAKE_GHBVM}; Kepler e = 0.9999 on "
+                            "time-reversible steps: EHBVM(8,4) fails at the pericentre, GHBVM(8,4) does not)"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
     codes.STATUS_TIME_SCALE: ("sigma must stay positive and finite along the whole orbit: take a power of a "
                               "distance, e.g. (q1**2 + q2**2)**0.75, or use step_control: error "
@@ -101,8 +101,7 @@ _LITERAL_RHS_ADVICE = ("the literal right-hand side's multipliers are rounding n
                        "one (solver.rhs: stable, the default; docs/methods.md#stable-right-hand-side)")
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
                            "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
-                           "other invariants, whose gradients stay independent along the orbit, or take GHBVM "
-                           "(LIM), whose Gram matrix does not degenerate with Gamma (docs/methods.md#lim)")
+                           f"other invariants, whose gradients stay independent along the orbit, or {_TAKE_GHBVM})")
 STATUS_NAMES = {
     codes.STATUS_OK: "ok",
     codes.STATUS_NOT_CONVERGED: "not converged",
@@ -1083,12 +1082,14 @@ GROWN_STATE = 1e3
 
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
-                    diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None) -> str:
+                    diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None,
+                    advise: bool = True) -> str:
     """The one-line report of a step that failed at every level of splitting (docs/solver.md);
     adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h;
     run_file: the run is in a run file, which `elimfast run --resume` continues with other
     solver settings (not said to the Python API or a sweep, which cannot); y, y0: the state
-    where it failed and the initial one (a state grown beyond GROWN_STATE times is named)."""
+    where it failed and the initial one (a state grown beyond GROWN_STATE times is named);
+    advise: False leaves the advice out, where the caller knows that no setting helps."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -1149,7 +1150,7 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
                       f"which no step size gets through; otherwise {advice}")
     if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive and run_file:
         advice += "; a failed run can be continued with --resume after changing solver settings"
-    return f"{method.name}: {what} {where}; {', '.join(seen)}; {advice}"
+    return f"{method.name}: {what} {where}; {', '.join(seen)}" + (f"; {advice}" if advise else "")
 
 
 def integrate(problem: Problem, method: Method, h: float | None = None, t_end: float | None = None,
