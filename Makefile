@@ -32,7 +32,7 @@ test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
 
 paper: $(VENV)/.installed
-	$(BIN)/elimfast paper --out paper-out
+	$(BIN)/elimfast paper --out paper-out --overwrite
 
 bench: $(VENV)/.installed-test
 	$(BIN)/python bench/kernel.py

@@ -203,6 +203,10 @@ def announce_compilation():
             dispatcher = (ev.data or {}).get("dispatcher") if isinstance(ev.data, dict) else None
             module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
             from elimfast.per_problem import MODULE_PREFIX as PER_PROBLEM_PREFIX
+            if module == "numba" or module.startswith("numba."):
+                # Numba's own jitted helpers (np.linalg's, for one), compiled for whatever is compiling:
+                # that one is announced (they were taken for the problem's functions, on a config naming none)
+                return
             kind = ("kernels" if module == "elimfast" or module.startswith("elimfast.")
                     else "per_problem" if module.startswith(PER_PROBLEM_PREFIX) else "user")
             if kind in self.said:
@@ -826,7 +830,7 @@ def _quadrature_of_H(problem, method) -> str:
 
 
 @cli.command(context_settings=CONTEXT)
-@click.argument("name", metavar="NAME")
+@click.argument("name", metavar="NAME", nargs=-1, required=True)   # the rest: values after one --eta, refused below
 @click.option("--k", "k", type=int, help="Quadrature nodes for H (hbvm, elim, ehbvm, lim, ghbvm).")
 @click.option("--s", "s", type=int, help="Number of Legendre coefficients; order 2s (every method).")
 @click.option("--r", "r", type=int, help="Quadrature nodes for the invariants (elim, lim).")
@@ -852,6 +856,12 @@ def tableau(name, k, s, r, eta):
     from elimfast import methods
     from elimfast.errors import ParameterError
 
+    name, *extra = name
+    if extra:
+        # `--eta 1 1 0.99` got click's "unexpected extra arguments (1 0.99)"
+        hint = (f"--eta takes one value: repeat it (--eta {' --eta '.join(eta + tuple(extra))}) or separate the values "
+                f"by commas (--eta {','.join(eta + tuple(extra))})" if eta else "give one method name")
+        raise click.UsageError(f"unexpected values {' '.join(extra)} after {name}; {hint}")
     given = {key: value for key, value in (("r", r), ("k", k), ("s", s)) if value is not None}
     try:
         written = methods.from_notation(name)   # 'HBVM(4,2)' as the paper writes it
@@ -1053,8 +1063,9 @@ def paper_configs() -> Path:
               help="Where to write the tables (markdown) and figures (PNG).")
 @click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
               help="Worker processes (default: all cores).")
+@click.option("--overwrite", is_flag=True, help="Replace the tables and figures of an earlier run in DIR.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress lines.")
-def paper(config_dir, out_dir, workers, quiet):
+def paper(config_dir, out_dir, workers, overwrite, quiet):
     """Reproduce Brugnano & Sun (2014): Tables 1-3 and Figures 1-4, beside the paper's values.
 
     \b
@@ -1073,6 +1084,11 @@ def paper(config_dir, out_dir, workers, quiet):
         if not (Path(config_dir) / name).is_file():
             fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps "
                  "(configs/paper in the repository)", EXIT_USAGE)
+    earlier = [name for name in reproduction.TABLES + reproduction.FIGURES if (Path(out_dir) / name).exists()]
+    if earlier and not overwrite:
+        fail(f"{out_dir} holds the tables of an earlier run ({', '.join(earlier[:2])}"
+             f"{', ...' if len(earlier) > 2 else ''}); add --overwrite to replace them, or give another --out",
+             EXIT_USAGE)
     try:
         result = reproduction.reproduce(config_dir, out_dir, workers=workers, on_done=on_done)
     except RuntimeError as err:

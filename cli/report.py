@@ -430,7 +430,7 @@ def ensemble_summary(ensemble_file) -> str:
     far it got and, over the stored trajectories, failures, invariant errors and iterations.
     Columns are read a block of rows at a time, so memory stays bounded for any size."""
     from elimfast.ensemble import STATUS_NAMES
-    from elimfast.kernels.stepper import STATUS_OK
+    from elimfast.kernels.codes import STATUS_OK
 
     a, root = ensemble_file.attrs, ensemble_file.root_attrs
     path, n = ensemble_file.path, ensemble_file.n_trajectories

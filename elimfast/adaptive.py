@@ -15,13 +15,12 @@ import numpy as np
 
 from .errors import ParameterError, exact_time
 from .function_addresses import remembered_addresses
-from .kernels import adaptive as kernel
-from .kernels import codes, stepper
+from .kernels import codes
 from .kernels.signatures import no_invariants
 from .methods import Method
 from .problems import Problem
 
-CONTROLLERS = {"error": kernel.CONTROL_ERROR, "time_scale": kernel.CONTROL_TIME_SCALE}
+CONTROLLERS = {"error": codes.CONTROL_ERROR, "time_scale": codes.CONTROL_TIME_SCALE}
 DEFAULT_EPSILON = 0.05
 MAX_RTOL = 1e-2
 MIN_RTOL = 1e-16
@@ -435,17 +434,17 @@ def counted_stats(counters) -> dict:
     """The stats (AdaptiveIntegration.stats) that the kernel's counters give by themselves, without
     the method: all but the gradient evaluations. Also what inspect reads from a run file's state
     (a file written before the last counters were added has fewer: they count 0)."""
-    c = np.zeros(kernel.N_COUNTERS, dtype=np.int64)
-    given = np.asarray(counters, dtype=np.int64)[:kernel.N_COUNTERS]
+    c = np.zeros(codes.N_COUNTERS, dtype=np.int64)
+    given = np.asarray(counters, dtype=np.int64)[:codes.N_COUNTERS]
     c[:given.size] = given
     return {
-        "steps": int(c[kernel.CNT_STEPS]), "rejected_steps": int(c[kernel.CNT_REJECTED]),
-        "failed_solves": int(c[kernel.CNT_FAILED]), "split_steps": int(c[kernel.CNT_SPLIT]),
-        "side_steps": int(c[kernel.CNT_SIDE_STEPS]),
-        "iterations": int(c[kernel.CNT_ITERATIONS] + c[kernel.CNT_SIDE_ITERATIONS]),
-        "hessian_evaluations": int(c[kernel.CNT_FACTORISATIONS] + c[kernel.CNT_ESTIMATE_HESSIANS]),
-        "events": int(c[kernel.CNT_EVENTS]), "polynomial_samples": int(c[kernel.CNT_SIDE_FALLBACKS]),
-        "energy_projections": int(c[kernel.CNT_ENERGY_PROJECTIONS]),
+        "steps": int(c[codes.CNT_STEPS]), "rejected_steps": int(c[codes.CNT_REJECTED]),
+        "failed_solves": int(c[codes.CNT_FAILED]), "split_steps": int(c[codes.CNT_SPLIT]),
+        "side_steps": int(c[codes.CNT_SIDE_STEPS]),
+        "iterations": int(c[codes.CNT_ITERATIONS] + c[codes.CNT_SIDE_ITERATIONS]),
+        "hessian_evaluations": int(c[codes.CNT_FACTORISATIONS] + c[codes.CNT_ESTIMATE_HESSIANS]),
+        "events": int(c[codes.CNT_EVENTS]), "polynomial_samples": int(c[codes.CNT_SIDE_FALLBACKS]),
+        "energy_projections": int(c[codes.CNT_ENERGY_PROJECTIONS]),
     }
 
 
@@ -486,26 +485,27 @@ class AdaptiveIntegration:
         nu = len(conserve)
         self.multipliers = np.zeros(nu + 1 if method.kernel_family == codes.FAMILY_LIM else nu)
         self.newton_base = np.zeros(n + 3)
-        self.control_state = np.zeros(kernel.N_CONTROL_STATE)
-        self.counters = np.zeros(kernel.N_COUNTERS, dtype=np.int64)
+        self.control_state = np.zeros(codes.N_CONTROL_STATE)
+        self.counters = np.zeros(codes.N_COUNTERS, dtype=np.int64)
         self.t_eval = np.zeros(0) if t_eval is None else np.ascontiguousarray(t_eval, dtype=np.float64)
         if control is None:   # fixed steps (with output times or events)
             self.n_steps = int(n_steps)
             self.h = float(h)
             self.controls = np.array([0.0, 0.0, 0.0, self.t0 + self.n_steps * self.h, np.inf, math.nan])
-            self.options = np.array([kernel.CONTROL_FIXED, 0, store_every, self.n_steps], dtype=np.int64)
+            self.options = np.array([codes.CONTROL_FIXED, 0, store_every, self.n_steps], dtype=np.int64)
         else:
             self.n_steps = None
             self.h = control.first_step(problem, method, self.y, self.t_end - self.t0)
             self.controls = np.array([control.rtol or 0.0, control.atol or 0.0, control.epsilon or 0.0, self.t_end,
                                       np.inf if control.h_max is None else control.h_max, math.nan])
             self.options = np.array([control.code, int(control.verify), store_every, 0], dtype=np.int64)
-        self.controls[kernel.CTL_H_TARGET] = solver.energy_target(problem, method, self.y0)
+        self.controls[codes.CTL_H_TARGET] = solver.energy_target(problem, method, self.y0)
         self.last_h = np.array([self.h if self.h > 0 else 1.0])
         self.status = codes.STATUS_OK
         self.finished_flag = False
-        self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
-        self._progress = np.zeros(kernel.N_PROGRESS, dtype=np.int64)
+        self.diagnostics = np.zeros(codes.N_DIAGNOSTICS)
+        self._adaptive_loop = None   # loaded at first use (prepare_kernel)
+        self._progress = np.zeros(codes.N_PROGRESS, dtype=np.int64)
         self.event_counts = np.zeros(self.events.directions.size, dtype=np.int64)
 
     @classmethod
@@ -585,21 +585,21 @@ class AdaptiveIntegration:
         with COLLAPSED_STEP: a failure with no iterations, at a step below 4 eps max(|t|, |t_end|))."""
         d = self.diagnostics
         return (self.control is not None and self.control.controller != "time_scale"
-                and self.status == codes.STATUS_NOT_CONVERGED and d[stepper.DIAG_ITERATIONS] == 0
-                and not abs(d[stepper.DIAG_STEP]) > kernel.COLLAPSED_STEP * max(abs(self.t), abs(self.t_end)))
+                and self.status == codes.STATUS_NOT_CONVERGED and d[codes.DIAG_ITERATIONS] == 0
+                and not abs(d[codes.DIAG_STEP]) > codes.COLLAPSED_STEP * max(abs(self.t), abs(self.t_end)))
 
     def failure_message(self, run_file: bool = False) -> str:
         from .integrate import failure_message
         d = self.diagnostics
         if self.collapsed_steps():
             return (f"{self.method.name}: the steps collapsed at step {self.steps_done + 1} (t = {exact_time(self.t)}): "
-                    f"the error controller came down to h = {d[stepper.DIAG_STEP]:.3g}, below 4 eps of t_end = "
+                    f"the error controller came down to h = {d[codes.DIAG_STEP]:.3g}, below 4 eps of t_end = "
                     f"{self.t_end:.6g}: at that size t_end is more than 10^15 steps away; "
                     "the solution is likely nearing a singularity of H (a collision, or a fall into a centre), which "
                     f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
         # the failed step's h: DIAG_STEP is its failed substep's, 2^depth times smaller (a user trial read
         # "t = 12.5663689 -> 12.5663691, in its substep from t = 12.5663705": h/16 for the step)
-        step = float(d[stepper.DIAG_STEP]) * 2.0 ** int(d[stepper.DIAG_DEPTH])
+        step = float(d[codes.DIAG_STEP]) * 2.0 ** int(d[codes.DIAG_DEPTH])
         if self.control is None:
             # fixed steps (with output times or events): the step is h, DIAG_STEP its failed substep's
             # (a user trial read "t = 6.45 -> 6.453125, in its substep from t = 6.471875")
@@ -635,7 +635,7 @@ class AdaptiveIntegration:
 
     @property
     def steps_done(self) -> int:
-        return int(self.counters[kernel.CNT_STEPS])
+        return int(self.counters[codes.CNT_STEPS])
 
     @property
     def finished(self) -> bool:
@@ -679,9 +679,17 @@ class AdaptiveIntegration:
             return np.zeros(0), np.zeros((0, self.y.size)), np.zeros((0, inv.shape[1]))
         return np.array([self.t]), self.y[None, :].copy(), inv
 
+    def prepare_kernel(self) -> None:
+        """Load the adaptive kernel (kernels.adaptive.adaptive_loop), compiling it on an empty cache;
+        the first advance does it otherwise. Not at import: checking a config must not wait for it."""
+        from .kernels import adaptive
+        self._adaptive_loop = adaptive.adaptive_loop
+
     def advance(self, max_steps: int) -> AdaptiveChunk:
         p, m, solver = self.problem, self.method, self.solver
-        n_eval_left = int(self._kernel_t_eval.size - self.counters[kernel.CNT_NEXT_EVAL])
+        if self._adaptive_loop is None:
+            self.prepare_kernel()
+        n_eval_left = int(self._kernel_t_eval.size - self.counters[codes.CNT_NEXT_EVAL])
         # Every requested time of the rest of the run fits: one step may cover many of them.
         capacity = n_eval_left + 1 if self.t_eval.size else max_steps // self.store_every + 2
         n_events = self.events.directions.size
@@ -697,7 +705,7 @@ class AdaptiveIntegration:
         event_t, event_y = np.empty(event_capacity), np.empty((event_capacity, dim))
         first = self.steps_done
         with remembered_addresses():
-            status = kernel.adaptive_loop(
+            status = self._adaptive_loop(
                 p.H, p.grad_H, p.hess_H, p.invariants, p.grad_invariants, p.params,
                 p.time_scale if p.time_scale is not None else no_invariants, self.events.function,
                 m.kernel_family, solver.code, solver.rhs_code, int(solver.warm_start),

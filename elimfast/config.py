@@ -591,7 +591,13 @@ class _Builder:
         path = section + (err.parameter,) if section else PARAMETER_KEYS.get(err.parameter, (err.parameter,))
         if err.index is not None:
             path = path + (err.index,)
-        return self.error(path, err.detail)
+        # the --set of another parameter the rule depends on (--set integration.h=1e-30 made t_end's
+        # step count too large, and the message pointed at the file's t_end line alone)
+        related = [self.override_of(section + (name,) if section else PARAMETER_KEYS.get(name, (name,)))
+                   for name in getattr(err, "related", ())]
+        related = [item for item in dict.fromkeys(related) if item and item != self.override_of(path)]
+        suffix = f" (with --set {', --set '.join(_clip(item) for item in related)})" if related else ""
+        return self.error(path, err.detail + suffix)
 
     def build(self, data) -> RunSpec:
         if not isinstance(data, dict):
@@ -936,6 +942,8 @@ class _Builder:
                                  "problem (the state has 2n numbers, and every step's work and memory grow with it)")
         try:
             problem = constructor(**kwargs)
+        except ParameterError as err:   # at the parameter's own key (and line)
+            raise self.error(("problem", "parameters", err.parameter), err.detail) from None
         except Exception as err:  # a built-in rejecting user values; report it, never a traceback
             detail = str(err).splitlines()[0] if str(err) else type(err).__name__
             raise self.error(("problem", "parameters"), f"{name}: {detail}") from None

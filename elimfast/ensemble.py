@@ -26,10 +26,9 @@ from .errors import ParameterError, exact_time
 from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
-from .kernels import stepper
+from .kernels import codes
 from .kernels.codes import STATUS_EXCEPTION, STATUS_TIME_SCALE
 from .function_addresses import remembered_addresses
-from .kernels.ensemble import ensemble_loop
 from .methods import Method, as_method
 from .problems import Problem
 from .problems.base import real_state
@@ -61,7 +60,7 @@ class EnsembleResult:
     for a trajectory that failed before completing a step);
     iterations (n_traj,) fixed-point iterations summed over the steps (a failed step's
     included); max_multiplier (n_traj,) max |alpha| (ELIM) or |lambda| (LIM) over the
-    completed steps, 0 for GAUSS/HBVM; status (n_traj,) stepper.STATUS_* codes or
+    completed steps, 0 for GAUSS/HBVM; status (n_traj,) codes.STATUS_* codes or
     kernels.ensemble.STATUS_EXCEPTION (names: ``reasons``); steps_done (n_traj,).
     """
 
@@ -100,7 +99,7 @@ class EnsembleResult:
     @property
     def ok(self) -> np.ndarray:
         """(n_traj,) bool: the trajectory ran all n_steps."""
-        return self.status == stepper.STATUS_OK
+        return self.status == codes.STATUS_OK
 
     @property
     def n_failed(self) -> int:
@@ -120,7 +119,7 @@ class EnsembleResult:
     def failure_message(self, index: int) -> str | None:
         """The message integrate would raise for trajectory ``index`` (None if it completed)."""
         code = int(self.status[index])
-        if code == stepper.STATUS_OK:
+        if code == codes.STATUS_OK:
             return None
         step = int(self.steps_done[index]) + 1
         t_start = float(self.t_final[index])  # as integrate says it (after a non-finite step: its end)
@@ -233,7 +232,7 @@ class EnsembleRun:
     max_iter = property(lambda self: self.integration.max_iter)
     solver = property(lambda self: self.integration.solver)
 
-    n_diagnostics = stepper.N_DIAGNOSTICS   # columns of a trajectory's diagnostics
+    n_diagnostics = codes.N_DIAGNOSTICS   # columns of a trajectory's diagnostics
 
     @property
     def invariant_names(self) -> tuple[str, ...]:
@@ -260,6 +259,7 @@ class EnsembleRun:
         inv_error = np.empty((n_rows, len(self.invariant_names)))
         previous_threads = numba.get_num_threads()
         numba.set_num_threads(threads)
+        from .kernels.ensemble import ensemble_loop   # not at import: it loads (or compiles) the kernel
         from .streaming import current_watchdog
         watchdog = current_watchdog()
         try:

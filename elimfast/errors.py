@@ -20,14 +20,17 @@ class ParameterError(ElimfastError, ValueError):
     ``"parameter[index] detail"``, so details read on from the name ("must be ...",
     "is ..."). The validators that raise it are the only statement of each rule; the
     config layer puts the YAML key and line in front of ``detail`` instead of the name.
+    ``related`` names the other parameters the rule depends on (t_end's step count on h and
+    t0), so that a value given by --set to one of them is named too.
     """
 
-    def __init__(self, parameter: str, message: str, *, index: int | None = None):
+    def __init__(self, parameter: str, message: str, *, index: int | None = None, related: tuple = ()):
         where = parameter if index is None else f"{parameter}[{index}]"
         super().__init__(f"{where} {message}")
         self.parameter = parameter
         self.index = index
         self.detail = message
+        self.related = tuple(related)
 
 
 class ConvergenceError(ElimfastError, RuntimeError):

@@ -14,7 +14,7 @@ import numpy as np
 from .cache import kernel_folder_used
 from .errors import ConvergenceError, ParameterError, closest, exact_time
 from .function_addresses import remembered_addresses
-from .kernels import codes, stepper
+from .kernels import codes
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
 from . import methods
 from .methods import Method
@@ -778,11 +778,12 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
         raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}")
     if not span / h <= MAX_STEPS:
         raise ParameterError("t_end", f"(t_end - t0)/h = {span / h:.3g} steps, more than "
-                                      f"{compact_number(MAX_STEPS)}: {STEPS_REASON}")
+                                      f"{compact_number(MAX_STEPS)}: {STEPS_REASON}", related=("h", "t0"))
     steps = round(span / h)
     if steps < 1 or abs(steps * h - span) > T_END_RELATIVE_TOLERANCE * span:
         raise ParameterError("t_end", f"gives t_end - t0 = {span!r}, not a whole number of steps of h = {h!r} "
-                                      f"({span / h:.12g} steps); adjust h or t_end, or give n_steps instead")
+                                      f"({span / h:.12g} steps); adjust h or t_end, or give n_steps instead",
+                             related=("h", "t0"))
     if n_steps is not None and n_steps != steps:
         raise ParameterError("n_steps", f"= {n_steps} disagrees with t_end: (t_end - t0)/h = {steps}; give only "
                                         "one of them")
@@ -869,7 +870,7 @@ def predictor_extra_state(method: Method, n: int) -> np.ndarray:
     """The run state's coef_extra: the last step's Legendre terms gamma_s.. that the predictor
     carries over besides its coefficients (docs/solver.md); as many rows as
     kernels/stepper.py predictor_extra_rows gives the ensemble kernel's trajectories."""
-    return np.zeros((min(method.k - method.s, stepper.PREDICTOR_EXTRA_ROWS), n))
+    return np.zeros((min(method.k - method.s, codes.PREDICTOR_EXTRA_ROWS), n))
 
 
 def restore_predictor_extra(state: dict, target: np.ndarray) -> None:
@@ -915,7 +916,7 @@ class Integration:
         self.solver = solver.resolved_for(method, len(self.conserve), 2 * problem.degrees_of_freedom)
         require_memory(problem, method, self.solver, adaptive=False)
         self.store_every = resolve_store_every(store_every)
-        self._time_loop = stepper.time_loop if self.solver.kernel == "shared" else None   # per_problem: at first use
+        self._time_loop = None   # loaded at first use (prepare_kernel)
 
         n = 2 * problem.degrees_of_freedom
         self.y0 = self.y.copy()   # the state at t0, the reference of the invariant errors (Result.y0)
@@ -930,7 +931,7 @@ class Integration:
         self.H_target = self.solver.energy_target(problem, method, self.y0)
         self.steps_done = 0
         self.status = codes.STATUS_OK
-        self.diagnostics = np.zeros(stepper.N_DIAGNOSTICS)
+        self.diagnostics = np.zeros(codes.N_DIAGNOSTICS)
         self._progress = np.zeros(2, dtype=np.int64)
 
     @classmethod
@@ -1027,11 +1028,18 @@ class Integration:
                 m.newton_weights, m.Is_low, m.Is_hat_low, self.conserve_idx)
 
     def prepare_kernel(self) -> None:
-        """Load the per-problem kernel (solver.kernel: per_problem), compiling it the first time for
-        this problem (about 90 s); the first advance does it otherwise. The shared kernel is loaded."""
+        """Load the kernel, compiling it on an empty cache; the first advance does it otherwise.
+        Not at import or construction: checking a config must not wait for a compilation (minutes
+        after an upgrade), and an ensemble runs another kernel. The shared kernel
+        (kernels.stepper.time_loop), or the per-problem one (solver.kernel: per_problem, about 90 s
+        the first time for this problem)."""
         if self._time_loop is None:
-            from .per_problem import time_loop_for
-            self._time_loop = time_loop_for(self.problem)
+            if self.solver.kernel == "shared":
+                from .kernels import stepper
+                self._time_loop = stepper.time_loop
+            else:
+                from .per_problem import time_loop_for
+                self._time_loop = time_loop_for(self.problem)
 
     def advance(self, max_steps: int) -> Chunk:
         """Run up to max_steps more steps in one kernel call."""
@@ -1094,26 +1102,26 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
     d = diagnostics
-    depth = int(d[stepper.DIAG_DEPTH])
+    depth = int(d[codes.DIAG_DEPTH])
     where = f"at step {step} (t = {exact_time(t)} -> {exact_time(t + h)})"
     if depth > 0:
-        where += f", in its substep from t = {exact_time(d[stepper.DIAG_TIME])} of h = {d[stepper.DIAG_STEP]:.6g} " \
+        where += f", in its substep from t = {exact_time(d[codes.DIAG_TIME])} of h = {d[codes.DIAG_STEP]:.6g} " \
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     lim = method.kind.kernel_map == "lim"   # its small system is the Gram matrix, not Gamma
-    seen = [f"last relative increment {d[stepper.DIAG_INCREMENT]:.2e}"]
+    seen = [f"last relative increment {d[codes.DIAG_INCREMENT]:.2e}"]
     newton_matrix = False
-    if status == codes.STATUS_SINGULAR and d[stepper.DIAG_INCREMENT] == math.inf:
+    if status == codes.STATUS_SINGULAR and d[codes.DIAG_INCREMENT] == math.inf:
         seen = ["before any increment"]   # the solve's d before its first one: the first map failed
         # ... or, where no invariant can be imposed (GAUSS, HBVM), the Newton matrix did not factorise
         newton_matrix = method.kind.imposes == IMPOSES_NONE and solver.method == "newton"
         if newton_matrix:
             what = "the simplified Newton matrix I - h X (x) J Hess(H) is singular"
     if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot
-        seen = [f"sigma(y) = {d[stepper.DIAG_INCREMENT]:.3g} there, next step h = {d[stepper.DIAG_STEP]:.3g}"]
-    elif d[stepper.DIAG_CONDITION] != 0.0 and lim:
+        seen = [f"sigma(y) = {d[codes.DIAG_INCREMENT]:.3g} there, next step h = {d[codes.DIAG_STEP]:.3g}"]
+    elif d[codes.DIAG_CONDITION] != 0.0 and lim:
         seen.append("Gram matrix not positive definite")
-    elif d[stepper.DIAG_CONDITION] != 0.0:
-        seen.append(f"cond(Gamma) {d[stepper.DIAG_CONDITION]:.2e}")
+    elif d[codes.DIAG_CONDITION] != 0.0:
+        seen.append(f"cond(Gamma) {d[codes.DIAG_CONDITION]:.2e}")
     advice = (_ADAPTIVE_FAILURE_ADVICE if adaptive else _FAILURE_ADVICE)[status]
     if newton_matrix:
         advice = "use the fixed point (solver.method: fixed_point), or change h"
@@ -1123,7 +1131,7 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
             and method.s > ADAPTIVE_MEASURED_S):
         # at s <= 6 a lower s was advice that did not help (LIM(6,6,3) imposing L, A_x, A_y: singular at t0)
         advice += f", or use a lower s (docs/adaptive.md measures s <= {ADAPTIVE_MEASURED_S})"
-    if status == codes.STATUS_NOT_CONVERGED and d[stepper.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA and depth > 0:
+    if status == codes.STATUS_NOT_CONVERGED and d[codes.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA and depth > 0:
         # Still nearly singular after halving: not a step symmetric about a pericentre (docs/solver.md),
         # whose halves are well-conditioned.
         advice = _NEARLY_SINGULAR_ADVICE

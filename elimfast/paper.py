@@ -137,7 +137,7 @@ def _figures(table_outcomes: list[RunOutcome], long_outcomes: list[RunOutcome], 
         ax.plot(t, alpha[:, i], lw=1, label=f"alpha_{i + 1}")
     ax.set(xlabel="t", ylabel="alpha", title="Figure 1: components of alpha, EHBVM(12,3) imposing L1, L2, h = pi/30")
     ax.legend()
-    save(fig, "figure1_alpha.png")
+    save(fig, FIGURES[0])
 
     def invariant_error(o, name):
         values = o.result.invariants[name]
@@ -149,7 +149,7 @@ def _figures(table_outcomes: list[RunOutcome], long_outcomes: list[RunOutcome], 
         fig, ax = plt.subplots(figsize=(8, 4.5))
         ax.semilogy(t[1:], np.maximum(err[1:], 1e-17), lw=0.8)
         ax.set(xlabel="t", ylabel="error", title=f"Figure {number}: {title}, h = 0.1")
-        save(fig, f"figure{number}_{'gauss3_H' if number == 2 else 'hbvm_angular_momentum'}.png")
+        save(fig, FIGURES[number - 1])
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for label in COLUMNS:
@@ -158,7 +158,7 @@ def _figures(table_outcomes: list[RunOutcome], long_outcomes: list[RunOutcome], 
         ax.semilogy(t[1:], np.maximum(np.hypot(ex, ey)[1:], 1e-17), lw=0.8, label=label)
     ax.set(xlabel="t", ylabel="|A(t) - A(0)|", title="Figure 4: error in the LRL vector, h = 0.1")
     ax.legend(fontsize=8)
-    save(fig, "figure4_lrl.png")
+    save(fig, FIGURES[3])
     return written
 
 
@@ -189,6 +189,11 @@ def _markdown_long_run(summary) -> str:
     return "\n".join(lines) + "\n"
 
 
+# What reproduce writes into its folder (elimfast paper refuses to replace them without --overwrite).
+TABLES = ("table1.md", "table2.md", "table3.md", "long_run.md")
+FIGURES = ("figure1_alpha.png", "figure2_gauss3_H.png", "figure3_hbvm_angular_momentum.png", "figure4_lrl.png")
+
+
 def reproduce(config_dir: str | Path, out_dir: str | Path, workers: int | None = None, on_done=None) -> dict:
     """Run both paper sweeps and write the tables and figures. Returns the computed rows."""
     config_dir, out_dir = Path(config_dir), Path(out_dir)
@@ -202,10 +207,9 @@ def reproduce(config_dir: str | Path, out_dir: str | Path, workers: int | None =
         raise RuntimeError("; ".join(f"{o.label}: {o.status}" for o in failed))
     rows1, rows2, rows3 = table_1(table_spec, table_outcomes), table_2(table_outcomes), table_3(table_outcomes)
     summary = drift_summary(long_outcomes)
-    (out_dir / "table1.md").write_text(_markdown_table_1(rows1))
-    (out_dir / "table2.md").write_text(_markdown_table_2(rows2))
-    (out_dir / "table3.md").write_text(_markdown_table_3(rows3))
-    (out_dir / "long_run.md").write_text(_markdown_long_run(summary))
+    for name, text in zip(TABLES, (_markdown_table_1(rows1), _markdown_table_2(rows2), _markdown_table_3(rows3),
+                                   _markdown_long_run(summary))):
+        (out_dir / name).write_text(text)
     figures = _figures(table_outcomes, long_outcomes, out_dir)
     return {"table1": rows1, "table2": rows2, "table3": rows3, "long_run": summary, "figures": figures,
             "outcomes": (table_outcomes, long_outcomes)}

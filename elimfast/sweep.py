@@ -379,7 +379,9 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                     _fail(source, f"{key}.values[{j}]", "a variant is {label: ..., set: {key: value, ...}}")
                 _known_keys(source, f"{key}.values[{j}]", variant, VARIANT_KEYS)
                 label = _check_label(source, f"{key}.values[{j}].label", str(variant.get("label", j)))
-                points.append((label, {"replace": _written_out(source, f"{key}.values[{j}].set.", variant["set"])}))
+                replace = _written_out(source, f"{key}.values[{j}].set.", variant["set"])
+                _refuse_partial_sections(source, f"{key}.values[{j}].set", replace)
+                points.append((label, {"replace": replace}))
         axis_points.append(points)
         axis_names.append(name)
         if "key" in axis:
@@ -674,7 +676,7 @@ def ensemble_run(spec: SweepSpec, run, states: np.ndarray, threads: int | None =
 
 def block_line(rows: dict, start: int, stop: int, done: int, total: int) -> str:
     """The progress line of an ensemble block just stored (or put in place)."""
-    from .kernels.stepper import STATUS_OK
+    from .kernels.codes import STATUS_OK
     failed = int(np.count_nonzero(rows["status"] != STATUS_OK))
     return f"[{done:,}/{total:,}] trajectories {start}-{stop - 1}: {failed} failed"
 
@@ -691,7 +693,9 @@ def ensemble_states(spec: SweepSpec):
     integration = spec.base.get("integration") if isinstance(spec.base.get("integration"), dict) else {}
     control = next((key for key in ("rtol", "atol", "step_control", "epsilon") if key in integration), "step_control")
     ignored = ((f"integration.{control}", "adaptive steps", run.step_control is not None),
-               ("output.times", "output times", run.t_eval is not None), ("events", "events", bool(run.events)))
+               ("output.times", "output times", run.t_eval is not None), ("events", "events", bool(run.events)),
+               ("solver.project_energy", "the energy projection (docs/methods.md#energy-projection)",
+                bool(run.solver.project_energy)))
     for key, what, given in ignored:
         if given:
             raise SweepError(f"{spec.source}: base.{key}: an ensemble takes fixed steps h and keeps each trajectory's "
@@ -776,6 +780,25 @@ def run_source(source: str, label: str) -> str:
     is never printed (a user trial's terminal showed '[ reference]', and grep called the
     output a binary file)."""
     return f"{source}: error.reference" if label == REFERENCE_LABEL else f"{source} [{label}]"
+
+
+# What a section a variant replaces must name: the keys that say which problem or method it is.
+_SECTION_IDENTITY = {"problem": ("builtin", "python", "hamiltonian"), "method": ("name",)}
+
+
+def _refuse_partial_sections(source: str, where: str, replace: dict) -> None:
+    """A variant's set that replaces the problem or the method with a mapping naming none (``set:
+    {problem: {parameters: {eccentricity: 0.3}}}``): every run of it failed with "problem: no problem
+    given", which did not say that the variant had replaced the base's whole section."""
+    for section, identity in _SECTION_IDENTITY.items():
+        value = replace.get(section)
+        if isinstance(value, dict) and not any(name in value for name in identity):
+            inner = next(iter(value), None)
+            nested = (f", or vary {section}.{inner}.<key> with a plain axis (key: {section}.{inner}.<key>)"
+                      if isinstance(value.get(inner), dict) else "")
+            _fail(source, f"{where}.{section}",
+                  f"replaces the base's whole {section} section (a variant's set replaces the top-level values it "
+                  f"names) with one naming no {section} ({', '.join(identity)}); give the whole section{nested}")
 
 
 def _load_point(source: str, label: str, config: dict):
@@ -1471,7 +1494,7 @@ def _stream_ensemble(spec: SweepSpec, writer, ensemble, states: np.ndarray, clie
     on ``client``'s cluster or here (ensemble.run_in_blocks), storing each block as it
     arrives; then mark the ensemble complete. Only the blocks in flight are held."""
     from .ensemble import STATUS_NAMES, run_in_blocks
-    from .kernels.stepper import STATUS_OK
+    from .kernels.codes import STATUS_OK
 
     n = states.shape[0]
     todo = writer.ensemble_todo

@@ -443,6 +443,15 @@ def test_tableau_in_the_papers_notation_takes_no_parameter_options():
     assert result.exit_code == 2 and "NAME 'HBVM(4)': hbvm(k, s) takes 2 whole numbers" in result.output
 
 
+def test_tableau_with_several_values_after_one_eta_says_how_to_give_them():
+    result = invoke("tableau", "elim", "--r", "3", "--k", "3", "--s", "3", "--eta", "1", "1", "0.99")
+    assert result.exit_code == 2 and result.output.count("\n") == 1, result.output
+    assert "--eta 1 --eta 1 --eta 0.99" in result.output and "--eta 1,1,0.99" in result.output
+    both = [invoke("tableau", "elim", "--r", "3", "--k", "3", "--s", "3", *form) for form in
+            (["--eta", "1", "--eta", "1", "--eta", "0.99"], ["--eta", "1,1,0.99"])]
+    assert both[0].exit_code == 0 and both[0].stdout == both[1].stdout and "eta = 1.0, 1.0, 0.99" in both[0].stdout
+
+
 def test_version():
     result = invoke("--version")
     import elimfast

@@ -121,6 +121,13 @@ def test_overrides_are_yaml_values_and_validated():
     assert err.key == "method.s" and str(err).endswith("(value from --set method.s=1)") and err.line is None
 
 
+@pytest.mark.parametrize("h", ["1e-30", "0.0999"])
+def test_a_step_count_error_names_the_set_of_h_it_comes_from(h):
+    # the rule is t_end's (the file's line), the value at fault h's: both are named
+    err = config_error(kepler_data(), overrides=[f"integration.h={h}"])
+    assert err.key == "integration.t_end" and str(err).endswith(f"(with --set integration.h={h})")
+
+
 def test_resolved_config_holds_evaluated_numbers_and_all_defaults():
     data = expressions_data()
     data["integration"] = {"h": "pi/30", "n_steps": 60}
@@ -215,8 +222,8 @@ BAD = [
     ("builtin unknown", _set(("problem", "builtin"), "keplr"), "problem.builtin", "did you mean 'kepler'"),
     ("builtin parameter unknown", _set(("problem", "parameters"), {"eccentricty": 0.5}),
      "problem.parameters.eccentricty", "did you mean 'eccentricity'"),
-    ("builtin parameter rejected", _set(("problem", "parameters"), {"eccentricity": 1.5}), "problem.parameters",
-     r"eccentricity must be in \[0, 1\)"),
+    ("builtin parameter rejected", _set(("problem", "parameters"), {"eccentricity": 1.5}),
+     "problem.parameters.eccentricity", r"must be in \[0, 1\)"),
     ("initial unknown coordinate", _set(("problem", "initial"), {"q3": 1.0}), "problem.initial.q3",
      "no coordinate 'q3'"),
     ("initial bad value", _set(("problem", "initial"), {"q1": "sqrt(-1)"}), "problem.initial.q1", "not defined"),
@@ -469,11 +476,16 @@ def test_an_override_error_names_the_set_option_not_a_line(tmp_path):
         message = str(info.value)
         assert message.startswith(f"{path}: {key}: ") and match in message, message
         assert message.endswith(f"(value from --set {item})") and info.value.line is None, message
-    # A key below the error set by --set: the file's line, and the option
+    # A built-in's parameter refused by its constructor: at its own key (it was "problem.parameters:
+    # kepler: ..." at the section's line, and a list "float() argument must be ... not 'list'")
     with pytest.raises(ConfigError) as info:
         load_run(path, overrides=["problem.parameters.eccentricity=1.5"])
-    assert str(info.value).startswith(f"{path}:3: problem.parameters: kepler: ")
-    assert str(info.value).endswith("(with --set problem.parameters.eccentricity=1.5)")
+    assert str(info.value) == (f"{path}: problem.parameters.eccentricity: must be in [0, 1) for a periodic orbit, "
+                               "got 1.5 (value from --set problem.parameters.eccentricity=1.5)")
+    with pytest.raises(ConfigError) as info:
+        load_run(path, overrides=["problem.parameters.eccentricity=[0.5]"])
+    assert str(info.value).startswith(f"{path}: problem.parameters.eccentricity: must be a number, got [0.5]")
+    # A key below the error set by --set: the file's line, and the option;
     # several below it: each is named (the error may come from any: here stop; a user trial saw only start)
     adaptive = CONFIGS / "kepler_adaptive.yaml"
     with pytest.raises(ConfigError) as info:

@@ -155,6 +155,8 @@ def test_an_ensemble_result_as_xarray_holds_what_its_file_holds(tmp_path):
             assert ds.attrs["failed"] == in_memory.n_failed and ds.attrs["method"] == "GAUSS(3)"
             failed = int(np.flatnonzero(ds["status"].values != 0)[0])
             assert ds["diagnostics"].sel(trajectory=failed, diagnostic="iterations") == 2
+        # imposing nothing: an empty list, as a grid run's file has (it was [''], a name no invariant has)
+        assert list(stored.attrs["conserve"]) == [] and list(elimfast.load(out).conserve) == []
 
 
 def test_the_diagnostic_labels_follow_the_kernel_indices():

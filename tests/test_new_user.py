@@ -123,6 +123,17 @@ def test_paper_outside_the_repository_is_a_usage_error_or_finds_the_configs(tmp_
     assert "internal error" not in process.stderr
 
 
+def test_paper_does_not_replace_an_earlier_runs_tables_unasked(tmp_path):
+    out = tmp_path / "paper-out"
+    out.mkdir()
+    (out / "table1.md").write_text("my annotated table\n")
+    process = subprocess.run([ELIMFAST, "paper", "--out", str(out)], capture_output=True, text=True, timeout=120,
+                             cwd=ROOT)
+    assert process.returncode == 2, process.stderr
+    assert process.stderr.count("\n") == 1 and "--overwrite" in process.stderr and "table1.md" in process.stderr
+    assert (out / "table1.md").read_text() == "my annotated table\n"
+
+
 def _command_lines(text: str, heading: str) -> list[str]:
     block = text.split(heading, 1)[1]
     return [line.split("#")[0].strip() for line in block.splitlines() if line.startswith("    elimfast ")]

@@ -63,6 +63,28 @@ def test_import_elimfast_loads_no_numba_and_the_api_still_works():
     assert {"integrate", "load", "Integration", "Result"} <= set(dir(elimfast))
 
 
+RUN_KERNELS = ("elimfast.kernels.stepper", "elimfast.kernels.adaptive", "elimfast.kernels.ensemble")
+
+
+@pytest.mark.parametrize("body", [
+    # a config refused by its own checks: before this, `run` imported the fixed-step kernel first, and
+    # on an empty cache (after every upgrade) the user waited 2 min for "events.x.direction: must be 1 ..."
+    CLI_BODY.format(args=["run", "{bad}", "-o", "{out}"]),
+    # the config machinery and the Python layer of each run kind, without running
+    "import elimfast.config, elimfast.integrate, elimfast.adaptive, elimfast.ensemble, elimfast.sweep",
+])
+def test_checking_a_config_imports_no_run_kernel(body, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("problem: {builtin: kepler}\nmethod: {name: ehbvm, k: 8, s: 4}\n"
+                   "integration: {h: 0.1, t_end: 10}\nevents:\n  x: {expression: q1, direction: up}\n")
+    body = body.replace("{bad}", str(bad)).replace("{out}", str(tmp_path / "out.h5"))
+    script = f"import sys\n{body}\nprint([m for m in sys.modules if m in {RUN_KERNELS!r}])"
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+    assert not (tmp_path / "out.h5").exists()
+
+
 def test_a_run_loads_only_the_problem_it_uses():
     loaded = probe(CLI_BODY.format(args=["check", "configs/pendulum.yaml"]))
     assert "elimfast.problems.pendulum" in loaded["problems"]

@@ -128,6 +128,14 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
      r"problem\.parameters\.eccc: \(run 'b'.*did you mean 'ecc'"),
     ({"base": str(ROOT / "configs" / "kepler_expressions.yaml"), "set": {"problem": {"parameters": {"muu": 2}}}},
      r"problem\.parameters\.muu: .*no expression uses it"),
+    # a variant replacing the problem (or the method) with a section naming none: every run failed with
+    # "problem: no problem given", which did not say that the variant had replaced the whole section
+    ({"base": BASE, "grid": [{"name": "e", "values": [{"label": "low", "set": {"problem": {"parameters": {
+        "eccentricity": 0.3}}}}]}]},
+     r"grid\[0\]\.values\[0\]\.set\.problem: replaces the base's whole problem section .* naming no problem "
+     r"\(builtin, python, hamiltonian\); give the whole section, or vary problem\.parameters\.<key> with a plain axis"),
+    ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "s4", "set": {"method": {"s": 4}}}]}]},
+     r"grid\[0\]\.values\[0\]\.set\.method: replaces the base's whole method section .* naming no method \(name\)"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)
@@ -488,6 +496,8 @@ def test_ensemble_numbers_are_written_as_everywhere_in_configs(tmp_path):
     ({"integration": {"step_control": "time_scale", "t_end": "2*pi"}}, "base.integration.step_control: "),
     ({"events": {"peri": {"expression": "q1*p1 + q2*p2", "direction": 1}}}, "base.events: "),
     ({"output": {"times": [1.0, 2.0]}}, "base.output.times: "),
+    # it was refused as "ensemble: project_energy is not available ...", naming no key of the file
+    ({"solver": {"project_energy": True}}, "base.solver.project_energy: "),
 ])
 def test_an_ensemble_refuses_what_its_kernel_would_silently_drop(tmp_path, change, key):
     """An ensemble's base with events (or output times) ran without them and said nothing: a

@@ -89,7 +89,7 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
     group = parent.create_group(GROUP)
     _set_attributes(group, {
         "problem": run.problem.name, "method": run.method.name, "h": run.h, "n_steps": run.n_steps,
-        "conserve": list(run.conserve) or [""], "config": config_text, "status": STATUS_RUNNING})
+        "conserve": list(run.conserve), "config": config_text, "status": STATUS_RUNNING})
     _set_attributes(group, unit_attributes(run.problem))
     time_unit = dict(getattr(run.problem, "units", {}) or {}).get("time")
     n = states.shape[0]

@@ -33,58 +33,31 @@ import numpy as np
 from numba import njit, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from .codes import internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_TIME_SCALE
+# The layout of the arrays this kernel shares with elimfast.adaptive (controls, options, control_state,
+# counters, progress, diagnostics) is codes.py's, which the Python layer reads without loading this kernel.
+from .codes import (internal, STATUS_NONFINITE, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_TIME_SCALE,  # noqa: F401
+                    CONTROL_ERROR, CONTROL_FIXED, CONTROL_TIME_SCALE, CTL_RTOL, CTL_ATOL, CTL_EPSILON, CTL_T_END,
+                    CTL_H_MAX, CTL_H_TARGET, OPT_CONTROL, OPT_VERIFY, OPT_STORE_EVERY, OPT_N_TOTAL,
+                    CS_H_NEXT, CS_H_PREV, CS_ERR_PREV, CS_RHO, CS_REJECTED, CNT_STEPS,
+                    CNT_REJECTED, CNT_FAILED, CNT_SPLIT, CNT_ITERATIONS, CNT_SIDE_STEPS, CNT_SIDE_ITERATIONS,
+                    CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS, CNT_SIDE_FALLBACKS,
+                    CNT_ENERGY_PROJECTIONS, N_PROGRESS, COLLAPSED_STEP, DIAG_DEPTH, DIAG_INCREMENT,
+                    DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS)
 from .quadrature import legendre_table
 from .signatures import (COMPLEX_MATRIX, COMPLEX_VECTOR, GRAD_H_TYPE, GRAD_INVARIANTS_TYPE, H_TYPE, HESS_H_TYPE,
                          INT_VECTOR, INVARIANTS_TYPE, MATRIX, VECTOR)
-from .stepper import (DIAG_DEPTH, DIAG_INCREMENT, DIAG_ITERATIONS, DIAG_STEP, DIAG_TIME, N_DIAGNOSTICS, _copy,
-                      _sample, energy_projection_arrays, extrapolate, kahan_add, newton_eigenvalues, project_energy,
-                      record_multipliers, restore_newton_matrix, try_step)
+from .stepper import (_copy, _sample, energy_projection_arrays, extrapolate, kahan_add, newton_eigenvalues,  # noqa: F401
+                      project_energy, record_multipliers, restore_newton_matrix, try_step)
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 
 warnings.filterwarnings("ignore", category=NumbaExperimentalFeatureWarning, module=__name__)
 warnings.filterwarnings("ignore", message="First-class function type feature is experimental")
 
-CONTROL_ERROR = 0
-CONTROL_TIME_SCALE = 1
-CONTROL_FIXED = 2
-
-# controls (float64): the run's real parameters.
-CTL_RTOL, CTL_ATOL, CTL_EPSILON, CTL_T_END, CTL_H_MAX, CTL_H_TARGET = range(6)
-N_CONTROLS = 6
-# options (int64): the run's integer parameters.
-OPT_CONTROL, OPT_VERIFY, OPT_STORE_EVERY, OPT_N_TOTAL = range(4)
-N_OPTIONS = 4
-# control_state (float64), saved with the run so that a resumed run continues exactly:
-# the next step to try, the last accepted step and its error estimate (0: none yet),
-# rho of the time-reversible controller (0: not started), and 1 when the last attempt was
-# rejected or failed (the next accepted step then may not grow: Hairer & Wanner's rule;
-# without it Kepler e = 0.99 at rtol 1e-9 failed 189 solves in 10 periods).
-CS_H_NEXT, CS_H_PREV, CS_ERR_PREV, CS_RHO, CS_REJECTED = range(5)
-N_CONTROL_STATE = 5
-# counters (int64), saved with the run: steps accepted, steps rejected by the estimate,
-# failed solves (h halved), split steps, iterations of accepted and rejected steps,
-# side steps and their iterations, the next requested time, events found,
-# Newton factorisations (Hessian evaluations), Hessians of the error estimate,
-# states taken from the stage polynomial because both side steps failed, and states
-# checked by the energy projection (one grad H each; solver.project_energy).
-(CNT_STEPS, CNT_REJECTED, CNT_FAILED, CNT_SPLIT, CNT_ITERATIONS, CNT_SIDE_STEPS, CNT_SIDE_ITERATIONS,
- CNT_NEXT_EVAL, CNT_EVENTS, CNT_FACTORISATIONS, CNT_ESTIMATE_HESSIANS, CNT_SIDE_FALLBACKS,
- CNT_ENERGY_PROJECTIONS) = range(13)
-N_COUNTERS = 13
-# progress (int64) of one call: steps, samples, events written; 1 when the run is finished
-# (t_end reached or a terminal event).
-N_PROGRESS = 4
-
 SAFETY = 0.9
 MIN_FACTOR = 0.2
 MAX_FACTOR = 2.0
 MAX_CONSECUTIVE_FAILURES = 40      # halvings of one step before the run fails
-# A step below this times |t| (or |t_end|) no longer advances the clock: time-reversible steps'
-# sigma has collapsed (STATUS_TIME_SCALE), or the error controller's steps have (a failure of
-# STATUS_NOT_CONVERGED with no iterations: collapsed_steps).
-COLLAPSED_STEP = 4.0 * 2.0 ** -52
 # The solver's convergence limits the step too (docs/adaptive.md#controller): an accepted step
 # whose solve took more than this fraction of max_iter iterations makes the next one smaller
 # (SLOW_SOLVE_FACTOR), more than NO_GROWTH_FRACTION keeps it from growing. At loose

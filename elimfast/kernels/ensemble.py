@@ -23,9 +23,9 @@ from numba import njit, prange, types
 from numba.core.errors import NumbaExperimentalFeatureWarning
 from numba.extending import intrinsic
 
-from .codes import STATUS_EXCEPTION, STATUS_OK, internal_allocating
+from .codes import N_DIAGNOSTICS, STATUS_EXCEPTION, STATUS_OK, internal_allocating
 from .signatures import INT_VECTOR, MATRIX, VECTOR
-from .stepper import N_DIAGNOSTICS, RUN_ARGUMENT_TYPES, newton_eigenvalues, predictor_extra_rows, try_step
+from .stepper import RUN_ARGUMENT_TYPES, newton_eigenvalues, predictor_extra_rows, try_step
 from .workspace import (Settings, Tables, borrow_tables, borrow_workspace, borrowed, by_ref, keep_alive,
                         make_workspace)
 

@@ -23,7 +23,8 @@ from numba.extending import overload
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from .codes import (internal, FAMILY_ELIM, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON, STATUS_NONFINITE,  # noqa: F401
-                    STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR, STATUS_SPLIT)
+                    STATUS_NOT_CONVERGED, STATUS_OK, STATUS_SINGULAR, STATUS_SPLIT, PREDICTOR_EXTRA_ROWS, DIAG_TIME,
+                    DIAG_STEP, DIAG_INCREMENT, DIAG_CONDITION, DIAG_DEPTH, DIAG_ITERATIONS, N_DIAGNOSTICS)
 from .linalg import cholesky_factor, cholesky_solve_factored
 from .maps import EPS, RHS_STABLE, apply_J, elim_map, gradient_sizes, project
 from .quadrature import legendre_table, two_prod, two_sum
@@ -44,26 +45,6 @@ warnings.filterwarnings("ignore", message="First-class function type feature is 
 REUSE_ITERATIONS = 6
 REUSE_ITERATIONS_FULL = 3
 
-# The predictor (docs/solver.md#the-predictor) carries the previous step's polynomial over with
-# this many Legendre coefficients gamma_s, gamma_s+1, ... beyond its s effective ones, when the
-# method computes them (k > s; GAUSS has none: P_s vanishes at its nodes). One makes the
-# predictor one order more accurate: its error max |h (c_pred - c)| / sc on Kepler e = 0.6,
-# h = 0.1 (median over 300 steps, 0..3 extra terms) is 7.3e-5, 5.6e-6, 1.2e-6, 1.2e-6, and it
-# drops like h^(s+1) with h instead of h^s (tests/test_step_engine.py). Iterations per step
-# with 0, 1, 2, 3 extra terms, measured:
-#   Kepler e = 0.6, h = 0.1, t <= 1000: EHBVM(12,3) imposing L, A_y 5.26, 5.02, 5.00, 5.00
-#     (fixed point 9.18, 8.37, 8.18, 8.13); HBVM(12,3) 4.65, 4.41, 4.40, 4.41; GHBVM(12,3) 4.73,
-#     4.49, 4.49, 4.49; HBVM(12,6) (t <= 300) 3.79, 3.62, 3.63, 3.62;
-#   small steps: EHBVM(12,4) imposing L, h = pi/480: 3.01, 2.50, 2.51, 2.98; h = pi/960: 2.65,
-#     2.09, 2.13, 2.46; HBVM(12,6), h = pi/120: 3.11, 3.01, 3.03, 3.06;
-#   adaptive, Kepler e = 0.9, 10 periods at rtol 1e-14: EHBVM(8,4) imposing L, A_y 5.89, 5.63,
-#     5.50, 5.29; HBVM(12,6) 5.44, 5.33, 5.32, 5.33; HBVM(8,4) 4.02 in every case;
-#   the outer solar system, h = 50: GHBVM(12,3) 5.84, 5.55, 5.53, 5.52.
-# A second and third term gain a little more with large steps and lose at small ones: there
-# gamma_j is mostly rounding noise, which the extrapolation to [1, 2] amplifies like P_j(2)
-# (3.7^j). Beyond 3 the (s+1)-point rule of E(theta) is no longer exact (degree 2s - 2 + e).
-PREDICTOR_EXTRA_ROWS = 1
-
 
 @njit(cache=True)
 def predictor_extra_rows(k, s):
@@ -71,11 +52,6 @@ def predictor_extra_rows(k, s):
     predictor (the rows of its coef_extra state): min(k - s, PREDICTOR_EXTRA_ROWS), as
     elimfast.integrate.predictor_extra_state sizes a run's state."""
     return min(k - s, PREDICTOR_EXTRA_ROWS)
-
-
-# Diagnostics of a failed step (the kernels' ``diagnostics`` output, in this order).
-DIAG_TIME, DIAG_STEP, DIAG_INCREMENT, DIAG_CONDITION, DIAG_DEPTH, DIAG_ITERATIONS = range(6)
-N_DIAGNOSTICS = 6
 
 
 @njit(cache=True, inline="always", error_model="numpy")

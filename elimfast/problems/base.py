@@ -27,6 +27,17 @@ HESSIAN_SOURCES = {
 }
 
 
+def real_parameter(parameter: str, value) -> float:
+    """A built-in problem's real parameter as a float, or a ParameterError naming it (float() of a
+    list said "float() argument must be a string or a real number, not 'list'", naming nothing)."""
+    if isinstance(value, bool) or not isinstance(value, (numbers.Real, decimal.Decimal, str, np.generic)):
+        raise ParameterError(parameter, f"must be a number, got {_shown(value)}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(parameter, f"must be a number, got {_shown(value)}") from None
+
+
 def real_state(value, parameter: str = "y0") -> np.ndarray:
     """An initial state as a fresh float64 array, or a ParameterError naming ``parameter``.
 

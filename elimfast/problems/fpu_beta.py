@@ -31,7 +31,8 @@ from numba import njit
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants, no_invariant_gradients, no_invariants)
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 
 BOUNDARIES = ("periodic", "fixed")
 
@@ -161,14 +162,15 @@ def _fixed_hess_H(y, params, out):
 
 def fpu_beta(n: int = 8, beta: float = 1.0, boundary: str = "periodic") -> Problem:
     """FPU-beta chain of n >= 2 unit masses, beta >= 0, boundary 'periodic' or 'fixed'."""
-    if isinstance(n, bool) or not float(n).is_integer() or n < 2:
-        raise ValueError(f"n must be an integer >= 2 (the number of masses), got {n!r}")
+    if isinstance(n, bool) or not real_parameter("n", n).is_integer() or n < 2:
+        raise ParameterError("n", f"must be an integer >= 2 (the number of masses), got {n!r}")
     n = int(n)
-    beta = float(beta)
+    beta = real_parameter("beta", beta)
     if not (math.isfinite(beta) and beta >= 0.0):
-        raise ValueError(f"beta must be finite and >= 0 (beta < 0 makes the potential unbounded below), got {beta}")
+        raise ParameterError("beta", f"must be finite and >= 0 (beta < 0 makes the potential unbounded below), "
+                                     f"got {beta}")
     if boundary not in BOUNDARIES:
-        raise ValueError(f"boundary must be 'periodic' or 'fixed', got {boundary!r}")
+        raise ParameterError("boundary", f"must be 'periodic' or 'fixed', got {boundary!r}")
     j = np.arange(1, n + 1)
     if boundary == "periodic":
         omega_1 = 2.0 * math.sin(math.pi / n)

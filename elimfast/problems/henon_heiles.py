@@ -16,7 +16,8 @@ import math
 import numpy as np
 
 from ..kernels.signatures import jit_gradient, jit_hamiltonian, jit_hessian, no_invariant_gradients, no_invariants
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 
 ESCAPE_ENERGY = 1.0 / 6.0
 Q2_START = 0.1
@@ -50,10 +51,10 @@ def hess_H(y, params, out):
 
 def henon_heiles(energy: float = 0.125) -> Problem:
     """Henon-Heiles from q = (0, 0.1), p = (p1, 0) with p1 > 0 fixed by H = energy < 1/6."""
-    energy = float(energy)
+    energy = real_parameter("energy", energy)
     potential = 0.5 * Q2_START ** 2 - Q2_START ** 3 / 3.0
     if not (potential < energy < ESCAPE_ENERGY):
-        raise ValueError(f"energy must lie in ({potential:.6g}, 1/6) (above the potential at the start "
+        raise ParameterError("energy", f"must lie in ({potential:.6g}, 1/6) (above the potential at the start "
                          f"q = (0, {Q2_START}), below the escape energy), got {energy}")
     y0 = np.array([0.0, Q2_START, math.sqrt(2.0 * (energy - potential)), 0.0])
     return Problem(

@@ -16,7 +16,8 @@ import numpy as np
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants)
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 
 
 @jit_hamiltonian
@@ -97,9 +98,9 @@ def time_scale(y, params, out):
 
 def kepler(eccentricity: float = 0.6) -> Problem:
     """The planar Kepler problem of the paper, e in [0, 1)."""
-    e = float(eccentricity)
+    e = real_parameter("eccentricity", eccentricity)
     if not 0.0 <= e < 1.0:
-        raise ValueError(f"eccentricity must be in [0, 1) for a periodic orbit, got {e}")
+        raise ParameterError("eccentricity", f"must be in [0, 1) for a periodic orbit, got {e}")
     y0 = np.array([1.0 - e, 0.0, 0.0, math.sqrt((1.0 + e) / (1.0 - e))])
     return Problem(
         name="kepler", q_names=("q1", "q2"), p_names=("p1", "p2"),

@@ -40,7 +40,8 @@ from numba import njit
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants)
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 
 # Hairer, Lubich & Wanner, GNI, I.2.4.
 SOLAR_SYSTEM_G = 2.95912208286e-4
@@ -230,11 +231,11 @@ INVARIANT_NAMES = ("linear_momentum_x", "linear_momentum_y", "linear_momentum_z"
 def _bodies_array(value, name, n_bodies=None):
     array = np.array(value, dtype=np.float64)
     if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"{name} must be a list of [x, y, z] triples, one per body, got shape {array.shape}")
+        raise ParameterError(name, f"must be a list of [x, y, z] triples, one per body, got shape {array.shape}")
     if n_bodies is not None and array.shape[0] != n_bodies:
-        raise ValueError(f"{name} has {array.shape[0]} bodies but masses has {n_bodies}")
+        raise ParameterError(name, f"has {array.shape[0]} bodies but masses has {n_bodies}")
     if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} must be finite numbers")
+        raise ParameterError(name, "must be finite numbers")
     return array
 
 
@@ -260,16 +261,16 @@ def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_
     stated (AU, day, solar mass) when G is HLW's, whose value fixes them.
     """
     default_data = masses is None and positions is None and velocities is None
-    G = float(G)
+    G = real_parameter("G", G)
     if not (math.isfinite(G) and G > 0.0):
-        raise ValueError(f"G must be a positive finite number, got {G}")
+        raise ParameterError("G", f"must be a positive finite number, got {G}")
     if frame not in FRAMES:
-        raise ValueError(f"frame must be 'barycentric' or 'given', got {frame!r}")
+        raise ParameterError("frame", f"must be 'barycentric' or 'given', got {frame!r}")
     masses = np.array(SOLAR_SYSTEM_MASSES if masses is None else masses, dtype=np.float64)
     if masses.ndim != 1 or masses.size < 2:
-        raise ValueError(f"masses must be a list of at least 2 numbers, got {masses.tolist()!r}")
+        raise ParameterError("masses", f"must be a list of at least 2 numbers, got {masses.tolist()!r}")
     if not np.all(np.isfinite(masses) & (masses > 0.0)):
-        raise ValueError(f"masses must be positive finite numbers, got {masses.tolist()!r}")
+        raise ParameterError("masses", f"must be positive finite numbers, got {masses.tolist()!r}")
     n_bodies = masses.size
     q = _bodies_array(SOLAR_SYSTEM_POSITIONS if positions is None else positions, "positions", n_bodies)
     # By value, not by "positions is None": a resolved config passes HLW's positions explicitly.
@@ -279,7 +280,7 @@ def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_
     for i in range(n_bodies):
         for j in range(i + 1, n_bodies):
             if np.array_equal(q[i], q[j]):
-                raise ValueError(f"bodies {i} and {j} start at the same position {q[i].tolist()}: "
+                raise ParameterError("positions", f"of bodies {i} and {j} are the same, {q[i].tolist()}: "
                                  "the potential is singular there")
     q_start, v_start = barycentric(masses, q, v) if frame == "barycentric" else (q, v)
     p = masses[:, None] * v_start

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants, no_invariant_gradients, no_invariants)
-from .base import Problem
+from .base import Problem, real_parameter
 
 
 @jit_hamiltonian
@@ -36,12 +36,13 @@ def _harmonic_hess_H(y, params, out):
 
 
 def harmonic_oscillator(omega: float = 1.0) -> Problem:
+    omega = real_parameter("omega", omega)
     return Problem(
         name="harmonic_oscillator", q_names=("q",), p_names=("p",),
         H=_harmonic_H, grad_H=_harmonic_grad_H, hess_H=_harmonic_hess_H, hessian_source="analytic",
         invariants=no_invariants, grad_invariants=no_invariant_gradients,
-        invariant_names=(), y0=np.array([1.0, 0.0]), params=np.array([float(omega)]),
-        parameters={"omega": float(omega)}, description="H = p^2/2 + omega^2 q^2/2", hamiltonian_degree=2,
+        invariant_names=(), y0=np.array([1.0, 0.0]), params=np.array([omega]),
+        parameters={"omega": omega}, description="H = p^2/2 + omega^2 q^2/2", hamiltonian_degree=2,
     )
 
 

@@ -12,7 +12,8 @@ import math
 import numpy as np
 
 from ..kernels.signatures import jit_gradient, jit_hamiltonian, jit_hessian, no_invariant_gradients, no_invariants
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 
 
 @jit_hamiltonian
@@ -38,9 +39,9 @@ def hess_H(y, params, out):
 
 def pendulum(omega: float = 1.0) -> Problem:
     """The pendulum H = p^2/2 - omega^2 cos q (small-oscillation frequency omega > 0)."""
-    omega = float(omega)
+    omega = real_parameter("omega", omega)
     if not (math.isfinite(omega) and omega > 0.0):
-        raise ValueError(f"omega must be a positive finite frequency, got {omega}")
+        raise ParameterError("omega", f"must be a positive finite frequency, got {omega}")
     return Problem(
         name="pendulum", q_names=("q",), p_names=("p",),
         H=H, grad_H=grad_H, hess_H=hess_H, hessian_source="analytic",

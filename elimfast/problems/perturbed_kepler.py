@@ -17,7 +17,8 @@ import numpy as np
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants)
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 from .kepler import time_scale as kepler_time_scale
 
 
@@ -74,12 +75,12 @@ def grad_invariants(y, params, out):
 
 def perturbed_kepler(eccentricity: float = 0.6, delta: float = 0.01) -> Problem:
     """Perturbed Kepler, H = |p|^2/2 - 1/|q| - delta/(2|q|^3), from the Kepler initial state."""
-    e = float(eccentricity)
+    e = real_parameter("eccentricity", eccentricity)
     if not 0.0 <= e < 1.0:
-        raise ValueError(f"eccentricity must be in [0, 1), got {e}")
-    delta = float(delta)
+        raise ParameterError("eccentricity", f"must be in [0, 1), got {e}")
+    delta = real_parameter("delta", delta)
     if not math.isfinite(delta):
-        raise ValueError(f"delta must be a finite number, got {delta}")
+        raise ParameterError("delta", f"must be a finite number, got {delta}")
     y0 = np.array([1.0 - e, 0.0, 0.0, math.sqrt((1.0 + e) / (1.0 - e))])
     return Problem(
         name="perturbed_kepler", q_names=("q1", "q2"), p_names=("p1", "p2"),

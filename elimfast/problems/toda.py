@@ -42,7 +42,8 @@ from numba import njit
 
 from ..kernels.signatures import (jit_gradient, jit_hamiltonian, jit_hessian, jit_invariant_gradients,
                                   jit_invariants)
-from .base import Problem
+from ..errors import ParameterError
+from .base import Problem, real_parameter
 
 MAX_POWER = 5
 
@@ -239,8 +240,8 @@ def invariant_names_for(n: int) -> tuple[str, ...]:
 
 def toda(n: int = 4) -> Problem:
     """Periodic Toda lattice of n >= 3 particles (invariants: see the module docstring)."""
-    if isinstance(n, bool) or not float(n).is_integer() or n < 3:
-        raise ValueError(f"n must be an integer >= 3 (the number of particles on the ring), got {n!r}")
+    if isinstance(n, bool) or not real_parameter("n", n).is_integer() or n < 3:
+        raise ParameterError("n", f"must be an integer >= 3 (the number of particles on the ring), got {n!r}")
     n = int(n)
     j = np.arange(1, n + 1)
     q0 = 0.3 * np.sin(2.0 * math.pi * j / n + 0.7)
