@@ -928,7 +928,9 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     reference run named in the sweep file; orders between successive values of order_axis
     (a plain axis of numbers: h, or epsilon, rtol, ... for the order in those).
     A failed run does not stop the others: it is marked with its reason (its figures read
-    'failed': they would cover only the steps before the failure) and the exit code is 1.
+    'failed': they would cover only the steps before the failure) and the exit code is 1;
+    a run whose config is refused (a grid value of h that is no whole number of steps)
+    makes it 2, a usage error.
 
     An ensemble sweep (an ensemble: section, one config from many initial states) runs
     in the parallel Numba kernel on N threads instead, and stores /ensemble in OUT.h5 block

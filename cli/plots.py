@@ -5,7 +5,8 @@ import numpy as np
 
 from elimfast.errors import ElimfastError
 
-MAX_POINTS = 200_000    # points per curve; longer data are strided (every n-th row)
+MAX_POINTS = 200_000    # points per curve; longer data are strided (every n-th row), or their peaks taken
+PEAK_BLOCK_WINDOWS = 4096   # windows of rows read at a time by _window_peaks
 # Dense samples: a line with dots on it. Sparse ones (output.every large against the
 # orbit): markers alone, since lines between them are chords across the orbit.
 ORBIT_STYLE = {"marker": ".", "ms": 1.5, "lw": 0.2}
@@ -82,6 +83,46 @@ class PlotError(ElimfastError):
 
 def _stride(n: int) -> int:
     return max(1, -(-n // MAX_POINTS))
+
+
+def _magnitude(values: np.ndarray) -> np.ndarray:
+    """|values|, NaN (an unimposed step's alpha) smallest: a window's peak is a number where it has one."""
+    return np.nan_to_num(np.abs(values), nan=-1.0)
+
+
+def _step_time_dataset(run_file) -> str | None:
+    """'steps/t' where the steps' end times are stored (the adaptive kernel's runs), else None."""
+    return "steps/t" if run_file.step_times(max(1, run_file.steps_done)) is not None else None
+
+
+def _window_peaks(run_file, name: str, count: int, stride: int, size=_magnitude,
+                  times: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(times, values), each (windows, columns), of dataset ``name``'s first count rows: in each
+    window of ``stride`` rows, column by column, the row where size(value) is largest, and its time
+    from the dataset ``times`` (None: the fixed steps' t0 + h (row + 1)). A long run's curves keep
+    at most MAX_POINTS points, and every stride-th row alone dropped the extremes (a user trial: an
+    alpha spike of 0.32 at step 293,615 of 4e5 drew as 0.058, and the iterations plot showed its
+    spike of 3514 only by luck). Reads PEAK_BLOCK_WINDOWS windows at a time."""
+    found_times, found_values = [], []
+    for start in range(0, count, stride * PEAK_BLOCK_WINDOWS):
+        stop = min(start + stride * PEAK_BLOCK_WINDOWS, count)
+        block = run_file._read_rows(name, start, stop)
+        block = block.reshape(block.shape[0], -1)
+        block_times = run_file._read_rows(times, start, stop) if times is not None else None
+        whole = block.shape[0] // stride * stride
+        for first, last, width in ((0, whole, stride), (whole, block.shape[0], block.shape[0] - whole)):
+            if last <= first:
+                continue
+            windows = block[first:last].reshape(-1, width, block.shape[1])
+            at = np.argmax(size(windows), axis=1)   # (windows, columns)
+            rows = first + np.arange(windows.shape[0])[:, None] * width + at
+            found_values.append(np.take_along_axis(windows, at[:, None, :], axis=1)[:, 0, :])
+            if block_times is not None:
+                found_times.append(block_times[rows])
+            else:
+                attrs = run_file.attrs
+                found_times.append(float(attrs["t0"]) + float(attrs["h"]) * (start + rows + 1))
+    return np.concatenate(found_times), np.concatenate(found_values)
 
 
 def _bodies(names):
@@ -221,12 +262,16 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
     if n < 2:
         raise PlotError(f"{run_file.name}: only {n} sample(s) stored; nothing to draw")
     stride = _stride(n)
-    t = run_file.t(stride)
     conserve = set(run_file.attrs.get("conserve") or [])
     scales = run_file.invariant_scales()
     initial = run_file.initial_invariants()   # I(t0) of the initial state (older files: the first sample)
     for name in run_file.invariant_names:
-        values = run_file.invariant(name, stride)
+        if stride > 1:   # the largest error of each window of samples, at its time
+            t, values = _window_peaks(run_file, f"invariants/{name}", n, stride,
+                                      size=lambda v, i0=initial[name]: _magnitude(v - i0), times="t")
+            t, values = t[:, 0], values[:, 0]
+        else:
+            t, values = run_file.t(1), run_file.invariant(name, 1)
         error = np.abs(values - initial[name])
         error[error == 0.0] = np.nan   # exact agreement has no place on a log scale
         label = name + (" (imposed)" if name in conserve else "")
@@ -295,10 +340,17 @@ def _multipliers(run_file, axes) -> None:
     if n < 1:
         raise PlotError(f"{run_file.name}: no steps stored yet; nothing to draw")
     stride = _stride(n)
-    values = run_file.multipliers(stride)
-    t = _step_times(run_file, n, stride)
-    for column, label in enumerate(run_file.multiplier_labels()):
-        axes.plot(t, values[:, column], lw=0.6, label=label)
+    labels = run_file.multiplier_labels()
+    if stride > 1:   # each window's largest |alpha|, at its step
+        t, values = _window_peaks(run_file, f"steps/{run_file.multiplier_name}", n, stride,
+                                  times=_step_time_dataset(run_file))
+        for column, label in enumerate(labels):
+            axes.plot(t[:, column], values[:, column], lw=0.6, label=label)
+    else:
+        values = run_file.multipliers(1)
+        t = _step_times(run_file, n, 1)
+        for column, label in enumerate(labels):
+            axes.plot(t, values[:, column], lw=0.6, label=label)
     axes.set_xlabel("t")
     axes.set_ylabel(run_file.multiplier_name + " (per step)")
     axes.legend(fontsize="small")
@@ -320,8 +372,12 @@ def _iterations(run_file, axes) -> None:
     if n < 1:
         raise PlotError(f"{run_file.name}: no steps stored yet; nothing to draw")
     stride = _stride(n)
-    iterations = run_file.iterations(stride)
-    t = _step_times(run_file, n, stride)
+    if stride > 1:   # each window's largest count, at its step
+        t, iterations = _window_peaks(run_file, "steps/iterations", n, stride,
+                                      times=_step_time_dataset(run_file))
+        t, iterations = t[:, 0], iterations[:, 0]
+    else:
+        iterations, t = run_file.iterations(1), _step_times(run_file, n, 1)
     axes.plot(t, iterations, ".", ms=1.5)
     axes.set_xlabel("t")
     axes.set_ylabel(f"{_solver_name(run_file)} iterations per step")

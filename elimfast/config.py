@@ -441,6 +441,10 @@ def _apply_overrides(data, overrides, source):
         parts = key.strip().split(".")
         if not all(parts):
             raise ConfigError(f"{source}: --set {item!r}: {key!r} is not a key path; write e.g. integration.h=pi/60")
+        if "[" in key or "]" in key:
+            # (conserve[0]=lrl_x was an internal error: IndexError)
+            raise ConfigError(f"{source}: --set {item!r}: {key.strip()!r} is not a key path (names joined by dots, "
+                              "no indices); set a list whole, e.g. --set conserve=[angular_momentum,lrl_y]")
         value = parse_yaml(text, f"{source}: --set {key.strip()}") if text.strip() else None
         if data is None:
             data = {}
@@ -486,6 +490,8 @@ def unknown_key_text(location: tuple) -> str:
     """What to say of a key no config section has, at ``location`` (a config key path): the
     keys allowed there, and the nearest of them."""
     from .config_schema import SECTIONS
+    if not location:
+        return "unknown key; remove it"
     parent = tuple(p for p in location[:-1] if isinstance(p, str))
     model = SECTIONS.get(parent) or SECTIONS.get(parent[:-1] + ("*",))   # events.<name>: ("events", "*")
     allowed = list(model.model_fields) if model else []
@@ -751,7 +757,6 @@ class _Builder:
 
         if times is None:
             return None
-        # Imported here: elimfast.adaptive loads the kernels, which a config need not.
         from .adaptive import MAX_OUTPUT_TIMES, resolve_t_eval
         if isinstance(times, list):
             values = np.array(times, dtype=float)
@@ -762,6 +767,11 @@ class _Builder:
             if times.n is not None:
                 if not 1 <= times.n <= MAX_OUTPUT_TIMES:
                     raise ParameterError("t_eval", f"n must be from 1 to {MAX_OUTPUT_TIMES}, got {times.n}")
+                if times.n == 1 and times.stop != times.start:
+                    # (it gave start alone, silently: n counts start and stop)
+                    raise ParameterError("t_eval", f"n = 1 gives start alone (n counts the times from start to stop, "
+                                                   f"both included); give n >= 2, or one time as a list, e.g. "
+                                                   f"times: [{compact_number(times.stop)}]")
                 values = np.linspace(times.start, times.stop, times.n)
             else:
                 if not times.step > 0:
@@ -827,6 +837,11 @@ class _Builder:
                         hint = " (YAML reads yes/no/on/off/true/false as booleans: quote the key)" \
                             if isinstance(key, bool) else ""
                         raise self.error(path + (str(key),), f"key {key!r} must be a string{hint}")
+                    if "[" in key or "]" in key:
+                        # no config key has brackets, and pydantic's locations use them for union members,
+                        # which config_location drops: such a key was an internal error (IndexError)
+                        raise self.error(path, f"key {key!r}: no config key has brackets; remove it (a list is "
+                                               "given whole, e.g. conserve: [angular_momentum, lrl_y])")
                     stack.append((value, path + (key,)))
             elif isinstance(node, list):
                 stack.extend((value, path + (index,)) for index, value in enumerate(node))

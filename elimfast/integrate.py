@@ -1224,7 +1224,8 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     if h is None:
         raise ParameterError("h", "is missing: give h (fixed steps), or rtol for adaptive steps (docs/adaptive.md)")
     if t_end is not None and backward:
-        raise ValueError("with backward=True give n_steps, not t_end")
+        raise ParameterError("t_end", "does not go with backward=True: give n_steps (the run goes from t0 back by "
+                                      "n_steps h)")
     h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
     run = Integration(problem, method, h, n_steps, conserve=conserve, tol=tol, max_iter=max_iter,
                       store_every=store_every, rhs=rhs, warm_start=warm_start, t0=t0, y0=y0, backward=backward,
@@ -1344,7 +1345,8 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     if not isinstance(method, Method):
         raise TypeError(f"method must be an elimfast Method, got {type(method).__name__}")
     if backward:
-        raise ValueError("backward runs take fixed steps without t_eval or events; integrate forwards with t_end")
+        raise ParameterError("backward", "runs take fixed steps without t_eval or events (or rtol, step_control); "
+                                         "integrate forwards with t_end")
     y_start = resolve_initial_state(problem, y0)
     names, conserve_idx = resolve_conserve(problem, method, conserve, y_start)
     solver = solver.resolved_for(method, len(names), 2 * problem.degrees_of_freedom)

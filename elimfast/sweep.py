@@ -425,7 +425,9 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
     _refuse_unused_parameters(source, base_alone, runs)
     labels = [r.label for r in runs]
     if len(set(labels)) != len(labels):
-        _fail(source, "grid", "two runs get the same label; give the variants distinct labels")
+        repeated = next(label for label in labels if labels.count(label) > 1)
+        _fail(source, "grid", f"two runs get the same label {repeated!r} (an axis repeats a value, or two variants "
+                              "share a label); give each axis distinct values and the variants distinct labels")
     from .io.sweepfile import sweep_group_name
     groups: dict[str, str] = {}
     for label in labels:   # a sweep file stores each run under this name: 'a/b' and 'a|b' would collide
@@ -578,6 +580,9 @@ def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
     fault of the sweep file. Only that: the values themselves are the runs' to judge."""
     from .config import unknown_key_text
     from .config_schema import RunConfig, ValidationError, config_location
+    if "[" in dotted or "]" in dotted:
+        _fail(source, key, f"{dotted}: not a key path (names joined by dots, no indices); vary a list whole, "
+                           "e.g. key: conserve, values: [[angular_momentum], [lrl_y]]")
     config = copy.deepcopy(base)
     _set_path(config, dotted, value, source)
     try:

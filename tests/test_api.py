@@ -8,6 +8,7 @@ import pytest
 
 import elimfast
 from elimfast import Integration
+from elimfast.errors import ParameterError
 from elimfast.methods import ehbvm, elim, gauss, ghbvm, hbvm
 
 
@@ -348,3 +349,13 @@ def test_messages_give_times_in_their_shortest_exact_form():
     from elimfast.errors import exact_time
     assert [exact_time(t) for t in (0.0, 0.1 + 0.1, 0.1 + 0.2, 50.0, 46838.8, -1.5, float("inf"))] == \
         ["0", "0.2", "0.30000000000000004", "50", "46838.8", "-1.5", "inf"]
+
+
+@pytest.mark.parametrize("extra,parameter", [({"t_end": 10.0, "h": 0.1}, "t_end"),
+                                             ({"t_end": 10.0, "rtol": 1e-10}, "backward")])
+def test_what_a_backward_run_cannot_take_is_a_parameter_error(extra, parameter):
+    # a user trial: both were plain ValueErrors, unlike every other fault of a parameter
+    with pytest.raises(ParameterError) as info:
+        elimfast.integrate(elimfast.problems.kepler(0.6), elimfast.methods.ehbvm(8, 4), backward=True, **extra)
+    assert info.value.parameter == parameter
+

@@ -250,6 +250,47 @@ def test_invariant_plot_of_a_run_with_two_samples_shows_its_points(tmp_path):
     plt.close(figure)
 
 
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_plots_of_long_runs_keep_each_windows_peak(tmp_path, monkeypatch, adaptive):
+    """Curves longer than MAX_POINTS were every n-th row: a user trial's alpha spike of 0.32 drew as
+    0.058. Each window of n rows now gives its largest |value| at its own time (alpha, iterations and
+    the invariant errors; adaptive runs' step times are stored)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from elimfast.io.hdf5 import RunFile
+    from elimfast_cli import plots
+
+    path = tmp_path / "run.h5"
+    extra = ["--set", "integration.rtol=1e-10", "--set", "integration.t_end=30"] if adaptive else []
+    assert invoke("run", KEPLER, "-o", path, "--set", "output.every=1", *SHORT, *extra, "--quiet").exit_code == 0
+    monkeypatch.setattr(plots, "MAX_POINTS", 7)    # windows of several rows, and a partial last one
+    monkeypatch.setattr(plots, "PEAK_BLOCK_WINDOWS", 3)   # blocks of several windows
+    with RunFile(path) as run_file:
+        alpha, iterations = run_file.multipliers(1), run_file.iterations(1)
+        times = run_file.step_times(1) if adaptive else run_file.attrs["h"] * (np.arange(run_file.steps_done) + 1)
+        samples_t = run_file.t(1)
+        errors = {name: np.abs(run_file.invariant(name, 1) - run_file.initial_invariants()[name])
+                  for name in run_file.invariant_names}
+        assert plots._stride(run_file.steps_done) > 1 and run_file.steps_done % plots._stride(run_file.steps_done)
+        drawn = {}
+        for kind, draw in (("alpha", plots._multipliers), ("iterations", plots._iterations),
+                           ("invariants", plots._invariants)):
+            figure, axes = plt.subplots()
+            draw(run_file, axes)
+            drawn[kind] = [(line.get_xdata(), line.get_ydata()) for line in axes.get_lines()]
+            plt.close(figure)
+    for column, (t, values) in enumerate(drawn["alpha"]):
+        largest = int(np.argmax(np.abs(alpha[:, column])))
+        assert np.abs(values).max() == abs(alpha[largest, column]) and times[largest] in t
+        assert len(t) < len(times)
+    t, values = drawn["iterations"][0]
+    assert values.max() == iterations.max() and times[int(np.argmax(iterations))] in t
+    for (t, values), error in zip(drawn["invariants"], errors.values()):
+        assert np.nanmax(values) == error.max() and samples_t[int(np.argmax(error))] in t
+
+
 def test_iterations_plot_names_the_solver_that_iterated(kepler_file, tmp_path):
     """A user trial's finding: the axis read 'fixed-point iterations per step' for the default
     simplified Newton solver too."""

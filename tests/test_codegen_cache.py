@@ -294,6 +294,22 @@ def test_python_file_faults_are_reported_in_one_line(cache_root, tmp_path, chang
     assert "\n" not in str(info.value)
 
 
+def test_a_python_file_using_np_dot_without_scipy_says_so_in_one_line(cache_root, tmp_path):
+    """Numba compiles np.dot through SciPy: without it, "internal error: ImportError: scipy 0.16+ is
+    required for linear algebra" named neither the file nor the function (a user trial)."""
+    import importlib.util
+    if importlib.util.find_spec("scipy") is not None:
+        pytest.skip("SciPy is installed: np.dot compiles")
+    path = tmp_path / "problem.py"
+    path.write_text(KEPLER_FILE.replace("import math", "import math\nimport numpy as np").replace(
+        "0.5 * (y[2] * y[2] + y[3] * y[3])", "0.5 * np.dot(y[2:], y[2:])"))
+    assert "np.dot" in path.read_text()
+    with pytest.raises(UserProblemError, match=r"problem\.py: Numba compiles H's np\.dot, @ or np\.linalg through "
+                                               r"SciPy, which is not installed; pip install scipy") as info:
+        problem_from_file(path)
+    assert "\n" not in str(info.value)
+
+
 def test_python_file_may_declare_the_degree_of_its_polynomial_H(cache_root, tmp_path):
     path = tmp_path / "problem.py"
     path.write_text(KEPLER_FILE)

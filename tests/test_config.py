@@ -121,6 +121,23 @@ def test_overrides_are_yaml_values_and_validated():
     assert err.key == "method.s" and str(err).endswith("(value from --set method.s=1)") and err.line is None
 
 
+@pytest.mark.parametrize("overrides,top_key,match", [
+    # a user trial: each was "internal error: IndexError: tuple index out of range" (exit 1)
+    (["conserve[0]=lrl_x"], None, r"--set 'conserve\[0\]=lrl_x': 'conserve\[0\]' is not a key path .* set a list whole"),
+    (["x[=1"], None, r"--set 'x\[=1': 'x\[' is not a key path"),
+    # ... and a nested one "integration: unknown key; did you mean 'integration'?"
+    (["integration.h[1]=2"], None, r"'integration\.h\[1\]' is not a key path"),
+    ([], "x[0]", r": \(top level\): key 'x\[0\]': no config key has brackets; remove it"),
+])
+def test_keys_with_brackets_are_config_errors(overrides, top_key, match):
+    data = kepler_data()
+    if top_key:
+        data[top_key] = 1
+    with pytest.raises(ConfigError, match=match) as info:
+        load_run_from_dict(data, source="k.yaml", overrides=overrides)
+    assert "\n" not in str(info.value)
+
+
 @pytest.mark.parametrize("h", ["1e-30", "0.0999"])
 def test_a_step_count_error_names_the_set_of_h_it_comes_from(h):
     # the rule is t_end's (the file's line), the value at fault h's: both are named
@@ -433,7 +450,9 @@ def test_every_schema_error_of_a_file_names_a_line(tmp_path):
     ([0.5, "x"], "output.times[1]", r"'x' is not a number"),
     ([0.5, float("nan")], "output.times[1]", "must be finite"),
     ({"start": 5, "stop": 1, "step": 1}, "output.times", r"stop 1(\.0)? is before start 5(\.0)?; give stop >= start$"),
-], ids=["missing start", "misspelt step", "list item not a number", "list item nan", "stop before start"])
+    # a user trial: it gave [0] alone, silently
+    ({"start": 0, "stop": 10, "n": 1}, "output.times", r"n = 1 gives start alone .* times: \[10(\.0)?\]$"),
+], ids=["missing start", "misspelt step", "list item not a number", "list item nan", "stop before start", "n = 1"])
 def test_output_times_errors_name_the_key_as_written_in_the_config(tmp_path, times, key, match):
     """A mapping of output.times was reported as output.times.TimesSection.start, the name
     of pydantic's model in the key path, and a misspelt key in it as 'unknown key; remove it';

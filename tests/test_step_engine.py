@@ -128,6 +128,39 @@ def test_a_step_split_for_alphas_rounding_is_never_taken_unimposed():
     assert errors[L1] < 1e-15 and errors[AY] < 4e-15, errors
 
 
+def test_a_step_whose_split_for_alphas_rounding_fails_is_taken_whole_unimposed():
+    """A user trial: configs/toda.yaml 100x longer failed at t = 7711 (exit 1, blamed on an orbit
+    escaping to infinity): the lattice drifts, its positions reach 1.9e3, and alpha's rounding stays
+    above SPLIT_ROUNDING at every h, so the step was split for it, and a 16th of it did not converge
+    (cond(Gamma) 1.7e9). When the split of such a step fails, the whole step is taken without
+    imposing if that keeps the invariants to rounding, as a step too short for Gamma is; it agrees
+    with the whole imposed solve (what max_halvings = 0 takes) to 5e-15. The state before that step:
+    tests/data/make_toda_failure_state.py."""
+    saved = dict(np.load(Path(__file__).parent / "data" / "toda_failure_state.npz"))
+    problem, imposed = elimfast.problems.toda(n=5), ["trace_L3", "trace_L4", "trace_L5"]
+
+    def one_step(max_halvings):
+        run = Integration(problem, ehbvm(12, 4), 0.025, n_steps=int(saved["steps_done"]) + 1, conserve=imposed,
+                          y0=saved["y"], store_every=10 ** 6, solver=SolverSettings(max_halvings=max_halvings))
+        run.restore(saved)
+        return run, run.advance(1)
+
+    run, chunk = one_step(4)
+    assert run.status == elimfast.kernels.codes.STATUS_OK and chunk.substeps[0] == 1
+    assert np.isnan(chunk.multipliers[0]).all()   # unimposed
+    before, after = (problem.invariant_values(y) for y in (saved["y"], run.y))
+    # within what rounding the state to doubles does (|y| ~ 1.9e3 here): eps sum_p |dI/dy_p| max(|y_p|, |y1_p|)
+    names = list(problem.invariant_names)
+    gradients = np.abs(problem.invariant_gradients(saved["y"]))
+    for name in imposed:
+        allowed = np.finfo(float).eps * gradients[names.index(name)] @ np.maximum(abs(saved["y"]), abs(run.y))
+        assert abs(after[name] - before[name]) <= allowed, (name, after[name] - before[name], allowed)
+    assert abs(after["H"] - before["H"]) <= 1e-12 * abs(before["H"])
+    imposed_whole, imposed_chunk = one_step(0)   # no splitting: the whole imposed solve, accepted as it is
+    assert imposed_whole.status == elimfast.kernels.codes.STATUS_OK and np.isfinite(imposed_chunk.multipliers).all()
+    np.testing.assert_allclose(run.y, imposed_whole.y, rtol=0, atol=1e-13)
+
+
 def test_an_exactly_symmetric_step_is_split_not_accepted_with_a_spurious_alpha():
     """Spec 8: a step symmetric about the pericentre has a spurious solution (Gamma's row of
     A_y zero); the solver must not accept it. The step is split, and its halves agree

@@ -80,7 +80,10 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
     ({"base": 3}, "base: give a run config"),
     ({"base": BASE, "grid": [{"name": "h"}]}, r"grid\[0\]: an axis is a mapping"),
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "a", "set": {}}]}]},
-     "same label"),
+     "same label 'a'"),
+    # a repeated value of a plain axis: named (a user trial read only 'give the variants distinct labels')
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60", "pi/30"]}]},
+     r"two runs get the same label 'pi/30' \(an axis repeats a value"),
     ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
     # the order is taken along the axis's values: an axis without sizes is refused, not left empty
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "b", "set": {}}]}],
@@ -93,6 +96,9 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
     # a misspelt axis key failed every run alike (one line each, exit 1), as if the integrations had failed
     ({"base": BASE, "grid": [{"name": "h", "key": "integration.hh", "values": ["pi/30"]}]},
      r"grid\[0\]\.key: integration\.hh: unknown key; did you mean 'h'\?"),
+    # a user trial: an internal error (IndexError) before the configs' keys refused brackets
+    ({"base": BASE, "grid": [{"name": "c", "key": "conserve[0]", "values": ["lrl_x"]}]},
+     r"grid\[0\]\.key: conserve\[0\]: not a key path \(names joined by dots, no indices\)"),
     ({"base": BASE, "grid": [{"name": "s", "key": "methd.s", "values": [3]}]},
      r"grid\[0\]\.key: methd\.s: unknown key; did you mean 'method'\?"),
     # a user trial: misspelt keys of an axis or a variant were dropped silently (the axis then

@@ -411,5 +411,13 @@ def _compile(label, path, fname, function):
         raise UserProblemError(f"{label}: Numba cannot compile {fname} as {text}{at}: {detail}; only Numba-"
                                "supported Python (math, NumPy on scalars, @njit helpers) can be used",
                                key="python") from None
+    except ImportError as err:
+        # Numba's np.dot, @ and np.linalg call SciPy's BLAS and LAPACK, and elimfast does not need
+        # SciPy: without it, "ImportError: scipy 0.16+ is required for linear algebra" was an internal error
+        if "scipy" not in str(err).lower():
+            raise
+        raise UserProblemError(f"{label}: Numba compiles {fname}'s np.dot, @ or np.linalg through SciPy, which is "
+                               "not installed; pip install scipy, or write the sums out (loops or "
+                               "np.sum(a * b))", key="python") from None
     _COMPILED[key] = compiled
     return compiled
