@@ -890,7 +890,13 @@ def _format_tableau(method, A, b, c, eta) -> str:
     width = max(len(t) for t in [*c_text, *b_text, *(x for row in cells for x in row)])
     c_width = max(len(t) for t in c_text)
     eta_text = "1 (the HBVM tableau)" if eta is None else ", ".join(repr(float(e)) for e in eta)
-    lines = [f"# {method.name}: Butcher tableau, {len(c)} stages, order {method.order}; eta = {eta_text}",
+    # The method's order is 2s with eta = 1 - h^(2(s-1-j)) alpha_j of each step (docs/methods.md#elim);
+    # a tableau of fixed eta other than 1 has a lower one (a user trial: eta 1, 1, 0.99 matched exp(z)
+    # through z^4 only, and was labelled order 6)
+    fixed = eta is not None and any(float(e) != 1.0 for e in eta)
+    order = (f"order {method.order} only as the method, whose eta change with each step (these fixed eta give "
+             "a lower one)" if fixed else f"order {method.order}")
+    lines = [f"# {method.name}: Butcher tableau, {len(c)} stages, {order}; eta = {eta_text}",
              "# c_i | a_i1 ... a_ik, then | b_1 ... b_k; each number is repr(float): it reads back exactly"]
     for ci, row in zip(c_text, cells):
         lines.append(f"{ci:>{c_width}} | " + " ".join(f"{x:>{width}}" for x in row))

@@ -782,6 +782,11 @@ class _Builder:
                 count = int(np.floor((times.stop - times.start) / times.step * (1 + 1e-12))) + 1
                 if not 1 <= count <= MAX_OUTPUT_TIMES:
                     raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")
+                if count == 1 and times.stop != times.start:
+                    # (it gave start alone, silently, as n = 1 did)
+                    raise ParameterError("t_eval", f"step {compact_number(times.step)} is longer than stop - start = "
+                                                   f"{compact_number(times.stop - times.start)}: it gives start alone; "
+                                                   "give a smaller step, or the times as a list")
                 values = times.start + times.step * np.arange(count)
         return resolve_t_eval(values, t0, t_end, every)
 

@@ -1153,9 +1153,11 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         size, start = float(np.max(np.abs(y))), float(np.max(np.abs(y0)))
         if start > 0 and size > GROWN_STATE * start:
             # a user trial: a Henon-Heiles variant with an unbounded potential was told to reduce h
-            advice = (f"the state has grown to {size:.3g} ({size / start:.2g} times its initial size): the orbit is "
-                      f"likely escaping to infinity, or its momenta blowing up in a fall into a singularity of H, "
-                      f"which no step size gets through; otherwise {advice}")
+            # Not "likely": a system drifting as a whole grows too (the Toda ring of configs/toda.yaml, 100x
+            # longer at h = 0.05, was told that its orbit was escaping)
+            advice = (f"the state has grown to {size:.3g} ({size / start:.2g} times its initial size): if the orbit is "
+                      f"escaping to infinity, or its momenta blowing up in a fall into a singularity of H, no step "
+                      f"size gets through (a system drifting as a whole grows too, without either); otherwise {advice}")
     if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive and run_file:
         advice += "; a failed run can be continued with --resume after changing solver settings"
     return f"{method.name}: {what} {where}; {', '.join(seen)}" + (f"; {advice}" if advise else "")

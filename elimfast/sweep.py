@@ -788,13 +788,15 @@ def run_source(source: str, label: str) -> str:
 
 
 # What a section a variant replaces must name: the keys that say which problem or method it is.
-_SECTION_IDENTITY = {"problem": ("builtin", "python", "hamiltonian"), "method": ("name",)}
+_SECTION_IDENTITY = {"problem": ("builtin", "python", "hamiltonian"), "method": ("name",),
+                     "integration": ("h", "rtol", "step_control", "epsilon")}
 
 
 def _refuse_partial_sections(source: str, where: str, replace: dict) -> None:
-    """A variant's set that replaces the problem or the method with a mapping naming none (``set:
-    {problem: {parameters: {eccentricity: 0.3}}}``): every run of it failed with "problem: no problem
-    given", which did not say that the variant had replaced the base's whole section."""
+    """A variant's set that replaces the problem, the method or the integration with a mapping naming
+    none, no step (``set: {problem: {parameters: {eccentricity: 0.3}}}``, ``{integration: {t_end: 20}}``):
+    every run of it failed with "problem: no problem given" or "integration.h: missing", which did not
+    say that the variant had replaced the base's whole section."""
     for section, identity in _SECTION_IDENTITY.items():
         value = replace.get(section)
         if isinstance(value, dict) and not any(name in value for name in identity):
@@ -1105,9 +1107,12 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         if on_done:
             on_done(outcome, 1, total)
         # Load the kernels and the config machinery before forking: every worker then
-        # inherits them instead of loading them again.
+        # inherits them instead of loading them again. Not when the first run's config was
+        # refused: on an empty cache the sweep compiled for 2 minutes, then reported that every
+        # run's config was refused (a user trial); the runs that load compile in their workers.
         from . import config  # noqa: F401
-        from .kernels import stepper  # noqa: F401
+        if not outcome.config_error:
+            from .kernels import stepper  # noqa: F401
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         context = multiprocessing.get_context(method)
         # Freeze what is loaded while the workers fork: a worker's garbage collector then never

@@ -491,6 +491,10 @@ def test_tableau_with_several_values_after_one_eta_says_how_to_give_them():
     both = [invoke("tableau", "elim", "--r", "3", "--k", "3", "--s", "3", *form) for form in
             (["--eta", "1", "--eta", "1", "--eta", "0.99"], ["--eta", "1,1,0.99"])]
     assert both[0].exit_code == 0 and both[0].stdout == both[1].stdout and "eta = 1.0, 1.0, 0.99" in both[0].stdout
+    # the order 2s is the method's, whose eta change with each step; fixed eta other than 1 give a lower one
+    assert "order 6 only as the method" in both[0].stdout
+    assert "stages, order 6; eta = 1.0, 1.0, 1.0" in invoke("tableau", "elim", "--r", "3", "--k", "3", "--s", "3",
+                                                              "--eta", "1,1,1").stdout
 
 
 def test_version():

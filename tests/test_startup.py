@@ -85,6 +85,20 @@ def test_checking_a_config_imports_no_run_kernel(body, tmp_path):
     assert not (tmp_path / "out.h5").exists()
 
 
+def test_a_parallel_sweep_whose_configs_are_refused_loads_no_run_kernel(tmp_path):
+    """A user trial: on an empty cache, a grid of h = -0.1, -0.2 on 2 workers compiled the kernels
+    for 2 minutes (the pool's preload before forking), then said that every run's config was refused."""
+    sweep = tmp_path / "bad.yaml"
+    sweep.write_text(f"base: {ROOT / 'configs' / 'kepler.yaml'}\n"
+                     "grid: [{name: h, key: integration.h, values: [-0.1, -0.2]}]\n")
+    body = CLI_BODY.format(args=["sweep", str(sweep), "--workers", "2"])
+    script = f"import sys\n{body}\nprint([m for m in sys.modules if m in {RUN_KERNELS!r}])"
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert "every run of the sweep failed to load its config" in done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_a_run_loads_only_the_problem_it_uses():
     loaded = probe(CLI_BODY.format(args=["check", "configs/pendulum.yaml"]))
     assert "elimfast.problems.pendulum" in loaded["problems"]

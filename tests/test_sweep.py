@@ -140,6 +140,9 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
         "eccentricity": 0.3}}}}]}]},
      r"grid\[0\]\.values\[0\]\.set\.problem: replaces the base's whole problem section .* naming no problem "
      r"\(builtin, python, hamiltonian\); give the whole section, or vary problem\.parameters\.<key> with a plain axis"),
+    ({"base": BASE, "grid": [{"name": "i", "values": [{"label": "b", "set": {"integration": {"t_end": 20}}}]}]},
+     r"grid\[0\]\.values\[0\]\.set\.integration: replaces the base's whole integration section .* naming no "
+     r"integration \(h, rtol, step_control, epsilon\)"),
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "s4", "set": {"method": {"s": 4}}}]}]},
      r"grid\[0\]\.values\[0\]\.set\.method: replaces the base's whole method section .* naming no method \(name\)"),
 ])

@@ -272,6 +272,13 @@ def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_
     if not np.all(np.isfinite(masses) & (masses > 0.0)):
         raise ParameterError("masses", f"must be positive finite numbers, got {masses.tolist()!r}")
     n_bodies = masses.size
+    for name, given, default in (("positions", positions, SOLAR_SYSTEM_POSITIONS),
+                                 ("velocities", velocities, SOLAR_SYSTEM_VELOCITIES)):
+        if given is None and n_bodies != len(default):
+            # (it was blamed on positions, which the user had not given: "positions: has 6 bodies but masses has 2")
+            raise ParameterError("masses", f"has {n_bodies} bodies, but {name} is not given and its default (the "
+                                           f"outer solar system) has {len(default)}; give positions and velocities "
+                                           f"of {n_bodies} bodies too")
     q = _bodies_array(SOLAR_SYSTEM_POSITIONS if positions is None else positions, "positions", n_bodies)
     # By value, not by "positions is None": a resolved config passes HLW's positions explicitly.
     hlw_positions = q.shape == (6, 3) and np.array_equal(q, SOLAR_SYSTEM_POSITIONS)
