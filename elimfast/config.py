@@ -600,7 +600,7 @@ class _Builder:
         # the --set of another parameter the rule depends on (--set integration.h=1e-30 made t_end's
         # step count too large, and the message pointed at the file's t_end line alone)
         related = [self.override_of(section + (name,) if section else PARAMETER_KEYS.get(name, (name,)))
-                   for name in getattr(err, "related", ())]
+                   for name in err.related]
         related = [item for item in dict.fromkeys(related) if item and item != self.override_of(path)]
         suffix = f" (with --set {', --set '.join(_clip(item) for item in related)})" if related else ""
         return self.error(path, err.detail + suffix)

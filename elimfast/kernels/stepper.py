@@ -535,12 +535,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             # step is taken without imposing, if that keeps the invariants to rounding, as a step too short
             # for Gamma is (there it agrees with the whole imposed solve to 5e-15: tests/test_step_engine.py).
             split_for_rounding = False
-            _copy(work.y_start, y)
-            _copy(work.y_comp_start, y_comp)
-            _copy(work.y_comp_start, work.stage_comp)
-            _copy(work.coef_start, coef)
-            _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
-            _copy(work.mult_start, mult)
+            _back_to_start(work, y, y_comp, coef, coef_extra, mult)
             increment, condition = work.info[0], work.info[1]
             whole_status, whole_used = _attempt_unimposed(
                 grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
@@ -563,12 +558,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             diagnostics[DIAG_CONDITION] = work.info[1]
             diagnostics[DIAG_DEPTH] = depth
             diagnostics[DIAG_ITERATIONS] = used
-            _copy(work.y_start, y)
-            _copy(work.y_comp_start, y_comp)
-            _copy(work.y_comp_start, work.stage_comp)
-            _copy(work.coef_start, coef)
-            _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
-            _copy(work.mult_start, mult)
+            _back_to_start(work, y, y_comp, coef, coef_extra, mult)
             last_h[0] = h_start
             return status, iterations, substeps
         depth += 1
@@ -576,6 +566,17 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
     last_h[0] = h_prev
     clock[0], clock[1] = kahan_add(clock[0], clock[1], h)
     return STATUS_OK, iterations, substeps
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _back_to_start(work, y, y_comp, coef, coef_extra, mult):
+    """try_step's state as it was at the step's start (work.y_start, ..., saved on entry)."""
+    _copy(work.y_start, y)
+    _copy(work.y_comp_start, y_comp)
+    _copy(work.y_comp_start, work.stage_comp)
+    _copy(work.coef_start, coef)
+    _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
+    _copy(work.mult_start, mult)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
