@@ -787,7 +787,7 @@ def run_source(source: str, label: str) -> str:
     return f"{source}: error.reference" if label == REFERENCE_LABEL else f"{source} [{label}]"
 
 
-# What a section a variant replaces must name: the keys that say which problem or method it is.
+# What a section a variant replaces must name: the keys that say which problem, method or step it is.
 _SECTION_IDENTITY = {"problem": ("builtin", "python", "hamiltonian"), "method": ("name",),
                      "integration": ("h", "rtol", "step_control", "epsilon")}
 
