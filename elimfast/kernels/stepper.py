@@ -307,10 +307,13 @@ def _attempt_unimposed(grad_H, hess_H, grad_invariants, params, settings, tables
     round-off, alpha = b / Gamma is rounding over rounding and the imposed solve cannot settle
     (a Lennard-Jones trimer imposing its angular momentum, h = 0.01: at every depth one half
     stalled at increments 2e-12 to 3e-11, while the unimposed step changed L by 3e-17).
-    Returns (status, iterations); the multipliers are 0 on success."""
+    Returns (status, iterations); the multipliers are 0 on success. On failure work.info's last
+    increment and cond(Gamma) are the imposed solve's again: the failure's diagnostics."""
+    increment, condition = work.info[0], work.info[1]
     status, iterations = _attempt(grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx[:0], work,
                                   y, h, h_prev, have_prev, coef, coef_extra, mult, newton_base, False)
     if status != STATUS_OK:
+        work.info[0], work.info[1] = increment, condition
         return status, iterations
     # One map evaluation at the accepted coefficients, alpha = 0: b and the gradients of the invariants.
     elim_map(grad_H, grad_invariants, params, y, h, coef, mult, True, (settings.stable_rhs & RHS_STABLE) != 0, tables,
@@ -323,6 +326,7 @@ def _attempt_unimposed(grad_H, hess_H, grad_invariants, params, settings, tables
         for p in range(y.shape[0]):
             allowed += sizes[1 + a, p] * max(abs(y[p]), abs(y[p] + h * coef[0, p]))
         if not (abs(h * change[a]) <= EPS * allowed):
+            work.info[0], work.info[1] = increment, condition
             return STATUS_NOT_CONVERGED, iterations
     return STATUS_OK, iterations
 
@@ -494,8 +498,7 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             # the rounding of the sums that form them (~h^j), which halving only makes worse (Kepler
             # imposing L and A_y could not take h = 1e-8; adaptive runs at e = 0.9999 halved their first
             # step 40 times); (2) the deepest substep, failing otherwise. The failure's diagnostics stay
-            # those of the imposed solve.
-            increment, condition = work.info[0], work.info[1]
+            # those of the imposed solve (_attempt_unimposed keeps them).
             unimposed_status, unimposed_used = _attempt_unimposed(
                 grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 y, h_sub, h_prev, previous, coef, coef_extra, mult, newton_base)
@@ -503,12 +506,10 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             if unimposed_status == STATUS_OK:
                 status = STATUS_OK
                 work.info[5] += 1.0
-            else:
-                work.info[0], work.info[1] = increment, condition
-                if depth == 0:   # what a split starts from: the step's start
-                    _copy(work.coef_start, coef)
-                    _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
-                    _copy(work.mult_start, mult)
+            elif depth == 0:   # what a split starts from: the step's start
+                _copy(work.coef_start, coef)
+                _copy_rows(work.extra_start, coef_extra, coef_extra.shape[0])
+                _copy(work.mult_start, mult)
         if status == STATUS_OK:
             finite = True
             for p in range(n):
@@ -536,7 +537,6 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
             # for Gamma is (there it agrees with the whole imposed solve to 5e-15: tests/test_step_engine.py).
             split_for_rounding = False
             _back_to_start(work, y, y_comp, coef, coef_extra, mult)
-            increment, condition = work.info[0], work.info[1]
             whole_status, whole_used = _attempt_unimposed(
                 grad_H, hess_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 y, h, h_start, have_prev, coef, coef_extra, mult, newton_base)
@@ -549,7 +549,6 @@ def try_step(grad_H, hess_H, grad_invariants, params, settings, tables, conserve
                 substeps = 1
                 h_prev = h
                 break
-            work.info[0], work.info[1] = increment, condition   # the failure's diagnostics: the substep's
         if depth >= settings.max_halvings:
             done_fraction = 1.0 - units_left * 0.5 ** depth
             diagnostics[DIAG_TIME] = clock[0] + done_fraction * h
