@@ -165,3 +165,24 @@ def test_repair_does_not_claim_a_repair_it_did_not_achieve(tmp_path):
     assert done.returncode == 2 and "repaired" not in done.stdout + done.stderr, done
     assert f"{path} is damaged" in done.stderr and "Traceback" not in done.stderr
     assert hdf5.consistency_flags(path) == 1
+
+
+def test_a_completed_runs_copy_cut_short_is_not_called_unclosed(tmp_path):
+    """A user trial: inspect of a completed run's file cut short (an incomplete copy) said 'its writer
+    did not close it: run elimfast repair', and repair then failed at the root attributes with nothing
+    to say why. Now inspect says the file is cut short, and repair that the missing end held
+    metadata, and leaves the file as it was."""
+    whole = tmp_path / "whole.h5"
+    done = elimfast("run", KEPLER, "-o", whole, "-q")
+    assert done.returncode == 0, done.stderr
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size * 2 // 3])
+    assert hdf5.consistency_flags(cut) == 0 and recorded_end(cut) == whole.stat().st_size
+    inspected = elimfast("inspect", cut)
+    assert_one_line(inspected, 2, f"it is cut short, {cut.stat().st_size:,} of the {whole.stat().st_size:,} bytes")
+    assert "did not close" not in inspected.stderr
+    before = cut.read_bytes()
+    repaired = elimfast("repair", cut)
+    assert_one_line(repaired, 2, f"{cut} cannot be repaired: it is cut short")
+    assert "missing end held HDF5 metadata" in repaired.stderr and "cleared the flags" not in repaired.stderr
+    assert cut.read_bytes() == before

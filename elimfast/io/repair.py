@@ -14,9 +14,9 @@ import h5py
 from ..errors import ElimfastError
 from .layout import FORMAT, LIBVER, STATUS_KILLED, _plain
 from .runfile import RunFile, _cut_back
-from .safety import (DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError, _damaged, _FileGuard,
+from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError, _damaged, _FileGuard,
                      _regular_file, clear_consistency_flags, consistency_flags, ensure_not_busy,
-                     extended_to_recorded_end, recorded_end, set_consistency_flags)
+                     cut_short, extended_to_recorded_end, set_consistency_flags)
 
 
 def repair(path) -> str:
@@ -37,33 +37,45 @@ def repair(path) -> str:
         raise NotAnElimfastFile(f"{path}: not an HDF5 file; nothing to repair")
     ensure_not_busy(path)
     flags = consistency_flags(path)
-    if not flags and (recorded_end(path) or 0) <= path.stat().st_size:
+    short = cut_short(path)
+    if not flags and not short:
         return f"{path}: nothing to repair (no writer left it open)"
     guard = _FileGuard(path)
     try:
         if not guard.lock():
             raise FileBusyError(f"{path}: is being written by another process; stop it first")
-        with extended_to_recorded_end(path) as added:
-            with RunFile(path) if _format_of(path) == FORMAT else contextlib.nullcontext() as run_file:
-                saved = run_file.saved_state() if run_file is not None else None
-            if flags:
-                clear_consistency_flags(path)
-            try:
-                with h5py.File(path, "r+", libver=LIBVER) as f:
-                    if saved is not None:
-                        _cut_back(f, saved["n_samples"], saved["steps_done"], saved.get("event_counts", ()))
-                        f.attrs["status"] = STATUS_KILLED
-                        f.attrs["steps_done"] = saved["steps_done"]
-                        f.attrs["wall_time_s"] = float(saved["wall_time_s"])
-                        f.attrs["kernel_time_s"] = float(saved["kernel_time_s"])
-                _read_back(path, saved is not None)
-            except (OSError, RuntimeError, ValueError, KeyError, ElimfastError) as err:
-                with contextlib.suppress(OSError, OutputError):
-                    set_consistency_flags(path, flags)
-                if isinstance(err, DamagedFileError):
-                    raise DamagedFileError(f"{err} (repair cleared the flags its writer left, but could not "
-                                           "make it readable)") from None
-                raise _damaged(path, "its start (HDF5 cannot open it for the repair)", err) from None
+        try:
+            with extended_to_recorded_end(path) as added:
+                with RunFile(path) if _format_of(path) == FORMAT else contextlib.nullcontext() as run_file:
+                    saved = run_file.saved_state() if run_file is not None else None
+                if flags:
+                    clear_consistency_flags(path)
+                try:
+                    with h5py.File(path, "r+", libver=LIBVER) as f:
+                        if saved is not None:
+                            _cut_back(f, saved["n_samples"], saved["steps_done"], saved.get("event_counts", ()))
+                            f.attrs["status"] = STATUS_KILLED
+                            f.attrs["steps_done"] = saved["steps_done"]
+                            f.attrs["wall_time_s"] = float(saved["wall_time_s"])
+                            f.attrs["kernel_time_s"] = float(saved["kernel_time_s"])
+                    _read_back(path, saved is not None)
+                except (OSError, RuntimeError, ValueError, KeyError, ElimfastError) as err:
+                    with contextlib.suppress(OSError, OutputError):
+                        set_consistency_flags(path, flags)
+                    if isinstance(err, DamagedFileError) and flags:
+                        raise DamagedFileError(f"{err} (repair cleared the flags its writer left, but could not "
+                                               "make it readable)") from None
+                    if isinstance(err, DamagedFileError):
+                        raise
+                    raise _damaged(path, "its start (HDF5 cannot open it for the repair)", err) from None
+        except DamagedFileError as err:
+            if short:
+                # The missing end held metadata (a copy cut short, not a write cut off by a limit):
+                # say why nothing could be kept, instead of only where the damage showed.
+                found = str(err).removesuffix(f"; {_DAMAGE_ADVICE}")
+                raise DamagedFileError(f"{path} cannot be repaired: {short}, and its missing end held HDF5 metadata "
+                                       f"that nothing can rebuild ({found}); {_DAMAGE_ADVICE}") from None
+            raise
     finally:
         guard.close()
     extended = (f"extended it by the {added} bytes a cut-off write had not written (to the end HDF5 recorded), "

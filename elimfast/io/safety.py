@@ -563,6 +563,17 @@ def recorded_end(path) -> int | None:
     return base + int.from_bytes(raw[12 + 2 * size:12 + 3 * size], "little")
 
 
+def cut_short(path) -> str:
+    """'' for a file at least as long as the end its superblock records, else what is missing, in
+    words (a write cut off by a file-size limit or a full disk, or an incomplete copy)."""
+    path = Path(path)
+    size, end = path.stat().st_size, recorded_end(path)
+    if end is None or end <= size:
+        return ""
+    return (f"it is cut short, {size:,} of the {end:,} bytes HDF5 recorded (a write cut off by a file-size limit "
+            "or a full disk, or an incomplete copy)")
+
+
 @contextlib.contextmanager
 def extended_to_recorded_end(path):
     """A file shorter than its recorded end, extended to it with zeros for the block; yields
@@ -677,11 +688,20 @@ def _open(path) -> h5py.File:
     interrupted = _open_interrupted_sweep(path)
     if interrupted is not None:
         return interrupted
-    if consistency_flags(path) or (recorded_end(path) or 0) > path.stat().st_size:
-        # a writer killed (or a write cut off) before it closed the file: what repair undoes
+    if consistency_flags(path):
+        # a writer killed before it closed the file: what repair undoes
         raise _damaged(path, "its start (HDF5 cannot open it)", first,
                        f"its writer did not close it: run {REPAIR_HINT.format(path=path)}, or {_DAMAGE_ADVICE}") \
             from None
+    short = cut_short(path)
+    if short:
+        # Closed, but shorter than HDF5 recorded: a write cut off by a file-size limit (repair
+        # extends it, and its saved part reads back) or a copy cut short, whose missing end may
+        # hold metadata that nothing can rebuild (repair then says so). Not "did not close it":
+        # a user trial's truncated copy of a completed run was told that.
+        raise _damaged(path, "its start (HDF5 cannot open it)", first,
+                       f"{short}: run {REPAIR_HINT.format(path=path)}, which keeps what was written if the "
+                       f"missing end held no HDF5 metadata, or {_DAMAGE_ADVICE}") from None
     raise _damaged(path, "its start (HDF5 cannot open it)", first) from None
 
 
