@@ -694,7 +694,10 @@ class _Builder:
                 refuse_energy_projection(problem, method)
             except ParameterError as err:
                 raise self.parameter_error(err, ("solver",)) from None
-        solver = solver.resolved_for(method, len(conserve), 2 * problem.degrees_of_freedom)
+        try:
+            solver = solver.resolved_for(method, len(conserve), 2 * problem.degrees_of_freedom)
+        except ParameterError as err:
+            raise self.parameter_error(err, ("solver",)) from None
         integration_record = {"h": h, "t0": t0, "t_end": t_end, "n_steps": n_steps}
         if step_control is not None:
             integration_record.update({k: v for k, v in step_control.as_dict().items() if v is not None

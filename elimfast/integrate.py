@@ -220,7 +220,13 @@ class SolverSettings:
     def resolved_for(self, method: Method, n_imposed: int, dimension: int) -> "SolverSettings":
         """These settings for a problem with this many state components: 'auto' replaced by the
         solver it chooses (AUTO_NEWTON_MAX_DIMENSION), and max_iter chosen for the method when it
-        was left out (see DEFAULT_MAX_ITER)."""
+        was left out (see DEFAULT_MAX_ITER). ParameterError for lim_metric 'scaled' on a method
+        that is not LIM (a user trial: accepted and ignored)."""
+        if self.lim_metric != "euclidean" and method.kernel_family != codes.FAMILY_LIM:
+            raise ParameterError("lim_metric", f"{self.lim_metric!r} applies to LIM and GHBVM only (the metric of their "
+                                               "correction W phi_0 lambda, docs/methods.md#the-metric-of-the-"
+                                               f"correction); {method.name} has none: leave lim_metric out, or use "
+                                               "a LIM method")
         settings = self
         if settings.method == "auto":
             settings = replace(settings, method="newton" if dimension <= AUTO_NEWTON_MAX_DIMENSION else "fixed_point")

@@ -84,3 +84,20 @@ def test_a_config_s_metric_is_stored_shown_and_resumed_with(tmp_path):
                                     "integration.n_steps=40"]).exit_code == 0
     assert np.array_equal(elimfast.load(part).y_final, elimfast.load(whole).y_final)
     assert "lim_metric scaled" in CliRunner().invoke(cli, ["inspect", str(whole)]).stdout
+
+
+def test_the_metric_is_refused_on_a_method_without_lims_correction(tmp_path):
+    """A user trial: solver.lim_metric: scaled on EHBVM was accepted and silently ignored."""
+    from elimfast_cli.main import cli
+    from elimfast.errors import ParameterError
+    config = tmp_path / "elim.yaml"
+    config.write_text("problem: {builtin: kepler}\nconserve: [angular_momentum]\nmethod: {name: ehbvm, k: 6, s: 3}\n"
+                      "solver: {lim_metric: scaled}\nintegration: {h: 0.1, n_steps: 4}\n")
+    refused = CliRunner().invoke(cli, ["run", str(config), "-o", str(tmp_path / "e.h5")])
+    assert refused.exit_code == 2, refused.output
+    assert (f"{config}:4: solver.lim_metric: 'scaled' applies to LIM and GHBVM only" in refused.stderr
+            and "EHBVM(6,3) has none" in refused.stderr), refused.stderr
+    assert not (tmp_path / "e.h5").exists()
+    for method in (elimfast.methods.ehbvm(6, 3), elimfast.methods.gauss(3)):
+        with pytest.raises(ParameterError, match="lim_metric 'scaled' applies to LIM and GHBVM only"):
+            elimfast.integrate(kepler(0.6), method, 0.1, n_steps=2, solver=SCALED)
