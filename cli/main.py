@@ -351,7 +351,8 @@ def run(config, output, overrides, overwrite, resume, quiet):
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
-        resume_command=_resume_command(config, path), origins=origins, set_overrides=set_overrides)
+        resume_command=_resume_command(config, path), origins=origins, set_overrides=set_overrides,
+        notice=lambda line: click.echo(f"note: {line}", err=True))
     _INTERRUPTED.pop()   # the run has handled its own signals; what follows is the report
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))

@@ -32,6 +32,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -786,7 +787,7 @@ def _python_file(config_text: str) -> str | None:
 def run_to_file(integration, path, *, config_text: str, t_end: float | None = None, overwrite: bool = False,
                 resume: bool = False, progress: NoProgress | None = None, handle_signals: bool = True,
                 label: str = "", resume_command: str | None = None, origins: dict | None = None,
-                set_overrides=None, **drive_options) -> Outcome:
+                set_overrides=None, notice: Callable[[str], None] | None = None, **drive_options) -> Outcome:
     """Run ``integration`` into the HDF5 file ``path`` (new, overwritten, or resumed).
 
     resume: continue the run stored in ``path`` (which must come from the same resolved
@@ -801,6 +802,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
     names the first of them that may not change. ``set_overrides``:
     the command line's --set values the run is made with (all of them, a resume's merged with the
     stored ones), stored for the next --resume (io.layout.SET_OVERRIDES); None stores none.
+    ``notice``: called with what the user must hear before the steps run, whatever the run's
+    end (a python: problem file changed since the run began); without it that goes in the note.
     """
     path = Path(path)
     if overwrite and resume:
@@ -872,8 +875,14 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
             if extension is not None:
                 note += f", continued to t_end = {extension['t_end']:.10g} (it ended at {float(attrs['t_end']):.10g})"
             if source_file is not None:
-                note += (f"; the problem file {integration.problem.source_file} has changed since the run began: "
-                         f"the {saved['steps_done']} steps before used the old one (problem_file_history)")
+                changed = (f"the problem file {integration.problem.source_file} has changed since the run began: "
+                           f"the {saved['steps_done']} steps before used the old one (problem_file_history)")
+                if notice is not None:
+                    # Before the steps, and under --quiet too: a user trial heard of it only in the
+                    # summary line of a run that completed, which --quiet does not print.
+                    notice(changed)
+                else:
+                    note += f"; {changed}"
             started_with = saved["attrs"].get("elimfast_version")
             if started_with != hdf5.version_attributes()["elimfast_version"]:
                 note += (f"; the run was started by elimfast {started_with}: a continuation by another version "

@@ -292,10 +292,11 @@ def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_pa
     assert same.exit_code == 0 and "problem file" not in same.stderr, same.stderr
     edited = source.replace("import math", "import math  # edited")
     problem.write_text(edited)
-    result = CliRunner().invoke(cli, [*later, "integration.t_end=10"])
+    result = CliRunner().invoke(cli, [*later, "integration.t_end=10", "--quiet"])
     assert result.exit_code == 0, result.stderr
-    assert (f"; the problem file {problem.resolve()} has changed since the run began: the 70 steps before used the "
-            "old one (problem_file_history)") in result.stderr
+    # Said first, and under --quiet too (it used to be in the summary line only, which -q drops).
+    assert result.stderr == (f"note: the problem file {problem.resolve()} has changed since the run began: the 70 "
+                             "steps before used the old one (problem_file_history)\n")
     new = hashlib.sha256(edited.encode()).hexdigest()
     with h5py.File(path, "r") as f:
         assert f.attrs["problem_file_sha256"] == new
