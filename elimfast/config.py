@@ -442,9 +442,13 @@ def _apply_overrides(data, overrides, source):
         if not all(parts):
             raise ConfigError(f"{source}: --set {item!r}: {key!r} is not a key path; write e.g. integration.h=pi/60")
         if "[" in key or "]" in key:
-            # (conserve[0]=lrl_x was an internal error: IndexError)
+            # (conserve[0]=lrl_x was an internal error: IndexError). The example is the user's own
+            # key where it has one before the bracket (a trial: output.times[0] was told of conserve).
+            listed = key.strip().partition("[")[0]
+            example = (f"--set {listed}=[...]" if listed and all(listed.split(".")) and "]" not in listed
+                       else "--set conserve=[angular_momentum,lrl_y]")
             raise ConfigError(f"{source}: --set {item!r}: {key.strip()!r} is not a key path (names joined by dots, "
-                              "no indices); set a list whole, e.g. --set conserve=[angular_momentum,lrl_y]")
+                              f"no indices); set a list whole, e.g. {example}")
         value = parse_yaml(text, f"{source}: --set {key.strip()}") if text.strip() else None
         if data is None:
             data = {}

@@ -127,6 +127,9 @@ def test_overrides_are_yaml_values_and_validated():
     (["x[=1"], None, r"--set 'x\[=1': 'x\[' is not a key path"),
     # ... and a nested one "integration: unknown key; did you mean 'integration'?"
     (["integration.h[1]=2"], None, r"'integration\.h\[1\]' is not a key path"),
+    # the example is the user's own key (it always said conserve=[...])
+    (["output.times[0]=3"], None, r"set a list whole, e\.g\. --set output\.times=\[\.\.\.\]$"),
+    (["[0]=3"], None, r"set a list whole, e\.g\. --set conserve=\[angular_momentum,lrl_y\]$"),
     ([], "x[0]", r": \(top level\): key 'x\[0\]': no config key has brackets; remove it"),
 ])
 def test_keys_with_brackets_are_config_errors(overrides, top_key, match):
