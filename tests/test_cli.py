@@ -274,13 +274,19 @@ def test_plots_of_long_runs_keep_each_windows_peak(tmp_path, monkeypatch, adapti
         errors = {name: np.abs(run_file.invariant(name, 1) - run_file.initial_invariants()[name])
                   for name in run_file.invariant_names}
         assert plots._stride(run_file.steps_done) > 1 and run_file.steps_done % plots._stride(run_file.steps_done)
-        drawn = {}
+        drawn, labels = {}, {}
         for kind, draw in (("alpha", plots._multipliers), ("iterations", plots._iterations),
                            ("invariants", plots._invariants)):
             figure, axes = plt.subplots()
             draw(run_file, axes)
             drawn[kind] = [(line.get_xdata(), line.get_ydata()) for line in axes.get_lines()]
+            labels[kind] = axes.get_ylabel()
             plt.close(figure)
+        # the axes say that their points are window peaks (the last note: nothing said so)
+        steps, samples = plots._stride(run_file.steps_done), plots._stride(run_file.n_samples)
+        assert labels["alpha"].endswith(f"\n(largest of each {steps} steps, by magnitude)")
+        assert labels["iterations"].endswith(f"\n(largest of each {steps} steps)")
+        assert labels["invariants"].endswith(f"\n(largest of each {samples} samples)")
     for column, (t, values) in enumerate(drawn["alpha"]):
         largest = int(np.argmax(np.abs(alpha[:, column])))
         assert np.abs(values).max() == abs(alpha[largest, column]) and times[largest] in t
