@@ -589,7 +589,7 @@ class AdaptiveIntegration:
                 and not abs(d[codes.DIAG_STEP]) > codes.COLLAPSED_STEP * max(abs(self.t), abs(self.t_end)))
 
     def failure_message(self, run_file: bool = False) -> str:
-        from .integrate import failure_message
+        from .integrate import failure_message, gradients_independence
         d = self.diagnostics
         if self.collapsed_steps():
             return (f"{self.method.name}: the steps collapsed at step {self.steps_done + 1} (t = {exact_time(self.t)}): "
@@ -627,7 +627,8 @@ class AdaptiveIntegration:
                           f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
                                step, self.diagnostics, adaptive=self.control is not None, run_file=run_file,
-                               y=self.y, y0=self.y0, advise=not collapsed) + notes
+                               y=self.y, y0=self.y0, advise=not collapsed,
+                               independence=gradients_independence(self.problem, self.conserve_idx, self.y)) + notes
 
     @property
     def t(self) -> float:

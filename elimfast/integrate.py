@@ -672,6 +672,47 @@ def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str],
 DEPENDENT_GRADIENTS = 1e-12
 
 
+def _scaled_gradients(problem: Problem, indices, y) -> np.ndarray | None:
+    """grad H and the gradients of the invariants ``indices`` at y, as rows, each gradient's q part
+    times |q| and its p part times |p| (the terms of the invariant's change, as in
+    Problem.invariant_scales), so that tests on them do not depend on the units of q and p (a
+    user trial: Kepler in SI units, q ~ 1e11 m, p ~ 1e29 kg m/s, e = 0.6, was refused for L at
+    1.5e-19, as was the same orbit after the canonical change q -> 1e7 q); None where one is not
+    finite (a singularity, which the run reports itself)."""
+    y = np.asarray(y, dtype=float)
+    rows = np.vstack([problem.gradient(y), problem.invariant_gradients(y)[indices]])
+    if not np.all(np.isfinite(rows)):
+        return None
+    m = problem.degrees_of_freedom
+    size_q, size_p = float(np.max(np.abs(y[:m]))), float(np.max(np.abs(y[m:])))
+    return rows * np.repeat([size_q or size_p or 1.0, size_p or size_q or 1.0], m)
+
+
+# At a failing step whose Gamma is nearly singular (cond > NEARLY_SINGULAR_GAMMA after halving),
+# the smallest singular value of the unit gradients of H and the imposed invariants there (scaled
+# as _scaled_gradients) below which the invariants are degenerate at that point of the orbit, which
+# no step size cures; above it, cond(Gamma) is its scaling. Measured along whole orbits: Kepler's L
+# with A_x started 1 time unit along the e = 0.6 orbit (A_y = 2e-6): 6.9e-7 to 1.9e-6; L with A_y
+# at e = 0.6, 0.9, 0.99: 0.16 to 0.54. A user trial at e = 0.99, h = 0.1 (cond(Gamma) 1.4e9, which
+# h = 0.01 or max_halvings 8 get through) was told that smaller steps do not cure it.
+DEGENERATE_AT_FAILURE = 1e-3
+
+
+def gradients_independence(problem: Problem, indices, y) -> float | None:
+    """The smallest singular value of the unit gradients of H and of the invariants ``indices`` at
+    y (scaled as _scaled_gradients): 0 where they are linearly dependent, 1 for orthogonal ones;
+    None where it cannot be judged (a gradient not finite or zero, nothing imposed)."""
+    if len(indices) == 0:
+        return None
+    scaled = _scaled_gradients(problem, indices, y)
+    if scaled is None:
+        return None
+    sizes = np.linalg.norm(scaled, axis=1)
+    if not np.all(sizes > 0.0):
+        return None
+    return float(np.linalg.svd(scaled / sizes[:, None], compute_uv=False)[-1])
+
+
 def require_independent_gradients(problem: Problem, names: tuple[str, ...], indices: np.ndarray, y0) -> None:
     """Refuse to impose invariants whose gradients at y0 are linearly dependent on grad H and
     on those of the invariants listed before them (ParameterError naming ``conserve[i]``),
@@ -682,20 +723,10 @@ def require_independent_gradients(problem: Problem, names: tuple[str, ...], indi
     crawls for thousands of steps before it stops (ELIM). A gradient that is not finite at
     y0 (a singularity, which the run reports itself) is not judged here.
     """
-    y0 = np.asarray(y0, dtype=float)
-    rows = [problem.gradient(y0)]
-    gradients = problem.invariant_gradients(y0)[indices]
-    if not np.all(np.isfinite(rows[0])) or not np.all(np.isfinite(gradients)):
+    scaled = _scaled_gradients(problem, indices, y0)
+    if scaled is None:
         return
-    # Each gradient's q part times |q|, its p part times |p| (the terms of the invariant's
-    # change, as in Problem.invariant_scales): the test then does not depend on the units of q
-    # and p. A user trial: Kepler in SI units (q ~ 1e11 m, p ~ 1e29 kg m/s), e = 0.6, was
-    # refused for L (1.5e-19), as was the same orbit after the canonical change q -> 1e7 q.
-    m = problem.degrees_of_freedom
-    size_q, size_p = float(np.max(np.abs(y0[:m]))), float(np.max(np.abs(y0[m:])))
-    scale = np.repeat([size_q or size_p or 1.0, size_p or size_q or 1.0], m)
-    rows[0] = rows[0] * scale
-    gradients = gradients * scale
+    rows, gradients = [scaled[0]], scaled[1:]
     size_H = float(np.linalg.norm(rows[0]))
     if size_H == 0.0:
         raise ParameterError("conserve", f"names {', '.join(map(repr, names))}, but grad H vanishes at y0 (an "
@@ -1087,7 +1118,8 @@ class Integration:
         """One line naming the step and time of a failure, what the solver saw, and what to do
         (run_file: the run is in a run file, which --resume continues)."""
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t, self.signed_h,
-                               self.diagnostics, run_file=run_file, y=self.y, y0=self.y0)
+                               self.diagnostics, run_file=run_file, y=self.y, y0=self.y0,
+                               independence=gradients_independence(self.problem, self.conserve_idx, self.y))
 
 
 # A failing step whose state has grown this much beyond the initial one says so: the orbit is
@@ -1097,13 +1129,15 @@ GROWN_STATE = 1e3
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
                     diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None,
-                    advise: bool = True) -> str:
+                    advise: bool = True, independence: float | None = None) -> str:
     """The one-line report of a step that failed at every level of splitting (docs/solver.md);
     adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h;
     run_file: the run is in a run file, which `elimfast run --resume` continues with other
     solver settings (not said to the Python API or a sweep, which cannot); y, y0: the state
     where it failed and the initial one (a state grown beyond GROWN_STATE times is named);
-    advise: False leaves the advice out, where the caller knows that no setting helps."""
+    advise: False leaves the advice out, where the caller knows that no setting helps;
+    independence: gradients_independence at y (None: not known), which tells a Gamma nearly singular
+    because the invariants are degenerate there from one that is only badly scaled."""
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -1137,9 +1171,16 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
             and method.s > ADAPTIVE_MEASURED_S):
         # at s <= 6 a lower s was advice that did not help (LIM(6,6,3) imposing L, A_x, A_y: singular at t0)
         advice += f", or use a lower s (docs/adaptive.md measures s <= {ADAPTIVE_MEASURED_S})"
-    if status == codes.STATUS_NOT_CONVERGED and d[codes.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA and depth > 0:
-        # Still nearly singular after halving: not a step symmetric about a pericentre (docs/solver.md),
-        # whose halves are well-conditioned.
+    nearly_singular = (status == codes.STATUS_NOT_CONVERGED and d[codes.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA
+                       and depth > 0)
+    if nearly_singular and independence is not None and independence >= DEGENERATE_AT_FAILURE:
+        # Gamma's condition grows with its scaling too (near a pericentre of e = 0.99 cond ~ 1/h): with
+        # the gradients independent here, smaller steps are the cure, not other invariants.
+        seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
+        nearly_singular = False
+    if nearly_singular:
+        # Still nearly singular after halving, and the invariants degenerate here (or not known):
+        # not a step symmetric about a pericentre (docs/solver.md), whose halves are well-conditioned.
         advice = _NEARLY_SINGULAR_ADVICE
     elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"

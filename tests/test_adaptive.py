@@ -640,6 +640,28 @@ def test_a_stall_where_gamma_is_nearly_singular_is_not_blamed_on_h():
     assert "reduce h" not in message and "halvings (" not in message, message
 
 
+def test_a_stall_where_gamma_is_only_badly_scaled_advises_smaller_steps():
+    """A user trial: the README's EHBVM(12,3) imposing L and A_y at e = 0.99, h = 0.1, stalls at the
+    first pericentre with cond(Gamma) 1.4e9 after 4 halvings, and was told that Gamma is nearly
+    singular there, 'which smaller steps do not cure'; h = 0.01 and max_halvings 8 both complete it.
+    There the unit gradients of H, L and A_y are far from dependent (smallest singular value 0.23;
+    L with A_x above: 1e-6), so cond(Gamma) is Gamma's scaling, and the advice is the steps'."""
+    from elimfast.errors import ConvergenceError
+    from elimfast.integrate import DEGENERATE_AT_FAILURE, gradients_independence
+    p = kepler(0.99)
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(p, ehbvm(12, 3), 0.1, n_steps=2, conserve=(L1, AY))
+    message = str(failed.value)
+    assert "cond(Gamma) 1.4" in message and "after 4 halvings" in message, message
+    assert "the invariants' gradients independent here (smallest singular value 0.23)" in message, message
+    assert "nearly singular" not in message and "reduce h, or allow more step halvings" in message, message
+    assert elimfast.integrate(p, ehbvm(12, 3), 0.1, n_steps=2, conserve=(L1, AY), max_halvings=8).status == "complete"
+    # the degenerate pair of the test above stays below the line all along its orbit
+    drifted = p.with_initial(kepler(0.6).y0 + [0.0, 1e-10, 0.0, 0.0])
+    indices = [p.invariant_names.index(name) for name in (L1, AX)]
+    assert gradients_independence(drifted, indices, drifted.y0) < DEGENERATE_AT_FAILURE
+
+
 @pytest.mark.parametrize("start, conserve, culprit", [
     (0.0, (L1,), "conserve[0] names 'angular_momentum'"),           # circular: L is a function of H
     (0.6, (L1, AX), "conserve[1] names 'lrl_x'"),                   # A_y = 0: A_x is a function of H and L
