@@ -589,14 +589,20 @@ class AdaptiveIntegration:
                 and not abs(d[codes.DIAG_STEP]) > codes.COLLAPSED_STEP * max(abs(self.t), abs(self.t_end)))
 
     def failure_message(self, run_file: bool = False) -> str:
-        from .integrate import failure_message, gradients_independence
+        from .integrate import failure_message, gradients_independence, max_iter_below_defaults, raise_max_iter
         d = self.diagnostics
         if self.collapsed_steps():
-            return (f"{self.method.name}: the steps collapsed at step {self.steps_done + 1} (t = {exact_time(self.t)}): "
-                    f"the error controller came down to h = {d[codes.DIAG_STEP]:.3g}, below 4 eps of t_end = "
-                    f"{self.t_end:.6g}: at that size t_end is more than 10^15 steps away; "
-                    "the solution is likely nearing a singularity of H (a collision, or a fall into a centre), which "
-                    f"{NO_SETTING_GETS_THROUGH}; check the initial state and the problem's parameters")
+            collapse = (f"{self.method.name}: the steps collapsed at step {self.steps_done + 1} (t = "
+                        f"{exact_time(self.t)}): the error controller came down to h = {d[codes.DIAG_STEP]:.3g}, "
+                        f"below 4 eps of t_end = {self.t_end:.6g}: at that size t_end is more than 10^15 steps away; ")
+            if max_iter_below_defaults(self.solver):
+                # A user trial: max_iter = 2 made every solve fail, and the steps collapsed; the message
+                # blamed a singularity of H, 'which no solver setting gets through'.
+                return collapse + (f"no step converged within solver.max_iter = {self.solver.max_iter} iterations, "
+                                   f"below every default: {raise_max_iter(self.solver)}")
+            return collapse + ("the solution is likely nearing a singularity of H (a collision, or a fall into a "
+                               f"centre), which {NO_SETTING_GETS_THROUGH}; check the initial state and the "
+                               "problem's parameters")
         # the failed step's h: DIAG_STEP is its failed substep's, 2^depth times smaller (a user trial read
         # "t = 12.5663689 -> 12.5663691, in its substep from t = 12.5663705": h/16 for the step)
         step = float(d[codes.DIAG_STEP]) * 2.0 ** int(d[codes.DIAG_DEPTH])

@@ -1127,6 +1127,17 @@ class Integration:
 GROWN_STATE = 1e3
 
 
+def max_iter_below_defaults(solver: SolverSettings) -> bool:
+    """Is solver.max_iter set below every default? Then it is the likelier cause of a solve that does
+    not converge than the step or the problem."""
+    return solver.max_iter is not None and solver.max_iter < DEFAULT_MAX_ITER_ELIM_NEWTON
+
+
+def raise_max_iter(solver: SolverSettings) -> str:
+    return (f"raise solver.max_iter (= {solver.max_iter} now; the default is {DEFAULT_MAX_ITER_ELIM_NEWTON} or "
+            f"{DEFAULT_MAX_ITER})")
+
+
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
                     diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None,
                     advise: bool = True, independence: float | None = None) -> str:
@@ -1187,11 +1198,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if solver.rhs == "literal" and method.kind.imposes != IMPOSES_NONE and \
             status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR):
         advice = _LITERAL_RHS_ADVICE
-    if status == codes.STATUS_NOT_CONVERGED and solver.max_iter is not None and \
-            solver.max_iter < DEFAULT_MAX_ITER_ELIM_NEWTON:
+    if status == codes.STATUS_NOT_CONVERGED and max_iter_below_defaults(solver):
         # a cap set below any default is the likelier cause (a user trial: max_iter = 1 was told to reduce h)
-        advice = f"raise solver.max_iter (= {solver.max_iter} now; the default is {DEFAULT_MAX_ITER_ELIM_NEWTON} or " \
-                 f"{DEFAULT_MAX_ITER}), or " + advice
+        advice = f"{raise_max_iter(solver)}, or " + advice.removesuffix("; raise solver.max_iter")
     if status == codes.STATUS_NOT_CONVERGED and solver.method == "fixed_point":
         # simplified Newton gets through steps the fixed point cannot (docs/solver.md); 'auto' takes
         # the fixed point for large systems without the user having asked for it

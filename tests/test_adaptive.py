@@ -889,6 +889,27 @@ def test_steps_that_collapse_under_the_error_controller_stop_the_run_and_say_why
     assert result.relative_invariant_errors()["H"] < 1e-3   # stopped before the steps lost H
 
 
+def test_a_max_iter_below_the_defaults_is_named_where_it_makes_the_steps_fail():
+    """A user trial: solver.max_iter = 2 on configs/kepler_adaptive.yaml made every solve fail, the error
+    controller's steps collapsed, and the message blamed a singularity of H 'which no tolerance or
+    solver setting gets through'; on time-reversible steps, max_iter = 1 was advised twice to raise
+    max_iter. Both now name the cap once."""
+    from elimfast.errors import ConvergenceError
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=100 * PERIOD, rtol=1e-13, conserve=(L1, AY), max_iter=2)
+    message = str(failed.value)
+    assert "the steps collapsed" in message and "singularity" not in message, message
+    assert message.endswith("no step converged within solver.max_iter = 2 iterations, below every default: raise "
+                            "solver.max_iter (= 2 now; the default is 30 or 100)"), message
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=PERIOD, step_control="time_scale", epsilon=0.1,
+                           conserve=(L1, AY), max_iter=1)
+    message = str(failed.value)
+    assert message.count("raise solver.max_iter") == 1, message
+    assert message.endswith("raise solver.max_iter (= 1 now; the default is 30 or 100), or the step control found no "
+                            "step that converges"), message
+
+
 def test_a_split_adaptive_steps_failure_names_its_whole_step():
     """Kepler e = 0.9999 on time-reversible steps, EHBVM(8,4) imposing L and A_y, fails at the
     pericentre with Gamma singular, in a substep after 4 halvings (e = 0.999 did too, until steps
