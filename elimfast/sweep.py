@@ -839,7 +839,11 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
                 current = _config_text(_load_point(spec.source, label, runs[label].config).resolved)
             except ElimfastError as error:
                 raise OutputError(f"{edited}, and the stored run {label!r} no longer loads: {error}") from None
-            key = (config_difference(config_text, current, ignore=SOLVER_SECTIONS, ignore_keys=LOAD_ONLY_KEYS)
+            # A key the sweep writes is named before one that only follows from it (a user trial: an
+            # edit of eccentricity was named problem.initial.p2, one of rtol integration.atol), as
+            # run --resume names the keys its user changed first.
+            key = (config_difference(config_text, current, ignore=SOLVER_SECTIONS, ignore_keys=LOAD_ONLY_KEYS,
+                                     prefer=_written_keys(runs[label].config))
                    or step_solver_change(config_text, current))   # solver.lim_metric changes the steps too
             if key is not None:
                 why = ("which changes the steps themselves, and --resume keeps the stored runs' steps"
@@ -850,6 +854,14 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
         return {run.label: index for index, run in enumerate(spec.runs)}
 
     return accept
+
+
+def _written_keys(config, prefix: str = "") -> tuple[str, ...]:
+    """The dotted keys a run's config (as the sweep writes it, before it is resolved) gives values
+    to, in the order written."""
+    if not isinstance(config, dict):
+        return (prefix.rstrip("."),) if prefix else ()
+    return tuple(key for name, value in config.items() for key in _written_keys(value, f"{prefix}{name}."))
 
 
 def same_trajectories(spec: SweepSpec, path, config_text: str) -> Callable[[str, str | None], None]:

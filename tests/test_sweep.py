@@ -658,7 +658,12 @@ def test_resume_refuses_an_edit_that_would_change_a_stored_run_and_leaves_the_fi
              f"{out}: the sweep (its file or a config it names) was edited, and the stored run 'pi/30' no longer loads: "),
             # the user changed t_end; n_steps follows from it and was named instead (a user trial)
             ({"base": {**EDIT_BASE, "integration": {"h": "pi/30", "t_end": "4*pi"}}, "grid": EDIT_GRID},
-             f"{out}: the sweep (its file or a config it names) was edited: integration.t_end of the run 'pi/30', stored complete, changed")]:
+             f"{out}: the sweep (its file or a config it names) was edited: integration.t_end of the run 'pi/30', stored complete, changed"),
+            # ... and the eccentricity, whose initial state follows from it: problem.initial.p2 was named
+            ({"base": {**EDIT_BASE, "problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.7}}},
+              "grid": EDIT_GRID},
+             f"{out}: the sweep (its file or a config it names) was edited: problem.parameters.eccentricity of the run "
+             "'pi/30', stored complete, changed")]:
         with pytest.raises(OutputError) as caught:
             sweeps.run_to_file(write_sweep(tmp_path, change), out, resume=True, workers=1)
         assert str(caught.value).startswith(message), str(caught.value)
