@@ -1138,13 +1138,19 @@ def cache_info():
     from elimfast.cache import ENV_VAR, cache_info as info, kernel_cache_files, kernel_roots, stale_kernel_folders
 
     data = info()
-    where, files = kernel_cache_files()
-    size = sum(f.stat().st_size for f in files if f.exists())
+    roots, files = kernel_cache_files()
     kernels = f", {data['kernels']} per-problem kernels" if data.get("kernels") else ""
     click.echo(f"problem cache:  {data['path']}  ({data['entries']} generated problems{kernels}, "
                f"{_size(data['bytes'])}; set {ENV_VAR} to move it)")
-    click.echo(f"kernel cache:   {where}  ({len(files)} Numba files, {_size(size)}; "
-               "set NUMBA_CACHE_DIR to move it)")
+    # Each root with its own files (a user trial: one folder was named, which did not exist, while
+    # the files counted beside it were in the package's own __pycache__).
+    what = ["elimfast's own kernels", "the problems' compiled modules"] if len(roots) > 1 else ["every kernel"]
+    for index, (root, holds) in enumerate(zip(roots, what)):
+        mine = [f for f in files if root in f.parents]
+        size = sum(f.stat().st_size for f in mine if f.exists())
+        label = "kernel cache:" if index == 0 else ""
+        click.echo(f"{label:<16}{root}  ({len(mine)} Numba files, {_size(size)}: {holds})")
+    click.echo(f"{'':<16}(set NUMBA_CACHE_DIR to move {'both' if len(roots) > 1 else 'it'})")
     stale = [folder for root in kernel_roots() for folder in stale_kernel_folders(root)]
     if stale:
         stale_size = sum(f.stat().st_size for f in files if f.exists() and any(s in f.parents for s in stale))
@@ -1177,8 +1183,9 @@ def cache_warm(quiet):
     total = warm(on_step)
     if not quiet:
         from elimfast.cache import kernel_cache_files
-        where, files = kernel_cache_files()
-        click.echo(f"kernels ready in {total:.1f} s ({len(files)} Numba files in {where})", err=True)
+        roots, files = kernel_cache_files()
+        click.echo(f"kernels ready in {total:.1f} s ({len(files)} Numba files in {' and '.join(map(str, roots))})",
+                   err=True)
     return EXIT_OK
 
 
@@ -1208,8 +1215,8 @@ def cache_clear(kernels, stale):
     removed = clear_cache()
     click.echo(f"removed {removed} files from {cache_dir()}")
     if kernels:
-        where = kernel_cache_files()[0]
-        click.echo(f"removed {clear_kernels()} Numba files from {where}")
+        roots = kernel_cache_files()[0]
+        click.echo(f"removed {clear_kernels()} Numba files from {' and '.join(map(str, roots))}")
     return EXIT_OK
 
 

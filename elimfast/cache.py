@@ -236,21 +236,22 @@ def cache_info() -> dict:
     return {"path": str(root), "entries": entries, "kernels": kernels, "bytes": size}
 
 
-def kernel_cache_files(only_problems: bool = False) -> tuple[Path, list[Path]]:
-    """(the kernel cache root, the Numba index and data files under it). only_problems:
-    just those of the generated and copied problem modules (every key's folder for them)."""
+def kernel_cache_files(only_problems: bool = False) -> tuple[list[Path], list[Path]]:
+    """(the kernel cache roots, the Numba index and data files under them): the package's folder
+    (elimfast's own kernels) and elimfast's cache's (the problems' modules), one folder with
+    NUMBA_CACHE_DIR (kernel_roots). only_problems: just the files of the generated and copied
+    problem modules (every key's folder for them), under elimfast's cache's root."""
     from numba.core.caching import _CacheLocator
 
     from .kernels._cache import kernels_root
-    root = kernels_root()
-    roots = [root] if only_problems else [kernels_root(in_package=True), root]
-    folders = [r for r in dict.fromkeys(roots) if r.is_dir()]
+    roots = [kernels_root()] if only_problems else kernel_roots()
+    folders = [r for r in roots if r.is_dir()]
     if only_problems:
         name = _CacheLocator.get_suitable_cache_subpath(str(cache_dir() / PROBLEMS_SUBDIR / "x.py"))
         folders = [key / name for folder in folders for key in folder.iterdir() if (key / name).is_dir()]
     files = [Path(dirpath) / name for folder in folders for dirpath, _dirs, names in os.walk(folder)
              for name in names if name.endswith((".nbi", ".nbc"))]
-    return root, files
+    return roots, files
 
 
 def _remove(paths) -> int:
@@ -274,10 +275,9 @@ def _remove_empty_folders(folder: Path) -> None:
 
 def clear_kernels() -> int:
     """Remove every compiled kernel (all keys); the next run compiles again. Returns the count."""
-    from .kernels._cache import kernels_root
-    root, files = kernel_cache_files()
+    roots, files = kernel_cache_files()
     removed = _remove(files)
-    for folder in (root, kernels_root(in_package=True)):
+    for folder in roots:
         _remove(key / PRUNED_MARKER for key in _key_folders(folder))
         _remove_empty_folders(folder)
     return removed

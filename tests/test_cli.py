@@ -531,7 +531,19 @@ def test_cache_info_and_clear(tmp_path):
     info = invoke("cache", "info", env=env)
     assert info.exit_code == 0 and str(tmp_path / "cache") in info.stdout
     assert "(1 generated problems, 1 per-problem kernels, " in info.stdout, info.stdout
-    assert "kernel cache" in info.stdout
+    # each kernel folder with its own files (a user trial: the one folder named did not exist, and the
+    # files counted beside it were in the package's own __pycache__)
+    from unittest import mock
+
+    from elimfast.cache import kernel_cache_files
+    with mock.patch.dict(os.environ, env):
+        roots, files = kernel_cache_files()
+    if "NUMBA_CACHE_DIR" not in os.environ:
+        assert len(roots) == 2 and roots[0].parent.name == "__pycache__"
+    for root in roots:
+        mine = [f for f in files if root in f.parents]
+        assert f"{root}  ({len(mine)} Numba files, " in info.stdout, info.stdout
+    assert sum(info.stdout.count(f"{root}  (") for root in roots) == len(roots)
     cleared = invoke("cache", "clear", env=env)
     assert cleared.exit_code == 0 and "removed 2 files" in cleared.stdout
     assert not (problems_dir / "p_0123.py").exists() and not (problems_dir / "k_4567.py").exists()
