@@ -436,6 +436,9 @@ def _stored_spec(path, overrides, config):
             from_config.append(item)
     if any(r == 0 for r in rank.values()):   # what follows from a --set is not CONFIG's doing
         where.update({key: None for key, r in rank.items() if r == 2})
+        # ... nor is it said as CONFIG's change (a user trial: --set solver.method=fixed_point was
+        # reported "with kepler.yaml's changes: solver.max_iter=100", a default that follows from it)
+        from_config = [item for item in from_config if rank.get(_set_key(item)) != 2]
     origins = {key: where[key] for key in sorted(rank, key=rank.get)}
     # The stored config resolves both t_end and n_steps: a run continued to a later end
     # gets the other from the one given.

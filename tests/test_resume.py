@@ -497,3 +497,18 @@ def test_resume_of_a_run_a_terminal_event_ended_gives_no_hint_to_extend_it(tmp_p
     assert result.exit_code == 0, result.stderr
     assert "already complete: it ended at its terminal event at t = 6.28" in result.stderr
     assert "integration.t_end=LATER" not in result.stderr
+
+
+def test_a_default_that_follows_from_a_set_value_is_not_called_the_configs_change(tmp_path):
+    """A user trial: --resume --set solver.method=fixed_point reported "with kepler.yaml's changes:
+    solver.max_iter=100": kepler.yaml has no solver section; max_iter's default follows from the
+    method given by --set. The change is applied, and not said to be the config's."""
+    path = tmp_path / "k.h5"
+    short = ["--set", "integration.t_end=10"]
+    assert CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), *short, "-q"]).exit_code == 0
+    resumed = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), "--resume", "--set", "solver.method=fixed_point",
+                                       "--set", "integration.t_end=11"])
+    assert resumed.exit_code == 0, resumed.stderr
+    assert "'s changes" not in resumed.stderr and "with new solver settings" in resumed.stderr, resumed.stderr
+    with h5py.File(path, "r") as f:
+        assert "max_iter: 100" in f.attrs["config"]
