@@ -1437,7 +1437,11 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
         nonlocal writer
         if path is not None:
             writer = SweepWriter(path, sweep_text=Path(spec.source).read_text(errors="replace"),
-                                 attributes={"source": spec.source, "axes": list(spec.axes) or [""],
+                                 # absolute: the hints that quote it ("continue the sweep with elimfast
+                                 # sweep SOURCE ...") are read from other folders (a user trial ran the
+                                 # quoted relative path from another one: no such file)
+                                 attributes={"source": str(Path(spec.source).resolve()),
+                                             "axes": list(spec.axes) or [""],
                                              RUNS_PLANNED: len(spec.runs)},
                                  overwrite=overwrite or resume, resume=resume, ensemble=ensemble,
                                  accept_edit=solver_only_edit(spec, path) if ensemble is None else

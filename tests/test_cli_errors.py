@@ -182,7 +182,7 @@ def test_an_internal_error_is_one_line_with_a_hint(tmp_path, monkeypatch):
     assert isinstance(debug.exception, RuntimeError)     # the traceback is there for developers
 
 
-def test_run_refuses_to_resume_a_sweep_file_or_to_write_into_one(tmp_path):
+def test_run_refuses_to_resume_a_sweep_file_or_to_write_into_one(tmp_path, monkeypatch):
     """A user trial: `run ... -o SWEEP.h5 --resume` advised naming a run as SWEEP.h5:/runs/<label>,
     and `run ... -o SWEEP.h5:/runs/<label> --resume` then made a folder 'SWEEP.h5:' and started a
     new run in it. Both now say how a sweep is continued, exit 2, and write nothing."""
@@ -200,6 +200,14 @@ def test_run_refuses_to_resume_a_sweep_file_or_to_write_into_one(tmp_path):
         assert result.exit_code == 2, result.output
         assert_one_line_error(result.stderr, fragment)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.yaml", "sweep.h5", "sweep.yaml"]
+    # A sweep run from its own folder with a relative path: the hint, read from another folder,
+    # quoted that relative path (a user trial: no such file). It is the sweep file's absolute path.
+    with monkeypatch.context() as patched:
+        patched.chdir(tmp_path)
+        assert CliRunner().invoke(cli, ["sweep", "sweep.yaml", "-o", "rel.h5", "--workers", "1", "-q"]).exit_code == 0
+    result = CliRunner().invoke(cli, ["run", config, "-o", str(tmp_path / "rel.h5"), "--resume"])
+    assert_one_line_error(result.stderr, f"continue the sweep with elimfast sweep {sweep.resolve()} -o "
+                                         f"{tmp_path / 'rel.h5'} --resume")
 
 
 def test_a_reader_that_goes_away_is_no_failure():
