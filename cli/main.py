@@ -900,7 +900,7 @@ def _format_tableau(method, A, b, c, eta) -> str:
     fixed = eta is not None and any(float(e) != 1.0 for e in eta)
     order = (f"order {method.order} only as the method, whose eta change with each step (these fixed eta give "
              "a lower one)" if fixed else f"order {method.order}")
-    lines = [f"# {method.name}: Butcher tableau, {len(c)} stages, {order}; eta = {eta_text}",
+    lines = [f"# {method.name}: Butcher tableau, {len(c)} stage{'s' if len(c) != 1 else ''}, {order}; eta = {eta_text}",
              "# c_i | a_i1 ... a_ik, then | b_1 ... b_k; each number is repr(float): it reads back exactly"]
     for ci, row in zip(c_text, cells):
         lines.append(f"{ci:>{c_width}} | " + " ".join(f"{x:>{width}}" for x in row))

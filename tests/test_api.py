@@ -17,7 +17,7 @@ from elimfast.methods import ehbvm, elim, gauss, ghbvm, hbvm
     (dict(method=ehbvm(12, 1), conserve=["angular_momentum"]), "raise s to 2"),
     (dict(method=ehbvm(12, 3), conserve=["energy"]), "no invariant 'energy'.*angular_momentum, lrl_x, lrl_y"),
     (dict(method=ehbvm(12, 3), conserve=["H"]), "leave it out"),
-    (dict(method=hbvm(12, 3), conserve=["angular_momentum"]), "cannot impose invariants"),
+    (dict(method=hbvm(12, 3), conserve=["angular_momentum"]), "imposes no invariant besides H"),
     (dict(method=ghbvm(12, 3), conserve=["lrl_y", "lrl_y"]), "twice"),
     (dict(method=gauss(3), h=0.0), "h must be > 0"),
     (dict(method=gauss(3), h=-0.1), "h must be > 0"),
@@ -359,3 +359,15 @@ def test_what_a_backward_run_cannot_take_is_a_parameter_error(extra, parameter):
         elimfast.integrate(elimfast.problems.kepler(0.6), elimfast.methods.ehbvm(8, 4), backward=True, **extra)
     assert info.value.parameter == parameter
 
+
+
+def test_conserve_on_a_method_that_imposes_nothing_says_what_it_keeps():
+    """A user trial: GAUSS was said to 'cannot impose invariants besides H', as if it kept any H."""
+    from elimfast.errors import ParameterError
+    from elimfast.methods import gauss, hbvm
+    from elimfast.problems import kepler
+    for method, keeps in ((gauss(3), "it keeps quadratic ones by itself, H only when H is quadratic"),
+                          (hbvm(6, 3), "it imposes no invariant besides H")):
+        with pytest.raises(ParameterError, match=f"conserve must be empty for {re.escape(method.name)}: .*"
+                                                 f"{re.escape(keeps)}"):
+            elimfast.integrate(kepler(0.6), method, 0.1, n_steps=2, conserve=["angular_momentum"])

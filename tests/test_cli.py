@@ -501,6 +501,7 @@ def test_tableau_with_several_values_after_one_eta_says_how_to_give_them():
     assert "order 6 only as the method" in both[0].stdout
     assert "stages, order 6; eta = 1.0, 1.0, 1.0" in invoke("tableau", "elim", "--r", "3", "--k", "3", "--s", "3",
                                                               "--eta", "1,1,1").stdout
+    assert invoke("tableau", "GAUSS(1)").stdout.startswith("# GAUSS(1): Butcher tableau, 1 stage, ")   # not "1 stages"
 
 
 def test_version():

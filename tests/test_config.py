@@ -237,7 +237,7 @@ BAD = [
     ("conserve H", _set(("conserve",), ["H"]), "conserve[0]", "always conserved"),
     ("conserve twice", _set(("conserve",), ["lrl_y", "lrl_y"]), "conserve[1]", "twice"),
     ("conserve with gauss", lambda d: {**d, "method": {"name": "gauss", "s": 3}}, "conserve",
-     "cannot impose invariants"),
+     "imposes no invariant .it keeps quadratic ones by itself"),
     ("conserve not names", _set(("conserve",), [1, 2]), "conserve[0]", "must be a string"),
     ("builtin unknown", _set(("problem", "builtin"), "keplr"), "problem.builtin", "did you mean 'kepler'"),
     ("builtin parameter unknown", _set(("problem", "parameters"), {"eccentricty": 0.5}),

@@ -276,7 +276,10 @@ class Method:
         """ParameterError unless this method can impose n_imposed invariants besides H."""
         if n_imposed and not self.imposes_invariants:
             able = "/".join(name for name, kind in FAMILIES.items() if kind.imposes != IMPOSES_NONE)
-            raise ParameterError("conserve", f"must be empty for {self.name}: it cannot impose invariants besides H; use "
+            # (a user trial: GAUSS "cannot impose invariants besides H" read as if it kept any H)
+            keeps = ("it imposes no invariant (it keeps quadratic ones by itself, H only when H is quadratic)"
+                     if self.k == self.s else "it imposes no invariant besides H")
+            raise ParameterError("conserve", f"must be empty for {self.name}: {keeps}; use "
                                              f"one of {able}, or remove conserve (docs/methods.md#methods)")
         limit = self.max_conserved()
         if limit is not None and n_imposed > limit:
