@@ -702,15 +702,19 @@ def gradients_independence(problem: Problem, indices, y) -> float | None:
     """The smallest singular value of the unit gradients of H and of the invariants ``indices`` at
     y (scaled as _scaled_gradients): 0 where they are linearly dependent, 1 for orthogonal ones;
     None where it cannot be judged (a gradient not finite or zero, nothing imposed)."""
-    if len(indices) == 0:
+    if len(indices) == 0 or y is None:
         return None
-    scaled = _scaled_gradients(problem, indices, y)
-    if scaled is None:
-        return None
-    sizes = np.linalg.norm(scaled, axis=1)
-    if not np.all(sizes > 0.0):
-        return None
-    return float(np.linalg.svd(scaled / sizes[:, None], compute_uv=False)[-1])
+    try:
+        with np.errstate(all="ignore"):
+            scaled = _scaled_gradients(problem, indices, y)
+            if scaled is None:
+                return None
+            sizes = np.linalg.norm(scaled, axis=1)
+            if not np.all(sizes > 0.0):
+                return None
+            return float(np.linalg.svd(scaled / sizes[:, None], compute_uv=False)[-1])
+    except Exception:   # noqa: BLE001 -- for a failure's message: a problem function that raises there
+        return None     # (a python: file's, which the run reports itself) leaves it unjudged
 
 
 def require_independent_gradients(problem: Problem, names: tuple[str, ...], indices: np.ndarray, y0) -> None:
