@@ -299,8 +299,8 @@ def _invariants(run_file, axes, relative_axes=None) -> None:
     axes.grid(True, which="major", alpha=0.3)
     if relative_axes is not None:
         relative_axes.set_xlabel("t")
-        relative_axes.set_ylabel(_windowed(f"|I(t) - I({reference_label(run_file)})| / |I({reference_label(run_file)})|",
-                                           stride, "samples"))
+        at = reference_label(run_file)
+        relative_axes.set_ylabel(_windowed(f"|I(t) - I({at})| / |I({at})|", stride, "samples"))
         relative_axes.set_title("relative errors")
         relative_axes.legend(fontsize="small")
         relative_axes.grid(True, which="major", alpha=0.3)

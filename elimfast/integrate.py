@@ -223,8 +223,8 @@ class SolverSettings:
         was left out (see DEFAULT_MAX_ITER). ParameterError for lim_metric 'scaled' on a method
         that is not LIM (a user trial: accepted and ignored)."""
         if self.lim_metric != "euclidean" and method.kernel_family != codes.FAMILY_LIM:
-            raise ParameterError("lim_metric", f"{self.lim_metric!r} applies to LIM and GHBVM only (the metric of their "
-                                               "correction W phi_0 lambda, docs/methods.md#the-metric-of-the-"
+            raise ParameterError("lim_metric", f"{self.lim_metric!r} applies to LIM and GHBVM only (the metric of "
+                                               "their correction W phi_0 lambda, docs/methods.md#the-metric-of-the-"
                                                f"correction); {method.name} has none: leave lim_metric out, or use "
                                                "a LIM method")
         settings = self

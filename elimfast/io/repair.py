@@ -14,8 +14,8 @@ import h5py
 from ..errors import ElimfastError
 from .layout import FORMAT, LIBVER, STATUS_KILLED, _plain
 from .runfile import RunFile, _cut_back
-from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError, _damaged, _FileGuard,
-                     _regular_file, clear_consistency_flags, consistency_flags, ensure_not_busy,
+from .safety import (_DAMAGE_ADVICE, DamagedFileError, FileBusyError, NotAnElimfastFile, OutputError, _damaged,
+                     _FileGuard, _regular_file, clear_consistency_flags, consistency_flags, ensure_not_busy,
                      cut_short, extended_to_recorded_end, set_consistency_flags)
 
 
