@@ -13,7 +13,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import ParameterError, exact_time
+from .errors import ParameterError, exact_time, real_number
 from .function_addresses import remembered_addresses
 from .kernels import codes
 from .kernels.signatures import no_invariants
@@ -281,10 +281,7 @@ def resolve_t_eval(times, t0: float, t_end: float, store_every: int = 1) -> np.n
 
 
 def _positive(name: str, value) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(name, f"must be a number, got {value!r}") from None
+    number = real_number(name, value)
     if not (math.isfinite(number) and number > 0.0):
         raise ParameterError(name, f"must be a positive finite number, got {value!r}")
     return number

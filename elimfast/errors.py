@@ -33,6 +33,22 @@ class ParameterError(ElimfastError, ValueError):
         self.related = tuple(related)
 
 
+def real_number(parameter: str, value) -> float:
+    """``value`` as a float, or a ParameterError naming ``parameter``: the one check of a real
+    number the API is given (t0, h, t_end, rtol, atol, epsilon, h_max, tol). A bool is not a number,
+    nor is a string: the API takes numbers, and a config's expressions ('pi/30') are the config's
+    to read (a user trial: h='0.1' was taken and h='pi/30' refused)."""
+    if isinstance(value, str):
+        raise ParameterError(parameter, f"must be a number, got the string {value!r}: pass the number itself "
+                                        "(math.pi / 30, say); expressions such as 'pi/30' are read in configs")
+    if isinstance(value, bool):
+        raise ParameterError(parameter, f"must be a number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(parameter, f"must be a number, got {value!r}") from None
+
+
 class ConvergenceError(ElimfastError, RuntimeError):
     """The run stopped: the fixed-point iteration did not converge, the small system was
     singular, or the solution stopped being finite.

@@ -12,7 +12,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from .cache import kernel_folder_used
-from .errors import ConvergenceError, ParameterError, closest, exact_time
+from .errors import ConvergenceError, ParameterError, closest, exact_time, real_number
 from .function_addresses import remembered_addresses
 from .kernels import codes
 from .kernels.solver import NEARLY_SINGULAR_GAMMA   # a stall above it is blamed on Gamma, not on h
@@ -178,10 +178,7 @@ class SolverSettings:
             raise ParameterError("method", f"must be auto (the default: simplified Newton up to "
                                            f"{AUTO_NEWTON_MAX_DIMENSION} state components, the fixed point above), "
                                            f"newton or fixed_point, got {self.method!r}")
-        try:
-            tol = DEFAULT_TOL if self.tol is None else float(self.tol)
-        except (TypeError, ValueError):
-            raise ParameterError("tol", f"must be a number, got {self.tol!r}") from None
+        tol = DEFAULT_TOL if self.tol is None else real_number("tol", self.tol)
         if not tol >= 0.0:
             raise ParameterError("tol", f"must be >= 0, got {compact_number(self.tol)}; leave it out for machine epsilon")
         if not tol <= MAX_TOL:
@@ -775,11 +772,8 @@ STEPS_REASON = ("that many steps take hours to days even at a microsecond each, 
 def resolve_t0(t0) -> float:
     """The initial time as a finite float, else a ParameterError naming t0 (a NaN t0 was
     reported as a bad t_end)."""
-    try:
-        value = float(t0)
-    except (TypeError, ValueError):
-        raise ParameterError("t0", f"must be a number, got {t0!r}") from None
-    if isinstance(t0, bool) or not math.isfinite(value):
+    value = real_number("t0", t0)
+    if not math.isfinite(value):
         raise ParameterError("t0", f"must be a finite number, got {t0!r}")
     return value
 
@@ -790,12 +784,7 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
     Raises ParameterError naming h, t0, t_end or n_steps and the fix.
     """
     t0 = resolve_t0(t0)
-    if isinstance(h, bool):
-        raise ParameterError("h", f"must be a number, got {h!r}")
-    try:
-        h = float(h)
-    except (TypeError, ValueError):
-        raise ParameterError("h", f"must be a number, got {h!r}") from None
+    h = real_number("h", h)
     if not (math.isfinite(h) and h > 0.0):
         raise ParameterError("h", f"must be > 0 and finite, got {h!r}")
     if t0 + h == t0:
@@ -811,10 +800,7 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
             raise ParameterError("h", f"gives t0 + n_steps h = {t0!r} + {n_steps} * {h!r}, not a finite number; "
                                       "lower h or n_steps")
         return h, n_steps
-    try:
-        span = float(t_end) - float(t0)
-    except (TypeError, ValueError):
-        raise ParameterError("t_end", f"must be a number, got {t_end!r}") from None
+    span = real_number("t_end", t_end) - t0
     if not (math.isfinite(span) and span > 0.0):
         raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}")
     if not span / h <= MAX_STEPS:

@@ -371,3 +371,16 @@ def test_conserve_on_a_method_that_imposes_nothing_says_what_it_keeps():
         with pytest.raises(ParameterError, match=f"conserve must be empty for {re.escape(method.name)}: .*"
                                                  f"{re.escape(keeps)}"):
             elimfast.integrate(kepler(0.6), method, 0.1, n_steps=2, conserve=["angular_momentum"])
+
+
+@pytest.mark.parametrize("keyword", ["h", "t_end", "t0", "tol", "rtol"])
+def test_a_number_given_as_a_string_is_refused_alike(keyword):
+    """A user trial: integrate(h='0.1') ran while h='pi/30' was refused; every real number of the API
+    now refuses a string alike (errors.real_number), saying to pass the number."""
+    from elimfast.errors import ParameterError
+    from elimfast.methods import gauss, hbvm
+    from elimfast.problems import kepler
+    given = {"h": 0.1, "t_end": 1.0, **({"rtol": 1e-8, "h": None} if keyword == "rtol" else {})}
+    given[keyword] = "0.5"
+    with pytest.raises(ParameterError, match=f"^{keyword} must be a number, got the string '0.5': pass the number"):
+        elimfast.integrate(kepler(0.6), hbvm(6, 3) if keyword == "rtol" else gauss(3), **given)
