@@ -234,8 +234,16 @@ def elim_step(grad_H, grad_L, y0, h, r, k, s, rhs="stable", tol=1e-16, max_iter=
                 elif r == k:
                     for j in range(s, k):
                         bvec -= phi[j].T @ gam_all[j]
+                elif r < k:
+                    # tail with both sums at the k nodes: grad L evaluated at the k stages
+                    gLk = [np.asarray(grad_L(stages[l]), dtype=float).reshape(dim, nu) for l in range(k)]
+                    for j in range(s, k):
+                        phi_k_j = np.zeros((dim, nu))
+                        for l in range(k):
+                            phi_k_j += b[l] * Pk[l, j] * gLk[l]
+                        bvec -= phi_k_j.T @ gam_all[j]
                 else:
-                    # tail with both sums at the r nodes: J grad H evaluated at uhat
+                    # r > k: tail with both sums at the r nodes: J grad H evaluated at uhat
                     fhat = np.array([J_times(grad_H(uhat[i])) for i in range(r)])
                     for j in range(s, r):
                         gam_hat_j = np.zeros(dim)

@@ -23,6 +23,8 @@ CASES = [
     (ehbvm(12, 4), ("angular_momentum",), "stable"),
     (elim(8, 12, 3), ("angular_momentum",), "stable"),
     (elim(16, 12, 3), ("lrl_y",), "stable"),
+    (elim(3, 12, 3), ("angular_momentum",), "stable"),
+    (elim(4, 12, 4), ("angular_momentum", "lrl_y"), "stable"),
     (elim(8, 12, 3), ("lrl_x", "lrl_y"), "literal"),
     (ghbvm(12, 3), ("angular_momentum",), "stable"),
     (ghbvm(12, 3), ("angular_momentum", "lrl_y"), "stable"),

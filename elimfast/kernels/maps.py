@@ -142,16 +142,54 @@ def apply_J(projected, n_degrees, out):
             out[j, m + i] = -projected[j, i]
 
 
+# Where the stable tail's phi_j and gamma_j (j >= s) come from (elim_rhs_terms, lim_rhs_terms).
+TAIL_SAME = 0      # the literal sum, or r = k: phi_j and gamma_j as the map computes them
+TAIL_R_NODES = 1   # r > k: gamma_j too from the r nodes (J grad H evaluated there), into work.gamma_hat
+TAIL_K_NODES = 2   # r < k: phi_j too from the k nodes (grad L evaluated there), into phi's rows j >= s
+
+
 @njit(cache=True, inline="always")
 def elim_rhs_terms(stable_rhs, k, r, s):
-    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec
-    (docs/methods.md#elim, #stable-right-hand-side),
-    and whether gamma_j comes from the r nodes (docs/methods.md#stable-right-hand-side with r != k)."""
+    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec, and where the
+    tail's terms come from (TAIL_*; docs/methods.md#elim, #stable-right-hand-side).
+
+    The tail -sum_{j=s}^{m-1} phi_j^T gamma_j equals sum_{j<s} phi_j^T gamma_j only when both are
+    taken at the same m nodes (the identity of docs/methods.md#stable-right-hand-side): at the
+    larger set, m = max(r, k), where the smaller set's quadrature is the one that may be exact.
+    r < k: grad L at the k nodes too, so that bvec is the paper's exactly whenever the r nodes
+    integrate sum_{j<s} phi_j^T gamma_j exactly (L of degree <= 2r/s: quadratic invariants for
+    any r >= s); taking it at the r nodes instead missed the k-node part of gamma_j, and r = s
+    left the tail empty (alpha = 0: HBVM's conservation, a user trial's ELIM(3,12,3))."""
     if not stable_rhs:
-        return 0, s, False
+        return 0, s, TAIL_SAME
     if r == k:
-        return s, k, False
-    return s, r, True
+        return s, k, TAIL_SAME
+    if r > k:
+        return s, r, TAIL_R_NODES
+    return s, k, TAIL_K_NODES
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, first_row, s, k, inv_grads, phi):
+    """phi[first_row + a, j] = sum_l b_l P_j(c_l) grad L_a(u_l) for j in [s, k), the imposed
+    invariants' tail at the k nodes (TAIL_K_NODES; docs/methods.md#stable-right-hand-side).
+    Rows j < s (at the r nodes, which define the method) are left as they are."""
+    n = u.shape[1]
+    nu = conserve_idx.shape[0]
+    if nu == 0:
+        return
+    for a in range(nu):
+        for j in range(s, k):
+            for p in range(n):
+                phi[first_row + a, j, p] = 0.0
+    for l in range(k):
+        grad_invariants(u[l], params, inv_grads)
+        for a in range(nu):
+            row = conserve_idx[a]
+            for j in range(s, k):
+                weight = projection[j, l]
+                for p in range(n):
+                    phi[first_row + a, j, p] += weight * inv_grads[row, p]
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -163,8 +201,9 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
         phi_j   = sum_i bhat_i P_j(chat_i) grad L(uhat_i)          (nu imposed invariants)
         Gamma alpha = bvec,  Gamma[:, c] = w_c phi_{s-nu+c}^T gamma_{s-nu+c},  w_c = h^(2(nu-1-c))
         G_j     = eta_j gamma_j,   eta_j = 1 - w_{j-s+nu} alpha_{j-s+nu} for the last nu j
-    bvec is the stable tail -sum_{j=s}^{k-1} phi_j^T gamma_j (docs/methods.md#stable-right-hand-side) when stable_rhs, the
-    paper's sum_{j<s} phi_j^T gamma_j otherwise. plain_sweep: alpha = 0 (the first sweeps
+    bvec is the stable tail -sum_{j=s}^{m-1} phi_j^T gamma_j, m = max(r, k), both taken at the m nodes
+    (docs/methods.md#stable-right-hand-side, elim_rhs_terms) when stable_rhs, the paper's
+    sum_{j<s} phi_j^T gamma_j otherwise. plain_sweep: alpha = 0 (the first sweeps
     of a cold start, when Gamma is singular or noise: docs/methods.md#practical-points).
 
     Shapes: y (n,), coef (s, n), alpha (nu,) in/out, conserve_idx (nu,); work.h_powers holds
@@ -184,10 +223,10 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
     r = Ihat.shape[0]
     s = coef.shape[0]
     nu = conserve_idx.shape[0]
-    first_rhs, last_rhs, rhs_from_hat = elim_rhs_terms(stable_rhs, k, r, s)
-    # Legendre coefficients needed: the stable tail runs up to k-1 (r-1 at the r nodes).
-    n_gamma = last_rhs if (nu > 0 and stable_rhs and not rhs_from_hat) else s
-    n_phi = max(last_rhs, s) if nu > 0 else s
+    first_rhs, last_rhs, tail_nodes = elim_rhs_terms(stable_rhs, k, r, s)
+    # Legendre coefficients needed: the stable tail runs up to max(r, k) - 1 (elim_rhs_terms).
+    n_gamma = last_rhs if (nu > 0 and tail_nodes != TAIL_R_NODES) else s
+    n_phi = last_rhs if (nu > 0 and tail_nodes != TAIL_K_NODES) else s
 
     scale_tables(h, tables, work)
     stages(y, work.stage_comp, work.scaled_Is, work.scaled_Is_low, coef, s, u)
@@ -217,14 +256,17 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
                 for p in range(n):
                     acc += phi[a, j, p] * gamma[j, p]
                 big_gamma[a, col] = h_powers[col] * acc
-        if rhs_from_hat:
-            # Spec 3b for r != k: the tail with J grad H taken at the r nodes too.
+        if tail_nodes == TAIL_R_NODES:
+            # r > k: the tail with J grad H taken at the r nodes too.
             for i in range(r):
                 grad_H(uhat[i], params, grads_hat[nu, i])
             project(projection_hat, grads_hat[nu], r, proj)
             apply_J(proj, r, gamma_hat)
             tail = gamma_hat
         else:
+            if tail_nodes == TAIL_K_NODES:
+                # r < k: the tail with grad L taken at the k nodes too.
+                tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, 0, s, k, inv_grads, phi)
             tail = gamma
         sign = -1.0 if stable_rhs else 1.0
         for a in range(nu):
@@ -268,15 +310,17 @@ METRIC_FLOOR = 1e-30
 @njit(cache=True, inline="always")
 def lim_rhs_terms(stable_rhs, k, r, s):
     """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up LIM's right-hand side,
-    and whether gamma_j comes from the r nodes: sum_{j<s} (the spec's, literal), or the stable tail
-    -sum_{j=s}^{k-1} (r = k; r != k: at the r nodes), docs/methods.md#stable-right-hand-side carried
-    over to LIM: sum_{j<k} phi_j^T gamma_j = sum_l b_l grad Ltilde(u_l)^T J grad H(u_l) = 0 exactly
-    (H's row too: phi^H_j = J^T gamma_j), so the tail equals the spec's sum in exact arithmetic."""
+    and where the tail's terms come from (TAIL_*): sum_{j<s} (the spec's, literal), or the stable
+    tail -sum_{j=s}^{m-1} at the m = max(r, k) nodes (elim_rhs_terms), docs/methods.md#stable-right-hand-side
+    carried over to LIM: sum_{j<m} phi_j^T gamma_j = sum_l b_l grad Ltilde(u_l)^T J grad H(u_l) = 0
+    exactly at the m nodes (H's row too: phi^H_j = J^T gamma_j)."""
     if (stable_rhs & RHS_STABLE) == 0:
-        return 0, s, False
+        return 0, s, TAIL_SAME
     if r == k:
-        return s, k, False
-    return s, r, True
+        return s, k, TAIL_SAME
+    if r > k:
+        return s, r, TAIL_R_NODES
+    return s, k, TAIL_K_NODES
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -307,9 +351,9 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
     r = Ihat.shape[0]
     s = coef.shape[0]
     n_tilde = conserve_idx.shape[0] + 1
-    first_rhs, last_rhs, rhs_from_hat = lim_rhs_terms(stable_rhs, k, r, s)
-    n_gamma = last_rhs if not rhs_from_hat else s
-    n_phi = max(last_rhs, s)
+    first_rhs, last_rhs, tail_nodes = lim_rhs_terms(stable_rhs, k, r, s)
+    n_gamma = last_rhs if tail_nodes != TAIL_R_NODES else s
+    n_phi = last_rhs if tail_nodes != TAIL_K_NODES else s
 
     scale_tables(h, tables, work)
     stages(y, work.stage_comp, work.scaled_Is, work.scaled_Is_low, coef, s, u)
@@ -336,11 +380,17 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
                     grads_hat[a, i, p] = inv_grads[conserve_idx[a - 1], p]
     for a in range(n_tilde):
         project(projection_hat, grads_hat[a], n_phi, phi[a])
-    if rhs_from_hat:
+    if tail_nodes == TAIL_R_NODES:
         # J grad H at the r nodes is phi of H (row 0): gamma_hat_j = J phi^H_j.
         apply_J(phi[0], last_rhs, gamma_hat)
         tail = gamma_hat
     else:
+        if tail_nodes == TAIL_K_NODES:
+            # grad Ltilde at the k nodes: H's row is the projection of grad H there (proj, rows < k).
+            for j in range(s, k):
+                for p in range(n):
+                    phi[0, j, p] = proj[j, p]
+            tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, 1, s, k, inv_grads, phi)
         tail = gamma
     if (stable_rhs & LIM_SCALED_METRIC) != 0:
         largest = 0.0
@@ -458,8 +508,8 @@ def elim_rounding(h, alpha, stable_rhs, tables, nu, s, work):
                                                       work.small_inverse, work.sizes)
     k = tables.Is.shape[0]
     r = tables.Ihat.shape[0]
-    first_rhs, last_rhs, rhs_from_hat = elim_rhs_terms(stable_rhs, k, r, s)
-    tail = work.gamma_hat if rhs_from_hat else gamma
+    first_rhs, last_rhs, tail_nodes = elim_rhs_terms(stable_rhs, k, r, s)
+    tail = work.gamma_hat if tail_nodes == TAIL_R_NODES else gamma
     S = tables.abs_projection_hat
     cond = condition_number(work, nu, False)
     d_rhs = work.small_vector
@@ -492,8 +542,8 @@ def lim_rounding(tables, n_tilde, s, stable_rhs, work):
     Writes dlambda into work.small_rounding[0]; returns cond(Gram). Needs work.sizes."""
     gamma, phi, rounding, inverse, sizes = work.gamma, work.phi, work.small_rounding, work.small_inverse, work.sizes
     S = tables.abs_projection_hat
-    first_rhs, last_rhs, rhs_from_hat = lim_rhs_terms(stable_rhs, tables.Is.shape[0], tables.Ihat.shape[0], s)
-    tail = work.gamma_hat if rhs_from_hat else gamma
+    first_rhs, last_rhs, tail_nodes = lim_rhs_terms(stable_rhs, tables.Is.shape[0], tables.Ihat.shape[0], s)
+    tail = work.gamma_hat if tail_nodes == TAIL_R_NODES else gamma
     cond = condition_number(work, n_tilde, True)
     d_rhs = work.small_vector
     for a in range(n_tilde):

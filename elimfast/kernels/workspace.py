@@ -28,7 +28,8 @@ from .codes import FAMILY_LIM
 #   projection (k, k): b_l P_j(c_l) indexed [j, l];  Is (k, s): int_0^{c_l} P_j;
 #   projection_hat (r, r), Ihat (r, s): the same at the r nodes of the invariants;
 #   X (s, s): Ps^T Omega Is, the tridiagonal matrix of the simplified Newton iteration;
-#   abs_projection_hat (r,): S_j = sum_i |bhat_i P_j(chat_i)| (the rounding estimate);
+#   abs_projection_hat (max(r, k),): S_j = sum_i |bhat_i P_j(chat_i)| or, larger, over the k nodes
+#     (the rounding estimate; methods/base.py);
 #   predictor_nodes (s+1,), predictor_basis (s+1, s): Gauss nodes x_q on [0, 1] and
 #     w_q P_i(x_q), the quadrature of the predictor's projection E(theta).
 #   newton_values (n_b,) complex, newton_vectors (s, n_b) complex, newton_inverse (n_b, s)
@@ -56,7 +57,8 @@ Workspace = namedtuple("Workspace", [
     "uhat",              # (r, n) stages at the r nodes (r != k)
     "grads_hat",         # (n_tilde + 1, r, n) imposed invariants' gradients at the r nodes (LIM: H first)
     "inv_grads",         # (n_inv, n) one call of grad_invariants
-    "phi",               # (max(n_tilde, 1), n_big, n) phi_j per imposed invariant
+    "phi",               # (max(n_tilde, 1), n_big, n) phi_j per imposed invariant (j >= s: at the k nodes
+    #                      when r < k, maps.TAIL_K_NODES)
     "gamma_hat",         # (n_big, n) gamma_j from the r nodes (docs/methods.md#stable-right-hand-side, r != k)
     "small_matrix",      # (n_t, n_t) Gamma (ELIM) or the Gram matrix (LIM), factored in place
     "small_copy",        # (n_t, n_t) the same matrix unfactored

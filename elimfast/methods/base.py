@@ -167,7 +167,8 @@ class Method:
     projection_hat[j, i] = bhat_i P_j(chat_i), the kernels' form of Ps^T Omega.
     Solver tables (docs/solver.md): X (s x s) = Ps^T Omega Is, tridiagonal (X[0,0] = 1/2,
     X[j,j-1] = -X[j-1,j] = 1/(2 sqrt(4j^2 - 1))), the simplified Newton matrix's;
-    abs_projection_hat (r,) = sum_i |bhat_i P_j(chat_i)| (the rounding estimate's S_j);
+    abs_projection_hat (max(r, k),) = S_j, the larger of sum_i |bhat_i P_j(chat_i)| and sum_l |b_l P_j(c_l)|
+      where defined (the rounding estimate's S_j; phi_j comes from either node set);
     predictor_nodes (s+1,) and predictor_basis (s+1, s) = w_q P_i(x_q): the (s+1)-point
     Gauss rule of the predictor's projection E(theta). newton_values, newton_vectors,
     newton_inverse, newton_weights: X = V Lambda V^-1, one eigenvalue per conjugate pair
@@ -265,12 +266,14 @@ class Method:
     def evaluations_per_iteration(self, n_imposed: int, stable_rhs: bool) -> tuple[int, int]:
         """(grad H, grad L) evaluations of one iteration of the family's map (kernels/maps.py),
         for a run imposing n_imposed invariants, with the stable right-hand side or not."""
-        grad_H = self.k
+        grad_H, grad_L = self.k, (self.r if n_imposed > 0 else 0)
         if self.kind.kernel_map == "lim":
             grad_H += self.r if self.r != self.k else 0
-        elif n_imposed > 0 and stable_rhs and self.r != self.k:
-            grad_H += self.r
-        return grad_H, (self.r if n_imposed > 0 else 0)
+        elif n_imposed > 0 and stable_rhs and self.r > self.k:
+            grad_H += self.r            # the stable tail's J grad H at the r nodes (maps.TAIL_R_NODES)
+        if n_imposed > 0 and stable_rhs and self.r < self.k:
+            grad_L += self.k            # the stable tail's grad L at the k nodes (maps.TAIL_K_NODES)
+        return grad_H, grad_L
 
     def require_imposable(self, n_imposed: int) -> None:
         """ParameterError unless this method can impose n_imposed invariants besides H."""
@@ -351,7 +354,11 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     projection = (b[:, None] * Ps).T
     projection_hat = (bhat[:, None] * Ps_hat).T
     X = projection[:s] @ Is                        # exact: the integrand has degree <= 2s - 1 <= 2k - 1
-    abs_projection_hat = np.abs(projection_hat).sum(axis=1)
+    # S_j bounds the rounding of phi_j from either node set: the stable tail takes phi_j (j >= s) at the
+    # k nodes when r < k (kernels/maps.py, elim_rhs_terms), so S has max(r, k) entries.
+    abs_projection_hat = np.zeros(max(r, k))
+    abs_projection_hat[:r] = np.abs(projection_hat).sum(axis=1)
+    abs_projection_hat[:k] = np.maximum(abs_projection_hat[:k], np.abs(projection).sum(axis=1))
     predictor_nodes, predictor_weights = quadrature(s + 1)
     predictor_basis = predictor_weights[:, None] * legendre_values(predictor_nodes, s)
     arrays = [np.ascontiguousarray(a) for a in (c, b, Ps, Is, chat, bhat, Ps_hat, Is_hat, projection, projection_hat,
