@@ -1356,7 +1356,19 @@ def _collect(run: Integration, chunks: list[Chunk]) -> Result:
 
 
 def _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start, rhs) -> SolverSettings:
+    # integrate's own solver keywords that the caller set (their defaults are integrate's signature's)
+    given = {name: value for name, value, unset in (
+        ("tol", tol, tol is None), ("max_iter", max_iter, max_iter is None),
+        ("max_halvings", max_halvings, max_halvings == DEFAULT_MAX_HALVINGS), ("predictor", predictor, predictor is True),
+        ("warm_start", warm_start, warm_start is True), ("rhs", rhs, rhs == "stable")) if not unset}
     if isinstance(solver, SolverSettings):
+        # A keyword beside settings that say otherwise was silently dropped (a user trial: rhs='literal'
+        # with solver=SolverSettings(...) ran the stable form).
+        for name, value in given.items():
+            if getattr(solver, name) != value:
+                raise ParameterError(name, f"is {value!r} but solver=SolverSettings(...) says {name}="
+                                           f"{getattr(solver, name)!r}; set it in the settings "
+                                           f"(dataclasses.replace(settings, {name}={value!r})), or drop one")
         return solver
     if isinstance(solver, Mapping):
         # a config's solver section as a dict (a user trial: TypeError: unhashable type: 'dict')
@@ -1364,7 +1376,11 @@ def _solver_settings(solver, tol, max_iter, max_halvings, predictor, warm_start,
         unknown = [key for key in solver if key not in known]
         if unknown:
             raise ParameterError("solver", f"has no key {unknown[0]!r}; {suggest(unknown[0], known, 'keys')}")
-        return SolverSettings(**solver)
+        for name, value in given.items():
+            if name in solver and solver[name] != value:
+                raise ParameterError(name, f"is {value!r} but the solver dict says {name!r}: {solver[name]!r}; "
+                                           "give it once")
+        return SolverSettings(**{**given, **solver})
     try:
         return SolverSettings(method=solver, tol=DEFAULT_TOL if tol is None else tol, max_iter=max_iter,
                               max_halvings=max_halvings, predictor=predictor, warm_start=warm_start, rhs=rhs)

@@ -8,6 +8,7 @@ import pytest
 
 import elimfast
 from elimfast import Integration
+from elimfast.integrate import SolverSettings
 from elimfast.errors import ParameterError
 from elimfast.methods import ehbvm, elim, gauss, ghbvm, hbvm
 
@@ -177,6 +178,32 @@ def test_an_unknown_solver_is_named_by_integrates_keyword():
     assert (as_dict.solver.method, as_dict.solver.max_iter) == ("fixed_point", 50)
     with pytest.raises(ParameterError, match=r"^solver has no key 'methd'; did you mean 'method'\?"):
         elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=5, solver={"methd": "fixed_point"})
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_solver_keywords_beside_solver_settings_are_kept_or_refused(adaptive):
+    """A user trial: integrate(..., solver=SolverSettings(...) or {...}, rhs='literal') ran the stable
+    form, the keyword silently dropped. With a dict they are merged; a contradiction is refused."""
+    problem = elimfast.problems.kepler(0.6)
+    span = {"rtol": 1e-8, "t_end": 0.5} if adaptive else {"h": 0.1, "n_steps": 5}
+    merged = elimfast.integrate(problem, ehbvm(8, 4), conserve=["angular_momentum"], solver={"method": "newton"},
+                                rhs="literal", max_halvings=3, max_iter=40, **span)
+    assert (merged.solver.method, merged.solver.rhs, merged.solver.max_halvings, merged.solver.max_iter) == \
+        ("newton", "literal", 3, 40)
+    with pytest.raises(ParameterError, match=r"^rhs is 'literal' but the solver dict says 'rhs': 'stable'; give it "
+                                             r"once$"):
+        elimfast.integrate(problem, ehbvm(8, 4), solver={"rhs": "stable"}, rhs="literal", **span)
+    settings = SolverSettings(method="newton")
+    for keyword in ({"rhs": "literal"}, {"max_halvings": 2}, {"max_iter": 7}, {"tol": 1e-12}, {"predictor": False},
+                    {"warm_start": False}):
+        (name, value), = keyword.items()
+        with pytest.raises(ParameterError) as info:
+            elimfast.integrate(problem, ehbvm(8, 4), solver=settings, **keyword, **span)
+        assert info.value.parameter == name
+        assert f"set it in the settings (dataclasses.replace(settings, {name}={value!r}))" in str(info.value)
+    # the same value twice is no contradiction
+    same = elimfast.integrate(problem, ehbvm(8, 4), solver=SolverSettings(rhs="literal"), rhs="literal", **span)
+    assert same.solver.rhs == "literal"
 
 
 @pytest.mark.parametrize("y0, detail", [
