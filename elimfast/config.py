@@ -1027,7 +1027,8 @@ class _Builder:
                 read_text_file(path, str(path), what="python problem file", example="a .py file")
             except ConfigError as err:
                 raise self.error(("problem", "python"), str(err)) from None
-        problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name)
+        problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name,
+                                    check=False)   # checked below with the other modes (problem.check)
         return problem, {"python": str(path.resolve()), "name": problem.name,
                          "parameters": {k: _plain(v) for k, v in problem.parameters.items()},
                          "initial": _initial_dict(problem)}
@@ -1045,7 +1046,7 @@ class _Builder:
         coordinates = {"q": section.coordinates.q, "p": section.coordinates.p}
         problem = problem_from_expressions(coordinates=coordinates, hamiltonian=section.hamiltonian,
                                            invariants=section.invariants, parameters=section.parameters,
-                                           initial=section.initial, name=name)
+                                           initial=section.initial, name=name, check=False)
         return problem, {"name": name, "coordinates": {k: list(v) for k, v in coordinates.items()},
                          "hamiltonian": section.hamiltonian, "invariants": dict(section.invariants or {}),
                          "parameters": dict(problem.parameters), "initial": _initial_dict(problem)}

@@ -210,7 +210,7 @@ def test_wrong_sign_grad_h_in_a_python_file_is_refused_naming_the_users_file(cac
     """Issue 10, point 7: this file passed `elimfast check` and ran to "complete"."""
     path = write_problem(tmp_path, KEPLER_FILE.replace("out[0] = y[0] * mu_r3", "out[0] = -y[0] * mu_r3")
                          .replace("out[1] = y[1] * mu_r3", "out[1] = -y[1] * mu_r3"))
-    problem = problem_from_file(path)
+    problem = problem_from_file(path, check=False)
     with pytest.raises(DerivativeCheckError) as info:
         require_derivatives(problem)
     message = str(info.value)
@@ -323,7 +323,8 @@ KEPLER_EXPRESSIONS = dict(coordinates={"q": ["q1", "q2"], "p": ["p1", "p2"]},
 
 def test_an_invariant_with_a_stray_term_is_refused(cache_root):
     """Issue 9, point 10: relative residual 8.2e-10 passed the fixed tolerance; it is 3.7e6 eps."""
-    problem = problem_from_expressions(**KEPLER_EXPRESSIONS, invariants={"L": "q1*p2 - q2*p1 + 1e-7*q1"})
+    problem = problem_from_expressions(**KEPLER_EXPRESSIONS, invariants={"L": "q1*p2 - q2*p1 + 1e-7*q1"},
+                                       check=False)
     residual = check_invariants(problem)["L"]
     assert residual == pytest.approx(8.24e-10, rel=1e-2)
     with pytest.raises(InvariantCheckError, match=r"'L' .* not conserved .* = 8.244e-10 near the initial state "
@@ -331,6 +332,27 @@ def test_an_invariant_with_a_stray_term_is_refused(cache_root):
         require_invariants(problem)
     true = problem_from_expressions(**KEPLER_EXPRESSIONS, invariants={"L": "q1*p2 - q2*p1"})
     assert check_invariants(true)["L"] < 10 * EPS
+
+
+def test_the_python_builders_check_invariants_and_gradients_as_a_config_does(cache_root, tmp_path):
+    """A user trial: problem_from_expressions with an invariant the flow does not conserve built, ran
+    imposing it, and the run's note blamed quadrature; the CLI refuses it (problem.check). The Python
+    builders now run the same checks, and say how to skip them in Python's terms."""
+    with pytest.raises(InvariantCheckError) as info:
+        problem_from_expressions(**KEPLER_EXPRESSIONS, invariants={"bogus": "q1*p1 + q2*p2"})
+    message = str(info.value)
+    assert message.startswith("invariant 'bogus' of problem 'user' is not conserved by the flow of H")
+    assert message.endswith("fix its expression, or pass check=False to skip this check")
+    unchecked = problem_from_expressions(**KEPLER_EXPRESSIONS, invariants={"bogus": "q1*p1 + q2*p2"}, check=False)
+    assert unchecked.invariant_names == ("bogus",)
+    # the package's own entry point (a lazy wrapper) takes check too
+    assert problems.problem_from_expressions(**KEPLER_EXPRESSIONS, invariants={"L": "q1*p2 - q2*p1"}).invariant_names \
+        == ("L",)
+    # a python file: its gradients first, then its invariants
+    wrong = write_problem(tmp_path, KEPLER_FILE.replace("out[0] = y[0] * mu_r3", "out[0] = -y[0] * mu_r3"))
+    with pytest.raises(DerivativeCheckError, match=r"or pass check=False to skip this check$"):
+        problem_from_file(wrong)
+    assert problem_from_file(wrong, check=False).name == "kepler_python"
 
 
 def test_every_builtin_invariant_is_a_few_eps_across_seeds():

@@ -169,10 +169,16 @@ def check_invariants(problem: Problem, n_points: int = DEFAULT_POINTS, seed: int
     return worst
 
 
+# How a config skips the checks; the Python API's builders say check=False instead (PYTHON_SKIP).
+CONFIG_SKIP = "set problem.check: false to skip this check"
+PYTHON_SKIP = "pass check=False to skip this check"
+
+
 def require_invariants(problem: Problem, tolerance: float = INVARIANT_TOLERANCE, n_points: int = DEFAULT_POINTS,
-                       seed: int = 0, radius: float = DEFAULT_RADIUS, y0=None) -> dict[str, float]:
+                       seed: int = 0, radius: float = DEFAULT_RADIUS, y0=None, skip: str = CONFIG_SKIP
+                       ) -> dict[str, float]:
     """``check_invariants``, raising InvariantCheckError for the first invariant whose residual
-    exceeds ``tolerance``; returns the residuals when all pass."""
+    exceeds ``tolerance``; returns the residuals when all pass. skip: how the message says to skip it."""
     residuals = check_invariants(problem, n_points=n_points, seed=seed, radius=radius, y0=y0)
     bad = [name for name, value in residuals.items() if not value <= tolerance]
     if bad:
@@ -182,7 +188,7 @@ def require_invariants(problem: Problem, tolerance: float = INVARIANT_TOLERANCE,
             f"invariant {name!r} of problem {problem.name!r} is not conserved by the flow of H: "
             f"|grad L^T J grad H| / (|grad L| |grad H|) = {residuals[name]:.3e} near the initial state "
             f"({residuals[name] / EPS:.1e} eps; round-off stays below {tolerance:.1e} = {tolerance / EPS:.0f} eps)"
-            f"{others}; fix its expression, or set problem.check: false to skip this check",
+            f"{others}; fix its expression, or {skip}",
             residuals=residuals, key=f"invariants.{name}")
     return residuals
 
@@ -347,19 +353,19 @@ def check_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: in
 
 
 def require_derivatives(problem: Problem, n_points: int = DEFAULT_POINTS, seed: int = 0,
-                        radius: float = DEFAULT_RADIUS, y0=None) -> list[DerivativeReport]:
+                        radius: float = DEFAULT_RADIUS, y0=None, skip: str = CONFIG_SKIP) -> list[DerivativeReport]:
     """``check_derivatives``, raising DerivativeCheckError for the first derivative that does
-    not match its central differences; returns the reports when all pass."""
+    not match its central differences; returns the reports when all pass. skip: as require_invariants'."""
     reports = check_derivatives(problem, n_points=n_points, seed=seed, radius=radius, y0=y0)
     for report in reports:
         if not report.ok:
             points = check_points(problem, n_points, seed, radius, y0)
-            raise DerivativeCheckError(_mismatch_message(problem, report, points[report.point]), report=report,
-                                       key=report.key)
+            raise DerivativeCheckError(_mismatch_message(problem, report, points[report.point], skip),
+                                       report=report, key=report.key)
     return reports
 
 
-def _mismatch_message(problem: Problem, report: DerivativeReport, y: np.ndarray) -> str:
+def _mismatch_message(problem: Problem, report: DerivativeReport, y: np.ndarray, skip: str) -> str:
     values = ", ".join(f"{v:.6g}" for v in y[:8]) + (", ..." if y.size > 8 else "")
     where = ("the initial state" if report.point == 0
              else f"seeded check point {report.point} near the initial state (y = [{values}])")
@@ -368,4 +374,4 @@ def _mismatch_message(problem: Problem, report: DerivativeReport, y: np.ndarray)
             f"{where}: {report.entry} = {report.analytic:.6e} from {report.function}, {report.differences:.6e} "
             f"from the differences, relative error {report.relative_error:.1e} ({report.ratio:.1e} times what "
             f"the differences allow); fix {report.function}{in_file} so that it is the derivative of {report.of} "
-            "(a wrong sign or factor?), or set problem.check: false to skip this check")
+            f"(a wrong sign or factor?), or {skip}")

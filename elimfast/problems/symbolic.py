@@ -88,7 +88,8 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
                              invariants: Mapping[str, str] | None = None,
                              parameters: Mapping[str, float | str] | None = None,
                              initial: Mapping[str, float | str] | None = None,
-                             name: str = "user", description: str = "", time_scale: str | None = None) -> Problem:
+                             name: str = "user", description: str = "", time_scale: str | None = None,
+                             check: bool = True) -> Problem:
     """A Problem from expression strings.
 
     coordinates: {'q': [names], 'p': [names]} (m each); hamiltonian: H(q, p, parameters);
@@ -98,6 +99,10 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
     initial: {coordinate: value} for every coordinate (values may use the parameters);
     time_scale: an expression for the local time scale sigma(y) of the motion (the
     time-reversible step control of docs/adaptive.md), e.g. "(q1**2 + q2**2)**0.75".
+    check: test that each invariant is conserved by the flow of H near the initial state
+    (problems/check.py, as a config's problem.check does), InvariantCheckError if not: imposing
+    one that is not makes no method keep it (the gradients come from the expressions, so they
+    need no check).
     Raises ProblemDefinitionError / ExpressionError (``.key`` says which entry is wrong).
     """
     q_names, p_names = _coordinate_names(coordinates)
@@ -179,6 +184,10 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
         function = compile_state_functions(problem, {"time_scale": time_scale}, gradient=True, what="time scale",
                                            key_prefix="time_scale")
         problem = dataclasses.replace(problem, time_scale=function)
+    if check and problem.invariant_names:
+        # A user trial: a non-invariant imposed from Python ran, and the run's note blamed quadrature.
+        from .check import PYTHON_SKIP, require_invariants
+        require_invariants(problem, skip=PYTHON_SKIP)
     return problem
 
 

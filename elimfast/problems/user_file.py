@@ -126,13 +126,25 @@ _SIGNATURES = {
 }
 
 
-def problem_from_file(path, parameters=None, initial=None, name: str | None = None) -> Problem:
+def problem_from_file(path, parameters=None, initial=None, name: str | None = None, check: bool = True) -> Problem:
     """The Problem defined by a Python file (see the module docstring for what it must define).
 
     parameters: {name: value} overriding PARAMETERS; initial: {coordinate: value} overriding
     Y0 entries (every coordinate when the file has no Y0). Values may be numeric strings
-    ('pi/3'); initial values may use the parameter names.
+    ('pi/3'); initial values may use the parameter names. check: test the file's gradients
+    against central differences and its invariants against the flow of H near the initial state
+    (problems/check.py, as a config's problem.check does): DerivativeCheckError or
+    InvariantCheckError if one is wrong.
     """
+    problem = _build_from_file(path, parameters, initial, name)
+    if check:
+        from .check import PYTHON_SKIP, require_derivatives, require_invariants
+        require_derivatives(problem, skip=PYTHON_SKIP)   # first: the invariant check trusts the gradients
+        require_invariants(problem, skip=PYTHON_SKIP)
+    return problem
+
+
+def _build_from_file(path, parameters, initial, name) -> Problem:
     path = Path(path).expanduser()
     label = str(path)
     try:
