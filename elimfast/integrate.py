@@ -633,9 +633,14 @@ def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str],
     Raises ParameterError naming the parameter (``conserve`` and the entry at fault, or the
     method's ``s`` when it is too small for the count) and the fix.
     """
+    if conserve is None:
+        conserve = ()    # nothing to impose (a user trial: TypeError: 'NoneType' object is not iterable)
     if isinstance(conserve, str):
         conserve = (conserve,)
-    names = tuple(conserve)
+    try:
+        names = tuple(conserve)
+    except TypeError:
+        raise ParameterError("conserve", f"must be a list of invariant names, got {conserve!r}") from None
     for index, name in enumerate(names):
         if not isinstance(name, str):
             raise ParameterError("conserve", f"must be invariant names (strings), got {name!r}", index=index)

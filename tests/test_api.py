@@ -411,3 +411,18 @@ def test_a_number_given_as_a_string_is_refused_alike(keyword):
     given[keyword] = "0.5"
     with pytest.raises(ParameterError, match=f"^{keyword} must be a number, got the string '0.5': pass the number"):
         elimfast.integrate(kepler(0.6), hbvm(6, 3) if keyword == "rtol" else gauss(3), **given)
+
+
+def test_conserve_none_imposes_nothing_and_a_non_list_is_one_line():
+    """A user trial: conserve=None raised TypeError: 'NoneType' object is not iterable (integrate and
+    integrate_ensemble alike)."""
+    from elimfast.ensemble import integrate_ensemble
+    problem = elimfast.problems.kepler(0.6)
+    fixed = elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=3, conserve=None)
+    adaptive = elimfast.integrate(problem, ehbvm(8, 4), rtol=1e-8, t_end=0.3, conserve=None)
+    ensemble = integrate_ensemble(problem, ehbvm(8, 4), 0.1, np.array([problem.y0, problem.y0]), n_steps=3,
+                                  conserve=None)
+    assert fixed.conserve == adaptive.conserve == ensemble.conserve == ()
+    np.testing.assert_array_equal(fixed.y, elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=3).y)
+    with pytest.raises(ParameterError, match=r"^conserve must be a list of invariant names, got 3$"):
+        elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=3, conserve=3)
