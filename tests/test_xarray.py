@@ -336,13 +336,18 @@ def test_open_datatree_keeps_each_group_s_own_step_and_event_times(tmp_path):
         with elimfast.open_datatree(path, **options) as ours, xr.open_datatree(path, engine="h5netcdf") as theirs:
             for node, name in own.items():
                 mine = ours[node].to_dataset(inherit=False)
-                expected = {own[node] if v == "t" else v for v in theirs[node].to_dataset(inherit=False).variables}
+                renamed = {"t": own[node], "h": "step_h"} if node == "steps" else {"t": own[node]}
+                expected = {renamed.get(v, v) for v in theirs[node].to_dataset(inherit=False).variables}
                 assert set(mine.variables) == expected, node
                 # as users index the tree (README), where the inherited t hid the group's own (a user trial)
                 np.testing.assert_array_equal(ours[node][name].values, stored[f"{node}/t"])
                 assert ours[node][name].attrs["stored_as"] == "t"
                 np.testing.assert_array_equal(ours[node]["t"].values, ours["t"].values)   # the inherited t
         assert len(stored["events/pericentre/t"]) == 2
+        # the step sizes under Result.to_xarray's name too (they were 'h' here, 'step_h' there)
+        with elimfast.open_datatree(path, **options) as ours, h5py.File(path, "r") as f:
+            np.testing.assert_array_equal(ours["steps"]["step_h"].values, f["steps/h"][()])
+            assert "h" not in ours["steps"].to_dataset(inherit=False).variables
 
 
 def test_open_datatree_never_asks_hdf5_for_the_path_of_a_dimension_scale(sweep_file, monkeypatch):
@@ -651,3 +656,16 @@ def test_an_adaptive_run_file_has_the_stats_of_its_result_as_root_attributes(tmp
     writer.close()   # as a killed writer leaves it: status running
     with h5py.File(path, "r", swmr=True) as f:
         assert f.attrs["status"] == "running" and not any(key.startswith(STATS_PREFIX) for key in f.attrs)
+
+
+def test_open_datatree_on_another_hdf5_file_says_it_is_not_elimfast_s(tmp_path):
+    """A user trial: a plain HDF5 file got 'has no dimension scales (files of elimfast format 1 and 2
+    have none); read the run with elimfast.load', which then refused it too."""
+    from elimfast.io.safety import NotAnElimfastFile
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f["x"] = np.arange(3.0)
+    with pytest.raises(NotAnElimfastFile) as info:
+        elimfast.open_datatree(path)
+    assert str(info.value) == (f"{path}: not an elimfast run or sweep file (no 'elimfast-run' format attribute); "
+                               "open another HDF5 file with xr.open_datatree(path, engine='h5netcdf')")

@@ -38,8 +38,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .layout import DIMENSION_ONLY, FORMAT, STATUS_RUNNING, _plain, split_run_path
-from .safety import READ_ERRORS, OutputError, _damaged
+from .layout import DIMENSION_ONLY, FORMAT, STATUS_RUNNING, SWEEP_FORMAT, _plain, split_run_path
+from .safety import READ_ERRORS, NotAnElimfastFile, OutputError, _damaged
 
 try:
     import xarray as xr
@@ -68,8 +68,8 @@ def open_datatree(path, run: str | None = None, **options):
     One difference from h5netcdf's tree: a group's own variable named as a coordinate its
     ancestors pass down is renamed ``<group>_<name>``: the step times /steps/t of adaptive
     runs are ``tree["steps"]["step_t"]``, an event's times ``tree["events/<name>"]["<name>_t"]``
-    (Result.to_xarray's names). The inherited ``t`` hid them: ``tree["steps"]["t"]`` gave the
-    root's sample times, silently (with h5netcdf it still does).
+    (Result.to_xarray's names; the step sizes /steps/h are ``step_h`` likewise). The inherited ``t``
+    hid them: ``tree["steps"]["t"]`` gave the root's sample times, silently (with h5netcdf it still does).
     The data are read when used; ``tree.close()`` closes the file. A run still being written
     gives the rows its last saved state counts, in every group (the root attributes status and
     steps_done say how far, as ``elimfast inspect`` does); open it again for more. Raises
@@ -275,6 +275,8 @@ def _rename_shadowed(dataset, inherited: frozenset, group_name: str):
     ``chunks`` xarray replaced the variable itself. The attribute ``stored_as`` keeps the
     file's name."""
     shadowed = [name for name in dataset.variables if name in inherited and dataset[name].dims != (name,)]
+    if group_name == "steps" and "h" in dataset.variables and dataset["h"].dims != ("h",):
+        shadowed.append("h")   # no clash, but Result.to_xarray's step_h beside step_t (a user trial: 'h' here)
     if not shadowed:
         return dataset
     prefix = "step" if group_name == "steps" else group_name
@@ -320,6 +322,12 @@ class ElimfastBackend(BackendEntrypoint):
         manager = CachingFileManager(_open_file, path)
         try:
             f = manager.acquire()
+            fmt = _plain(f.attrs.get("format", ""))
+            if fmt not in (FORMAT, SWEEP_FORMAT):
+                # (a user trial: a plain HDF5 file got "has no dimension scales ... elimfast format 1 and 2")
+                what = f"its format is {fmt!r}" if fmt else f"no '{FORMAT}' format attribute"
+                raise NotAnElimfastFile(f"{path}: not an elimfast run or sweep file ({what}); open another HDF5 "
+                                        "file with xr.open_datatree(path, engine='h5netcdf')")
             location = "/" + (group or "").strip("/")
             if location not in f or not isinstance(f[location], h5py.Group):
                 raise OutputError(f"{path}: has no group {group!r}")
