@@ -1190,7 +1190,7 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         advice = _NEARLY_SINGULAR_ADVICE
     elif status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive:
         advice = f"reduce h, or allow more step halvings (solver.max_halvings = {solver.max_halvings} now)"
-    if solver.rhs == "literal" and method.kind.imposes != IMPOSES_NONE and \
+    if solver.rhs == "literal" and method.kind.imposes != IMPOSES_NONE and method.r <= method.k and \
             status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR):
         advice = _LITERAL_RHS_ADVICE
     if status == codes.STATUS_NOT_CONVERGED and max_iter_below_defaults(solver):

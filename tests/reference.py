@@ -228,7 +228,8 @@ def elim_step(grad_H, grad_L, y0, h, r, k, s, rhs="stable", tol=1e-16, max_iter=
                     j = s - nu + col
                     Gamma[:, col] = h ** (2 * (s - 1 - j)) * (phi[j].T @ gam_all[j])
                 bvec = np.zeros(nu)
-                if rhs == "literal":
+                if rhs == "literal" or r > k:
+                    # r > k: no tail is exact in general (docs/methods.md#stable-right-hand-side)
                     for j in range(s):
                         bvec += phi[j].T @ gam_all[j]
                 elif r == k:
@@ -242,14 +243,6 @@ def elim_step(grad_H, grad_L, y0, h, r, k, s, rhs="stable", tol=1e-16, max_iter=
                         for l in range(k):
                             phi_k_j += b[l] * Pk[l, j] * gLk[l]
                         bvec -= phi_k_j.T @ gam_all[j]
-                else:
-                    # r > k: tail with both sums at the r nodes: J grad H evaluated at uhat
-                    fhat = np.array([J_times(grad_H(uhat[i])) for i in range(r)])
-                    for j in range(s, r):
-                        gam_hat_j = np.zeros(dim)
-                        for i in range(r):
-                            gam_hat_j += bhat[i] * Pr[i, j] * fhat[i]
-                        bvec -= phi[j].T @ gam_hat_j
                 if not np.all(np.isfinite(Gamma)) or np.linalg.cond(Gamma) > 1e15:
                     raise np.linalg.LinAlgError(
                         "ELIM: Gamma singular or badly conditioned (cond=%.3e)"

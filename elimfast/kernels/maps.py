@@ -142,30 +142,29 @@ def apply_J(projected, n_degrees, out):
             out[j, m + i] = -projected[j, i]
 
 
-# Where the stable tail's phi_j and gamma_j (j >= s) come from (elim_rhs_terms, lim_rhs_terms).
-TAIL_SAME = 0      # the literal sum, or r = k: phi_j and gamma_j as the map computes them
-TAIL_R_NODES = 1   # r > k: gamma_j too from the r nodes (J grad H evaluated there), into work.gamma_hat
-TAIL_K_NODES = 2   # r < k: phi_j too from the k nodes (grad L evaluated there), into phi's rows j >= s
+# Where the stable tail's phi_j (j >= s) come from (elim_rhs_terms, lim_rhs_terms).
+TAIL_SAME = 0      # the literal sum, or r = k: phi_j as the map computes them
+TAIL_K_NODES = 1   # r < k: phi_j (j >= s) from the k nodes (grad L evaluated there), into phi's rows j >= s
 
 
 @njit(cache=True, inline="always")
 def elim_rhs_terms(stable_rhs, k, r, s):
-    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec, and where the
-    tail's terms come from (TAIL_*; docs/methods.md#elim, #stable-right-hand-side).
+    """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up bvec (first = 0: the
+    paper's sum_{j<s}; first = s: the stable tail, with the opposite sign), and where the tail's phi_j
+    come from (TAIL_*; docs/methods.md#elim, #stable-right-hand-side).
 
-    The tail -sum_{j=s}^{m-1} phi_j^T gamma_j equals sum_{j<s} phi_j^T gamma_j only when both are
-    taken at the same m nodes (the identity of docs/methods.md#stable-right-hand-side): at the
-    larger set, m = max(r, k), where the smaller set's quadrature is the one that may be exact.
-    r < k: grad L at the k nodes too, so that bvec is the paper's exactly whenever the r nodes
-    integrate sum_{j<s} phi_j^T gamma_j exactly (L of degree <= 2r/s: quadratic invariants for
-    any r >= s); taking it at the r nodes instead missed the k-node part of gamma_j, and r = s
-    left the tail empty (alpha = 0: HBVM's conservation, a user trial's ELIM(3,12,3))."""
-    if not stable_rhs:
+    The tail -sum_{j=s}^{k-1} phi_j^T gamma_j equals sum_{j<s} phi_j^T gamma_j when both are taken
+    at the k nodes (the identity of docs/methods.md#stable-right-hand-side). r < k: grad L at the k
+    nodes too, so that bvec is the paper's exactly whenever the r nodes integrate phi_j (j < s)
+    exactly (L of degree <= 2r/s, the paper's condition for keeping L: quadratic invariants for any
+    r >= s). Taken at the r nodes instead (as the spec's 3b says) it missed the k-node part of
+    gamma_j, and r = s left the tail empty (alpha = 0: HBVM's conservation, a user trial's
+    ELIM(3,12,3)). r > k: no tail is exact in general (at the r nodes it needs H of degree <= 2k/s,
+    at the k nodes L of degree <= 2k/s; a user trial's ELIM(6,3,2) lost L at 3e-7), so the paper's sum."""
+    if not stable_rhs or r > k:
         return 0, s, TAIL_SAME
     if r == k:
         return s, k, TAIL_SAME
-    if r > k:
-        return s, r, TAIL_R_NODES
     return s, k, TAIL_K_NODES
 
 
@@ -201,8 +200,8 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
         phi_j   = sum_i bhat_i P_j(chat_i) grad L(uhat_i)          (nu imposed invariants)
         Gamma alpha = bvec,  Gamma[:, c] = w_c phi_{s-nu+c}^T gamma_{s-nu+c},  w_c = h^(2(nu-1-c))
         G_j     = eta_j gamma_j,   eta_j = 1 - w_{j-s+nu} alpha_{j-s+nu} for the last nu j
-    bvec is the stable tail -sum_{j=s}^{m-1} phi_j^T gamma_j, m = max(r, k), both taken at the m nodes
-    (docs/methods.md#stable-right-hand-side, elim_rhs_terms) when stable_rhs, the paper's
+    bvec is the stable tail -sum_{j=s}^{k-1} phi_j^T gamma_j, phi_j (j >= s) taken at the k nodes
+    (docs/methods.md#stable-right-hand-side, elim_rhs_terms) when stable_rhs and r <= k, the paper's
     sum_{j<s} phi_j^T gamma_j otherwise. plain_sweep: alpha = 0 (the first sweeps
     of a cold start, when Gamma is singular or noise: docs/methods.md#practical-points).
 
@@ -214,7 +213,7 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
     # Every array is bound once here: an attribute read inside a loop costs a reference
     # count update per read (Numba does not hoist it out of loops with opaque calls).
     projection, Is, projection_hat, Ihat = tables.projection, tables.Is, tables.projection_hat, tables.Ihat
-    u, grads, proj, gamma, uhat, gamma_hat = work.u, work.grads, work.proj, work.gamma, work.uhat, work.gamma_hat
+    u, grads, proj, gamma, uhat = work.u, work.grads, work.proj, work.gamma, work.uhat
     grads_hat, phi, inv_grads, h_powers = work.grads_hat, work.phi, work.inv_grads, work.h_powers
     big_gamma, bvec, small_matrix, small_pivots = work.small_copy, work.small_vector, work.small_matrix, work.small_pivots
     new_coef = work.new_coef
@@ -224,8 +223,8 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
     s = coef.shape[0]
     nu = conserve_idx.shape[0]
     first_rhs, last_rhs, tail_nodes = elim_rhs_terms(stable_rhs, k, r, s)
-    # Legendre coefficients needed: the stable tail runs up to max(r, k) - 1 (elim_rhs_terms).
-    n_gamma = last_rhs if (nu > 0 and tail_nodes != TAIL_R_NODES) else s
+    # Legendre coefficients needed: the stable tail runs up to k - 1 (elim_rhs_terms).
+    n_gamma = last_rhs if nu > 0 else s
     n_phi = last_rhs if (nu > 0 and tail_nodes != TAIL_K_NODES) else s
 
     scale_tables(h, tables, work)
@@ -256,24 +255,15 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
                 for p in range(n):
                     acc += phi[a, j, p] * gamma[j, p]
                 big_gamma[a, col] = h_powers[col] * acc
-        if tail_nodes == TAIL_R_NODES:
-            # r > k: the tail with J grad H taken at the r nodes too.
-            for i in range(r):
-                grad_H(uhat[i], params, grads_hat[nu, i])
-            project(projection_hat, grads_hat[nu], r, proj)
-            apply_J(proj, r, gamma_hat)
-            tail = gamma_hat
-        else:
-            if tail_nodes == TAIL_K_NODES:
-                # r < k: the tail with grad L taken at the k nodes too.
-                tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, 0, s, k, inv_grads, phi)
-            tail = gamma
-        sign = -1.0 if stable_rhs else 1.0
+        if tail_nodes == TAIL_K_NODES:
+            # r < k: the tail with grad L taken at the k nodes too.
+            tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, 0, s, k, inv_grads, phi)
+        sign = -1.0 if first_rhs > 0 else 1.0   # the tail, or the paper's sum
         for a in range(nu):
             acc = 0.0
             for j in range(first_rhs, last_rhs):
                 for p in range(n):
-                    acc += phi[a, j, p] * tail[j, p]
+                    acc += phi[a, j, p] * gamma[j, p]
             bvec[a] = sign * acc
         if plain_sweep:
             for a in range(nu):
@@ -310,16 +300,15 @@ METRIC_FLOOR = 1e-30
 @njit(cache=True, inline="always")
 def lim_rhs_terms(stable_rhs, k, r, s):
     """The Legendre indices j in [first, last) whose phi_j^T gamma_j make up LIM's right-hand side,
-    and where the tail's terms come from (TAIL_*): sum_{j<s} (the spec's, literal), or the stable
-    tail -sum_{j=s}^{m-1} at the m = max(r, k) nodes (elim_rhs_terms), docs/methods.md#stable-right-hand-side
-    carried over to LIM: sum_{j<m} phi_j^T gamma_j = sum_l b_l grad Ltilde(u_l)^T J grad H(u_l) = 0
-    exactly at the m nodes (H's row too: phi^H_j = J^T gamma_j)."""
-    if (stable_rhs & RHS_STABLE) == 0:
+    and where the tail's phi_j come from (TAIL_*): sum_{j<s} (the spec's, literal), or the stable
+    tail -sum_{j=s}^{k-1} at the k nodes (elim_rhs_terms), docs/methods.md#stable-right-hand-side
+    carried over to LIM: sum_{j<k} phi_j^T gamma_j = sum_l b_l grad Ltilde(u_l)^T J grad H(u_l) = 0
+    exactly at the k nodes (H's row too: phi^H_j = J^T gamma_j). r > k: the spec's sum, as for ELIM
+    (a user trial's LIM(6,3,2): the tail at the r nodes lost H at 2e-6 and L at 3e-7)."""
+    if (stable_rhs & RHS_STABLE) == 0 or r > k:
         return 0, s, TAIL_SAME
     if r == k:
         return s, k, TAIL_SAME
-    if r > k:
-        return s, r, TAIL_R_NODES
     return s, k, TAIL_K_NODES
 
 
@@ -344,15 +333,14 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
     projection, Is, projection_hat, Ihat = tables.projection, tables.Is, tables.projection_hat, tables.Ihat
     u, grads, proj, gamma, uhat = work.u, work.grads, work.proj, work.gamma, work.uhat
     grads_hat, phi, gram, rhs = work.grads_hat, work.phi, work.small_copy, work.small_vector
-    inv_grads, factor, new_coef, gamma_hat, metric = (work.inv_grads, work.small_matrix, work.new_coef,
-                                                      work.gamma_hat, work.metric)
+    inv_grads, factor, new_coef, metric = work.inv_grads, work.small_matrix, work.new_coef, work.metric
     n = y.shape[0]
     k = Is.shape[0]
     r = Ihat.shape[0]
     s = coef.shape[0]
     n_tilde = conserve_idx.shape[0] + 1
     first_rhs, last_rhs, tail_nodes = lim_rhs_terms(stable_rhs, k, r, s)
-    n_gamma = last_rhs if tail_nodes != TAIL_R_NODES else s
+    n_gamma = last_rhs
     n_phi = last_rhs if tail_nodes != TAIL_K_NODES else s
 
     scale_tables(h, tables, work)
@@ -380,18 +368,12 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
                     grads_hat[a, i, p] = inv_grads[conserve_idx[a - 1], p]
     for a in range(n_tilde):
         project(projection_hat, grads_hat[a], n_phi, phi[a])
-    if tail_nodes == TAIL_R_NODES:
-        # J grad H at the r nodes is phi of H (row 0): gamma_hat_j = J phi^H_j.
-        apply_J(phi[0], last_rhs, gamma_hat)
-        tail = gamma_hat
-    else:
-        if tail_nodes == TAIL_K_NODES:
-            # grad Ltilde at the k nodes: H's row is the projection of grad H there (proj, rows < k).
-            for j in range(s, k):
-                for p in range(n):
-                    phi[0, j, p] = proj[j, p]
-            tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, 1, s, k, inv_grads, phi)
-        tail = gamma
+    if tail_nodes == TAIL_K_NODES:
+        # grad Ltilde at the k nodes: H's row is the projection of grad H there (proj, rows < k).
+        for j in range(s, k):
+            for p in range(n):
+                phi[0, j, p] = proj[j, p]
+        tail_phi_at_k_nodes(grad_invariants, params, u, conserve_idx, projection, 1, s, k, inv_grads, phi)
     if (stable_rhs & LIM_SCALED_METRIC) != 0:
         largest = 0.0
         for p in range(n):
@@ -403,7 +385,7 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
         floor = METRIC_FLOOR * largest if largest > 0.0 else 1.0
         for p in range(n):
             metric[p] = max(metric[p], floor)
-    sign = -1.0 if (stable_rhs & RHS_STABLE) != 0 else 1.0
+    sign = -1.0 if first_rhs > 0 else 1.0   # the tail, or the spec's sum
     for a in range(n_tilde):
         for c in range(n_tilde):
             acc = 0.0
@@ -414,7 +396,7 @@ def lim_map(grad_H, grad_invariants, params, y, h, coef, lam, tables, conserve_i
         acc = 0.0
         for j in range(first_rhs, last_rhs):
             for p in range(n):
-                acc += phi[a, j, p] * tail[j, p]
+                acc += phi[a, j, p] * gamma[j, p]
         rhs[a] = sign * acc
     if cholesky_factor(factor) != 0:
         return 1
@@ -508,15 +490,14 @@ def elim_rounding(h, alpha, stable_rhs, tables, nu, s, work):
                                                       work.small_inverse, work.sizes)
     k = tables.Is.shape[0]
     r = tables.Ihat.shape[0]
-    first_rhs, last_rhs, tail_nodes = elim_rhs_terms(stable_rhs, k, r, s)
-    tail = work.gamma_hat if tail_nodes == TAIL_R_NODES else gamma
+    first_rhs, last_rhs, _ = elim_rhs_terms(stable_rhs, k, r, s)
     S = tables.abs_projection_hat
     cond = condition_number(work, nu, False)
     d_rhs = work.small_vector
     for a in range(nu):
         acc = 0.0
         for j in range(first_rhs, last_rhs):
-            acc += _dot_rounding(S, phi[a], tail, j, sizes, a)
+            acc += _dot_rounding(S, phi[a], gamma, j, sizes, a)
         for c in range(nu):
             acc += h_powers[c] * _dot_rounding(S, phi[a], gamma, s - nu + c, sizes, a) * abs(alpha[c])
         d_rhs[a] = acc
@@ -542,14 +523,13 @@ def lim_rounding(tables, n_tilde, s, stable_rhs, work):
     Writes dlambda into work.small_rounding[0]; returns cond(Gram). Needs work.sizes."""
     gamma, phi, rounding, inverse, sizes = work.gamma, work.phi, work.small_rounding, work.small_inverse, work.sizes
     S = tables.abs_projection_hat
-    first_rhs, last_rhs, tail_nodes = lim_rhs_terms(stable_rhs, tables.Is.shape[0], tables.Ihat.shape[0], s)
-    tail = work.gamma_hat if tail_nodes == TAIL_R_NODES else gamma
+    first_rhs, last_rhs, _ = lim_rhs_terms(stable_rhs, tables.Is.shape[0], tables.Ihat.shape[0], s)
     cond = condition_number(work, n_tilde, True)
     d_rhs = work.small_vector
     for a in range(n_tilde):
         acc = 0.0
         for j in range(first_rhs, last_rhs):
-            acc += _dot_rounding(S, phi[a], tail, j, sizes, a)
+            acc += _dot_rounding(S, phi[a], gamma, j, sizes, a)
         d_rhs[a] = acc
     _abs_times(inverse, d_rhs, n_tilde, rounding[0])
     return cond

@@ -21,7 +21,8 @@ from .codes import (internal, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON_ACCE
 from .linalg import invert_complex, invert_pair, invert_real, lu_factor, lu_solve_factored
 from .simd import (abs4, add4, addsub4, div4, load4, load4_dup_row, load4_row, mul4, pair4, raise4, splat4, store4,
                    store4_row, store_pair_row, sub4)
-from .maps import EPS, RHS_STABLE, condition_number, elim_map, elim_rounding, gradient_sizes, lim_map, lim_rounding
+from .maps import (EPS, RHS_STABLE, condition_number, elim_map, elim_rhs_terms, elim_rounding, gradient_sizes,
+                   lim_map, lim_rounding)
 
 # The stopping rule's constants (docs/solver.md; measured there, not tunables).
 BAND_FACTOR = 4.0          # the rounding band is B = 4 omega ...
@@ -604,6 +605,9 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     s = coef.shape[0]
     nu = conserve_idx.shape[0]
     is_lim = settings.family == FAMILY_LIM
+    # ELIM whose bvec is the paper's sum (rhs literal, or r > k: maps.elim_rhs_terms)
+    paper_sum = elim_rhs_terms((settings.stable_rhs & RHS_STABLE) != 0, tables.Is.shape[0], tables.Ihat.shape[0],
+                               coef.shape[0])[0] == 0
     newton = settings.solver != SOLVER_FIXED_POINT
     # Bound once: an attribute read inside the loop costs a reference count update per read.
     delta, scale, new_coef, info, h_powers = work.delta, work.scale, work.new_coef, work.info, work.h_powers
@@ -729,7 +733,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
                 # form stalls near steps symmetric about a pericentre, where Gamma is nearly
                 # singular and an in-band test would accept unconverged iterates (docs/solver.md):
                 # those are split, and their halves are well-conditioned.
-                if d <= RESCUE_BAND_CAP and newton and (is_lim or (settings.stable_rhs & RHS_STABLE) == 0):
+                if d <= RESCUE_BAND_CAP and newton and (is_lim or paper_sum):
                     accepted = _within_rounding(h, mult, singular == 0 and not plain_sweep, settings, tables,
                                                 nu, s, work)
                 break

@@ -55,11 +55,10 @@ Workspace = namedtuple("Workspace", [
     "proj",              # (n_big, n) Legendre coefficients of grads
     "gamma",             # (n_big, n) gamma_j = J proj_j
     "uhat",              # (r, n) stages at the r nodes (r != k)
-    "grads_hat",         # (n_tilde + 1, r, n) imposed invariants' gradients at the r nodes (LIM: H first)
+    "grads_hat",         # (n_tilde, r, n) imposed invariants' gradients at the r nodes (LIM: H first)
     "inv_grads",         # (n_inv, n) one call of grad_invariants
     "phi",               # (max(n_tilde, 1), n_big, n) phi_j per imposed invariant (j >= s: at the k nodes
     #                      when r < k, maps.TAIL_K_NODES)
-    "gamma_hat",         # (n_big, n) gamma_j from the r nodes (docs/methods.md#stable-right-hand-side, r != k)
     "small_matrix",      # (n_t, n_t) Gamma (ELIM) or the Gram matrix (LIM), factored in place
     "small_copy",        # (n_t, n_t) the same matrix unfactored
     "small_inverse",     # (n_t, n_t) its inverse (rounding level and condition number)
@@ -233,7 +232,7 @@ def borrow_workspace(w):
     """The same Workspace, as borrowed views (see the module docstring)."""
     return Workspace(
         borrowed(w.u), borrowed(w.grads), borrowed(w.proj), borrowed(w.gamma), borrowed(w.uhat),
-        borrowed(w.grads_hat), borrowed(w.inv_grads), borrowed(w.phi), borrowed(w.gamma_hat),
+        borrowed(w.grads_hat), borrowed(w.inv_grads), borrowed(w.phi),
         borrowed(w.small_matrix), borrowed(w.small_copy), borrowed(w.small_inverse), borrowed(w.small_vector),
         borrowed(w.small_pivots), borrowed(w.small_rounding), borrowed(w.sizes), borrowed(w.rounding_level),
         borrowed(w.component_increment), borrowed(w.carried), borrowed(w.h_powers), borrowed(w.new_coef),
@@ -299,7 +298,7 @@ def make_workspace(n, k, r, s, nu, family, n_inv, n_mult, n_eigenvalues):
     n_rhs_split = 2 * n_blocks if n_scratch > 0 else 0
     return Workspace(
         np.zeros((k, n)), np.zeros((k, n)), np.zeros((n_big, n)), np.zeros((n_big, n)), np.zeros((r, n)),
-        np.zeros((n_tilde + 1, r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)), np.zeros((n_big, n)),
+        np.zeros((max(n_tilde, 1), r, n)), np.zeros((n_inv, n)), np.zeros((n_t, n_big, n)),
         np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros((n_t, n_t)), np.zeros(n_t),
         np.zeros(n_t, dtype=np.int64), np.zeros((1, n_t)), np.zeros((1 + n_t, n)), np.zeros(n), np.zeros(n),
         np.zeros(n), np.zeros(max(nu, 1)),

@@ -268,9 +268,7 @@ class Method:
         for a run imposing n_imposed invariants, with the stable right-hand side or not."""
         grad_H, grad_L = self.k, (self.r if n_imposed > 0 else 0)
         if self.kind.kernel_map == "lim":
-            grad_H += self.r if self.r != self.k else 0
-        elif n_imposed > 0 and stable_rhs and self.r > self.k:
-            grad_H += self.r            # the stable tail's J grad H at the r nodes (maps.TAIL_R_NODES)
+            grad_H += self.r if self.r != self.k else 0     # H is one of LIM's invariants, at the r nodes
         if n_imposed > 0 and stable_rhs and self.r < self.k:
             grad_L += self.k            # the stable tail's grad L at the k nodes (maps.TAIL_K_NODES)
         return grad_H, grad_L
