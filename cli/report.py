@@ -285,11 +285,14 @@ def summary(run_file, integrity: dict | None = None) -> str:
         row("h", f"{a.get('h')!r}  (t0 = {a.get('t0')!r}, t_end = {a.get('t_end')!r}, {samples})")
         n_steps = int(a.get("n_steps", 0))
         row("steps done", f"{done} / {n_steps}" + (f"  ({100.0 * done / n_steps:.1f}%)" if done < n_steps else ""))
+    not_finite = run_file.events_not_finite()
     for name in run_file.event_names():
         times, _ = run_file.event(name)
         shown = ", ".join(f"{t:.10g}" for t in times[:3]) + (", ..." if times.size > 3 else "")
         row("events" if name == run_file.event_names()[0] else "",
-            f"{name}: {times.size} found" + (f", t = {shown}" if times.size else ""))
+            f"{name}: {times.size} found" + (f", t = {shown}" if times.size else "")
+            + (f"; NaN or infinite at samples from t = {not_finite[name]:.6g} on, where no crossing can be found "
+               "(check the expression)" if name in not_finite else ""))
     status = run_file.status
     if status == "killed":
         status = ("killed (the writer stopped without closing the file; continue with elimfast run ... --resume"

@@ -84,7 +84,8 @@ def _adaptive_parts(stored, spec) -> dict:
     from .adaptive import AdaptiveIntegration, EventRecord
 
     parts = {"step_t": stored.step_times(), "step_h": stored.step_sizes(), "step_control": spec.step_control,
-             "events": {name: EventRecord(*stored.event(name)) for name in stored.event_names()}}
+             "events": {name: EventRecord(*stored.event(name)) for name in stored.event_names()},
+             "events_not_finite": stored.events_not_finite()}
     counters = stored.saved_state().get("counters")
     if counters is not None:
         run = AdaptiveIntegration.from_spec(spec)

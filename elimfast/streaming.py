@@ -459,7 +459,8 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     if not writer.abandoned:
         try:
             writer.finish(status, steps_done=steps_done, wall_time_s=wall, kernel_time_s=kernel_offset + kernel_s,
-                          stats=saved_stats(integration, writer))
+                          stats=saved_stats(integration, writer),
+                          events_not_finite=getattr(integration, "events_not_finite", None))
         except (OSError, RuntimeError) as err:   # DiskFullError included: leave it as a killed writer would
             writer.abandon()
             if stopped is None:

@@ -871,6 +871,29 @@ def test_an_event_that_turns_nan_along_the_orbit_is_named():
     assert clean.events_not_finite == {}
 
 
+def test_an_event_that_turns_nan_is_named_by_the_run_file_too(tmp_path):
+    """A user trial: `elimfast run` said that an event was NaN, but elimfast.load's
+    events_not_finite was {} and `inspect` showed only '0 found'. The file keeps the first time."""
+    from click.testing import CliRunner
+
+    from elimfast_cli.main import cli
+    config = tmp_path / "nan.yaml"
+    config.write_text("problem: {builtin: kepler, parameters: {eccentricity: 0.9}}\nmethod: {name: ehbvm, s: 4}\n"
+                      "integration: {rtol: 1e-10, t_end: 4*pi}\n"
+                      "events: {nan: {expression: 'sqrt(q1 + 0.5)'}, q2: {expression: q2}}\n")
+    path = tmp_path / "nan.h5"
+    ran = CliRunner().invoke(cli, ["run", str(config), "-o", str(path)])
+    assert ran.exit_code == 0 and "event 'nan' (first at t = " in ran.stderr, ran.output
+    in_memory = elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-10,
+                                   events={"nan": "sqrt(q1 + 0.5)", "q2": "q2"})
+    stored = elimfast.load(path)
+    assert stored.events_not_finite == in_memory.events_not_finite and set(stored.events_not_finite) == {"nan"}
+    report = CliRunner().invoke(cli, ["inspect", str(path)]).stdout
+    first = stored.events_not_finite["nan"]
+    assert f"nan: 0 found; NaN or infinite at samples from t = {first:.6g} on" in report, report
+    assert "q2: " in report and "q2: 0 found" not in report
+
+
 def test_steps_that_collapse_under_the_error_controller_stop_the_run_and_say_why():
     """Perturbed Kepler e = 0.9, delta = 0.01 falls into its centre (the -delta/r^3 term wins near
     r = 0.1). The error controller kept halving and accepting steps until they no longer advanced

@@ -69,6 +69,9 @@ from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyErro
                      damaged_row_ranges, ensure_not_busy, extended_to_recorded_end, no_room, open_unflagged,
                      rows_text, set_consistency_flags)
 
+# The attribute of /events/<name> with the first sample time where the event was NaN or infinite.
+NOT_FINITE_FROM = "not_finite_from"
+
 
 
 def _now() -> str:
@@ -554,12 +557,14 @@ class RunWriter:
         self.saved = _saved_record(state, n_samples)
 
     def finish(self, status: str, *, steps_done: int, wall_time_s: float, kernel_time_s: float,
-               stats: dict | None = None) -> None:
+               stats: dict | None = None, events_not_finite: dict | None = None) -> None:
         """Close the SWMR session, then write the final root attributes in a normal session.
 
         Rows and events appended after the last saved state (a chunk cut short) are dropped
         first: the datasets end where the saved state says. ``stats``: Result.stats of the saved state
-        (``saved["counters"]``), written as stats_<name> (layout.stats_attributes).
+        (``saved["counters"]``), written as stats_<name> (layout.stats_attributes). ``events_not_finite``:
+        {event: the first sample time where it was NaN or infinite}, written as the attribute
+        NOT_FINITE_FROM of /events/<event> (a user trial: the run said so, the file did not).
         """
         if self.abandoned:
             return
@@ -578,6 +583,11 @@ class RunWriter:
                     f.attrs["failed_step_iterations"] = self.failed_step_iterations
                 if stats:
                     _replace_attributes(f, stats_attributes(stats))
+                for name, first in (events_not_finite or {}).items():
+                    if "events" in f and name in f["events"]:
+                        group = f["events"][name]
+                        # a resumed run keeps the earliest time (its first part's, if that one saw it)
+                        group.attrs[NOT_FINITE_FROM] = min(float(first), float(group.attrs.get(NOT_FINITE_FROM, first)))
         finally:
             if self._guard is not None:
                 self._guard.close()
@@ -960,6 +970,14 @@ class RunFile:
 
     def event_names(self) -> list[str]:
         return _event_names(self._root)
+
+    def events_not_finite(self) -> dict[str, float]:
+        """{event: the first sample time where it was NaN or infinite} (RunWriter.finish)."""
+        if "events" not in self._root:
+            return {}
+        events = self._root["events"]
+        return {name: float(events[name].attrs[NOT_FINITE_FROM]) for name in self.event_names()
+                if NOT_FINITE_FROM in events[name].attrs}
 
     def event(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(t, y) of the occurrences of an event saved so far."""
