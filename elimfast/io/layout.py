@@ -542,3 +542,7 @@ def split_run_path(path, run: str | None = None) -> tuple[Path, str | None]:
                                   "is given alone")
             at = text.find(":", at + 1)
     return Path(text), run
+
+# The attribute of /events/<name> with the first sample time where the event was NaN or infinite
+# (a user trial: the run said so, the file did not; RunWriter.finish, RunFile.events_not_finite).
+NOT_FINITE_FROM = "not_finite_from"

@@ -55,8 +55,9 @@ import h5py
 import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
-from .layout import (FORMAT, FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN, STATS_PREFIX,
-                     STATUS_RUNNING, VALUE_AT_T0, read_flag, stats_attributes, VERIFY_BLOCK_BYTES, _Growing, _plain,
+from .layout import (FORMAT, FORMAT_VERSION, LIBVER, NOT_FINITE_FROM, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN,
+                     STATS_PREFIX, STATUS_RUNNING, VALUE_AT_T0, read_flag, stats_attributes, VERIFY_BLOCK_BYTES,
+                     _Growing, _plain,
                      _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
                      RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
@@ -68,9 +69,6 @@ from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyErro
                      _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
                      damaged_row_ranges, ensure_not_busy, extended_to_recorded_end, no_room, open_unflagged,
                      rows_text, set_consistency_flags)
-
-# The attribute of /events/<name> with the first sample time where the event was NaN or infinite.
-NOT_FINITE_FROM = "not_finite_from"
 
 
 
@@ -562,9 +560,8 @@ class RunWriter:
 
         Rows and events appended after the last saved state (a chunk cut short) are dropped
         first: the datasets end where the saved state says. ``stats``: Result.stats of the saved state
-        (``saved["counters"]``), written as stats_<name> (layout.stats_attributes). ``events_not_finite``:
-        {event: the first sample time where it was NaN or infinite}, written as the attribute
-        NOT_FINITE_FROM of /events/<event> (a user trial: the run said so, the file did not).
+        (``saved["counters"]``), written as stats_<name> (layout.stats_attributes). events_not_finite: see
+        layout.NOT_FINITE_FROM.
         """
         if self.abandoned:
             return
@@ -586,7 +583,6 @@ class RunWriter:
                 for name, first in (events_not_finite or {}).items():
                     if "events" in f and name in f["events"]:
                         group = f["events"][name]
-                        # a resumed run keeps the earliest time (its first part's, if that one saw it)
                         group.attrs[NOT_FINITE_FROM] = min(float(first), float(group.attrs.get(NOT_FINITE_FROM, first)))
         finally:
             if self._guard is not None:
@@ -972,10 +968,8 @@ class RunFile:
         return _event_names(self._root)
 
     def events_not_finite(self) -> dict[str, float]:
-        """{event: the first sample time where it was NaN or infinite} (RunWriter.finish)."""
-        if "events" not in self._root:
-            return {}
-        events = self._root["events"]
+        """{event: first time it was NaN or infinite} (RunWriter.finish)."""
+        events = self._root["events"] if "events" in self._root else {}
         return {name: float(events[name].attrs[NOT_FINITE_FROM]) for name in self.event_names()
                 if NOT_FINITE_FROM in events[name].attrs}
 
