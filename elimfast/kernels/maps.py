@@ -304,12 +304,9 @@ def lim_rhs_terms(stable_rhs, k, r, s):
     tail -sum_{j=s}^{k-1} at the k nodes (elim_rhs_terms), docs/methods.md#stable-right-hand-side
     carried over to LIM: sum_{j<k} phi_j^T gamma_j = sum_l b_l grad Ltilde(u_l)^T J grad H(u_l) = 0
     exactly at the k nodes (H's row too: phi^H_j = J^T gamma_j). r > k: the spec's sum, as for ELIM
-    (a user trial's LIM(6,3,2): the tail at the r nodes lost H at 2e-6 and L at 3e-7)."""
-    if (stable_rhs & RHS_STABLE) == 0 or r > k:
-        return 0, s, TAIL_SAME
-    if r == k:
-        return s, k, TAIL_SAME
-    return s, k, TAIL_K_NODES
+    (a user trial's LIM(6,3,2): the tail at the r nodes lost H at 2e-6 and L at 3e-7).
+    stable_rhs: the settings' bits (RHS_STABLE, LIM_SCALED_METRIC)."""
+    return elim_rhs_terms((stable_rhs & RHS_STABLE) != 0, k, r, s)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
