@@ -572,8 +572,7 @@ def check(config, overrides):
       elimfast check configs/kepler.yaml
       elimfast check configs/kepler.yaml --set method.s=4
     """
-    from elimfast.problems.check import (DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_derivatives,
-                                         require_invariants)
+    from elimfast.problems.check import DEFAULT_TOLERANCE, check_derivatives, check_invariants, require_problem
     from elimfast.problems.expressions import ProblemDefinitionError
 
     from .report import adaptive_text, unused_h_note
@@ -621,8 +620,7 @@ def check(config, overrides):
     click.echo("\n".join(lines))
     click.echo(_resolved_yaml(spec), nl=False)
     try:
-        require_derivatives(problem)  # exit 2 with the mismatch when a derivative is wrong
-        require_invariants(problem)   # exit 2 with the residual when one is not conserved
+        require_problem(problem)   # exit 2 with the mismatch or the residual when a check fails
     except ProblemDefinitionError as err:
         raise _check_error(config, spec, err) from None
     return EXIT_OK

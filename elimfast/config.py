@@ -914,9 +914,8 @@ class _Builder:
                 problem = problem.with_time_scale(section.time_scale)
                 resolved["time_scale"] = section.time_scale
             if section.check:
-                from .problems.check import require_derivatives, require_invariants
-                require_derivatives(problem)   # first: the invariant check trusts the gradients
-                require_invariants(problem)
+                from .problems.check import require_problem
+                require_problem(problem)
         except CacheError as err:
             raise self.error(("problem",), str(err)) from None
         except ProblemDefinitionError as err:

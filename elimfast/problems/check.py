@@ -193,6 +193,13 @@ def require_invariants(problem: Problem, tolerance: float = INVARIANT_TOLERANCE,
     return residuals
 
 
+def require_problem(problem: Problem, skip: str = CONFIG_SKIP) -> None:
+    """The checks a problem passes before it runs (a config's problem.check, the Python builders'
+    check=True): its derivatives, then its invariants, which trust the gradients."""
+    require_derivatives(problem, skip=skip)
+    require_invariants(problem, skip=skip)
+
+
 # --- derivatives --------------------------------------------------------------------------
 
 @dataclass(frozen=True)

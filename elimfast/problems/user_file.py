@@ -138,9 +138,8 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
     """
     problem = _build_from_file(path, parameters, initial, name)
     if check:
-        from .check import PYTHON_SKIP, require_derivatives, require_invariants
-        require_derivatives(problem, skip=PYTHON_SKIP)   # first: the invariant check trusts the gradients
-        require_invariants(problem, skip=PYTHON_SKIP)
+        from .check import PYTHON_SKIP, require_problem
+        require_problem(problem, skip=PYTHON_SKIP)
     return problem
 
 
