@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, real_number
 
 # Where a problem's hess_H comes from -> how reports say it.
 HESSIAN_SOURCES = {
@@ -29,8 +29,12 @@ HESSIAN_SOURCES = {
 
 def real_parameter(parameter: str, value) -> float:
     """A built-in problem's real parameter as a float, or a ParameterError naming it (float() of a
-    list said "float() argument must be a string or a real number, not 'list'", naming nothing)."""
-    if isinstance(value, bool) or not isinstance(value, (numbers.Real, decimal.Decimal, str, np.generic)):
+    list said "float() argument must be a string or a real number, not 'list'", naming nothing).
+    A string is refused as errors.real_number refuses it: the API takes numbers (kepler(eccentricity=
+    '0.9') was taken where integrate(h='0.1') is refused); a config reads its expressions first."""
+    if isinstance(value, str):
+        real_number(parameter, value)   # raises, with the API's one message for a string
+    if isinstance(value, bool) or not isinstance(value, (numbers.Real, decimal.Decimal, np.generic)):
         raise ParameterError(parameter, f"must be a number, got {_shown(value)}")
     try:
         return float(value)
