@@ -373,6 +373,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                 label = _check_label(source, f"{key}.labels[{j}]" if axis.get("labels") else f"{key}.values[{j}]",
                                      str(label))
                 points.append((label, {"path": axis["key"], "value": value}))
+            _refuse_equal_values(source, key, values)
         else:
             for j, variant in enumerate(values):
                 if not isinstance(variant, dict) or "set" not in variant or not isinstance(variant["set"], dict):
@@ -572,6 +573,29 @@ def _refuse_unused_parameters(source: str, base: dict, runs) -> None:
             if pname not in declared:
                 _fail(source, f"problem.parameters.{pname}", f"(run {run.label!r}, from the sweep's set or an axis) "
                                                              + unused_parameter_text(pname, used))
+
+
+def _equal_value_key(value):
+    """What two of an axis's values compare by: a number's value, whatever its spelling (0.1, '1/10'
+    and '1e-1' are one run), or the value as written where it is no number (a method's name)."""
+    from .problems.expressions import ExpressionError, evaluate_number
+    try:
+        return ("number", evaluate_number(value))
+    except (ExpressionError, ValueError, TypeError):
+        return ("as written", repr(value))
+
+
+def _refuse_equal_values(source, key: str, values: list) -> None:
+    """Two values of one plain axis that are the same value run the same run twice (a user trial:
+    values [0.1, 1/10] on integration.h; [0.1, 0.1] was refused only through its repeated label)."""
+    from .config import _short   # the config's way of quoting a value in a message
+    seen: dict = {}
+    for j, value in enumerate(values):
+        first = seen.setdefault(_equal_value_key(value), j)
+        if first != j:
+            _fail(source, f"{key}.values[{j}]", f"{_short(value)} is the value of {key}.values[{first}] "
+                                               f"({_short(values[first])}): the two runs would be one run twice; "
+                                               "drop one")
 
 
 def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:

@@ -81,9 +81,14 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
     ({"base": BASE, "grid": [{"name": "h"}]}, r"grid\[0\]: an axis is a mapping"),
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "a", "set": {}}]}]},
      "same label 'a'"),
-    # a repeated value of a plain axis: named (a user trial read only 'give the variants distinct labels')
+    # a repeated value of a plain axis: named (a user trial read only 'give the variants distinct labels'),
+    # and so is one value written two ways (the last note: [0.1, 1/10] ran one run twice)
     ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30", "pi/60", "pi/30"]}]},
-     r"two runs get the same label 'pi/30' \(an axis repeats a value"),
+     r"grid\[0\]\.values\[2\]: 'pi/30' is the value of grid\[0\]\.values\[0\] \('pi/30'\): the two runs would be"),
+    ({"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": [0.1, "1/10"]}]},
+     r"grid\[0\]\.values\[1\]: '1/10' is the value of grid\[0\]\.values\[0\] \(0\.1\): the two runs would be one"),
+    ({"base": BASE, "grid": [{"name": "s", "key": "method.s", "values": [3, 4, 3.0], "labels": ["a", "b", "c"]}]},
+     r"grid\[0\]\.values\[2\]: 3\.0 is the value of grid\[0\]\.values\[0\] \(3\)"),
     ({"base": BASE, "order_axis": "h"}, "order_axis: names no axis"),
     # the order is taken along the axis's values: an axis without sizes is refused, not left empty
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "a", "set": {}}, {"label": "b", "set": {}}]}],
