@@ -127,6 +127,24 @@ def test_importing_a_builtin_module_keeps_the_package_attribute_the_constructor(
     assert callable(elimfast.integrate) and not isinstance(elimfast.integrate, types.ModuleType)
 
 
+def test_the_builders_are_the_functions_themselves_loaded_on_first_use():
+    """The last note: the lazy wrappers of the two builders took (*args, **kwargs), so help() showed
+    no parameters. The package now hands out the builders themselves, imported on first use."""
+    import inspect
+    from elimfast.problems.symbolic import problem_from_expressions
+    from elimfast.problems.user_file import problem_from_file
+    assert problems.problem_from_expressions is problem_from_expressions
+    assert problems.problem_from_file is problem_from_file
+    assert "hamiltonian" in inspect.signature(problems.problem_from_expressions).parameters
+    assert "path" in inspect.signature(problems.problem_from_file).parameters
+    assert {"problem_from_expressions", "problem_from_file"} <= set(problems.__all__) & set(dir(problems))
+    # the package alone loads neither builder; asking for one loads its module (and no kernel)
+    alone = probe("import elimfast.problems")
+    assert alone["heavy"] == [] and "elimfast.problems.symbolic" not in alone["problems"]
+    asked = probe("import elimfast.problems as P\nP.problem_from_expressions")
+    assert asked["heavy"] == [] and "elimfast.problems.symbolic" in asked["problems"]
+
+
 @pytest.mark.parametrize("name", list(BUILTINS))
 def test_listing_says_what_the_built_problem_says(name):
     """catalogue.LISTING is data (so `elimfast problems` compiles nothing): it must match the problem."""

@@ -48,17 +48,24 @@ PROBLEMS = BuiltinProblems()
 __all__ = ["Problem", "PROBLEMS", *BUILTINS]
 
 
+# The two builders of problems not built in -> their modules, imported on first use (sympy's
+# module, and the kernels' signatures, cost start-up). The functions themselves are handed out, so
+# help() shows their signatures (wrappers taking *args, **kwargs showed none).
+BUILDERS = {"problem_from_expressions": "symbolic", "problem_from_file": "user_file"}
+
+
 def __getattr__(name):
-    """elimfast.problems.kepler etc.: the constructor, imported on first use."""
-    if name in BUILTINS:
-        constructor = _constructor(name)
+    """elimfast.problems.kepler etc.: the constructor, imported on first use; likewise the builders."""
+    if name in BUILTINS or name in BUILDERS:
+        constructor = (_constructor(name) if name in BUILTINS
+                       else getattr(importlib.import_module(f"{__name__}.{BUILDERS[name]}"), name))
         globals()[name] = constructor
         return constructor
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(set(globals()) | set(BUILTINS))
+    return sorted(set(globals()) | set(BUILTINS) | set(BUILDERS))
 
 
 class _Package(types.ModuleType):
@@ -75,16 +82,4 @@ class _Package(types.ModuleType):
 sys.modules[__name__].__class__ = _Package
 
 
-def problem_from_expressions(*args, **kwargs) -> Problem:
-    """A Problem from expression strings (see elimfast.problems.symbolic); sympy is imported only here."""
-    from .symbolic import problem_from_expressions as build
-    return build(*args, **kwargs)
-
-
-def problem_from_file(*args, **kwargs) -> Problem:
-    """A Problem from a user's Python file (see elimfast.problems.user_file)."""
-    from .user_file import problem_from_file as build
-    return build(*args, **kwargs)
-
-
-__all__ += ["problem_from_expressions", "problem_from_file"]
+__all__ += list(BUILDERS)
