@@ -380,8 +380,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
         max_iter = solver.get("max_iter")
         if isinstance(max_iter, int) and stats["max"] > max_iter:
             # max_iter bounds one solve; a step's count is every solve it took
-            row("", f"a step counts every solve it took (max_iter bounds one): a solve that fails is tried again "
-                    f"from another start or with a fresh Newton matrix before the step is split")
+            row("", "a step counts every solve it took (max_iter bounds one): a solve that fails is tried again "
+                    "from another start or with a fresh Newton matrix before the step is split")
     else:
         row("iterations", "no steps yet")
     if "failed_step_iterations" in a:

@@ -485,7 +485,7 @@ def test_the_first_step_recorded_is_the_one_the_controller_took():
 
 
 def test_expression_time_scale_matches_the_builtin():
-    from elimfast.problems import perturbed_kepler, problem_from_expressions
+    from elimfast.problems import problem_from_expressions
     e = 0.9
     p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
                                  initial={"q1": 1 - e, "q2": 0, "p1": 0, "p2": math.sqrt((1 + e) / (1 - e))},
@@ -509,7 +509,7 @@ def test_a_time_scale_not_positive_at_the_initial_state_is_refused(time_scale, v
     system is singular ... Assumption 1 of the paper fails for these invariants'."""
     from elimfast.config import load_run_from_dict
     from elimfast.config import ConfigError
-    from elimfast.problems import perturbed_kepler, problem_from_expressions
+    from elimfast.problems import problem_from_expressions
     p = problem_from_expressions({"q": ["q1", "q2"], "p": ["p1", "p2"]}, "(p1**2+p2**2)/2 - 1/sqrt(q1**2+q2**2)",
                                  initial={"q1": 0.1, "q2": 0, "p1": 0, "p2": math.sqrt(19)}, time_scale=time_scale)
     with pytest.raises(ParameterError, match=rf"^time_scale is {re.escape(value)}.* at the initial state \[0.1, 0.0, "

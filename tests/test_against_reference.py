@@ -1,5 +1,4 @@
 """The Numba kernels against the plain NumPy reference (tests/reference.py), step by step."""
-import functools
 import math
 
 import numpy as np

@@ -225,7 +225,7 @@ def test_pythons_parser_reads_fullwidth_names_as_ascii():
 
 @pytest.mark.parametrize("text,character", [
     (f"{FULLWIDTH_Q1}*p2 - q2*p1", "U+FF51 FULLWIDTH LATIN SMALL LETTER Q"),
-    (f"q\uff11*p2", "U+FF11 FULLWIDTH DIGIT ONE"),
+    ("q\uff11*p2", "U+FF11 FULLWIDTH DIGIT ONE"),
     (f"{FULLWIDTH_SQRT}(q1**2 + q2**2)", "U+FF53 FULLWIDTH LATIN SMALL LETTER S"),
     ("q1 + 1\u00a0", "U+00A0 NO-BREAK SPACE"),
     ("q1 # \u00e9", "U+00E9 LATIN SMALL LETTER E WITH ACUTE"),

@@ -16,7 +16,7 @@ import elimfast
 from elimfast import methods, problems, streaming
 from elimfast.integrate import Integration, relative_error
 from elimfast.io import hdf5, layout, runfile, safety, sweepfile
-from elimfast.sweep import format_table, load_sweep, run_to_file, table_rows
+from elimfast.sweep import format_table, run_to_file, table_rows
 from elimfast_cli.main import cli
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,6 +1,5 @@
 """Output paths as users give them (a user trial): a trailing '/', symlinks (dangling too), the
 longest legal file names, a device; and the advice for a file another HDF5 program left open."""
-import os
 import signal
 import subprocess
 import sys

@@ -11,7 +11,7 @@ import yaml
 import elimfast
 from elimfast import methods, problems, streaming
 from elimfast.integrate import Integration
-from elimfast.sweep import load_sweep, run_to_file
+from elimfast.sweep import run_to_file
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("h5netcdf")
