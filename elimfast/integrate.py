@@ -1144,6 +1144,7 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     advise: False leaves the advice out, where the caller knows that no setting helps;
     independence: gradients_independence at y (None: not known), which tells a Gamma nearly singular
     because the invariants are degenerate there from one that is only badly scaled."""
+    from .kernels import solver as solver_rules   # the stopping rule's band (loaded: a run got here)
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
         what = f"the {solver.description} did not converge (max_iter = {solver.max_iter})"
@@ -1155,6 +1156,11 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
                  f"after {depth} halving{'s' if depth > 1 else ''}"
     lim = method.kind.kernel_map == "lim"   # its small system is the Gram matrix, not Gamma
     seen = [f"last relative increment {d[codes.DIAG_INCREMENT]:.2e}"]
+    if status == codes.STATUS_NOT_CONVERGED and 0.0 < d[codes.DIAG_INCREMENT] <= solver_rules.BAND_CAP:
+        # An increment of 5e-16 read as a contradiction of "did not converge" (the last note): the
+        # iterates stopped at rounding's size, but above the band of this step's own rounding.
+        seen[0] += (" (rounding's size, but above the band of this step's own rounding that the stopping rule "
+                    "accepts: docs/solver.md#when-to-stop)")
     newton_matrix = False
     if status == codes.STATUS_SINGULAR and d[codes.DIAG_INCREMENT] == math.inf:
         seen = ["before any increment"]   # the solve's d before its first one: the first map failed

@@ -7,6 +7,7 @@ kernel's accepted state is checked against the NumPy reference (tests/reference.
 which iterates to 1e-16 on its own, independently written map.
 """
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -464,6 +465,26 @@ def test_a_singular_newton_matrix_of_a_method_that_imposes_nothing_is_named_as_s
     with pytest.raises(elimfast.errors.ConvergenceError, match=r"\(max_iter = 1\) .*; raise solver.max_iter \(= 1 now; "
                                                                r"the default is 30 or 100\), or reduce h"):
         elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=3, conserve=(L1, AY), max_iter=1)
+
+
+def test_a_solve_that_stalls_at_rounding_says_so_and_a_large_increment_does_not():
+    """The last note: "did not converge ... last relative increment 4.81e-16" read as a contradiction
+    (Kepler e = 0.99, h = pi/30 from the pericentre, 6 halvings). The message now says the increment
+    is rounding's size but above the step's own rounding band (the stopping rule's)."""
+    with pytest.raises(elimfast.errors.ConvergenceError) as failure:
+        elimfast.integrate(kepler(0.99), ehbvm(12, 3), math.pi / 30, n_steps=1, conserve=(L1, AY),
+                           solver={"max_halvings": 6})
+    message = str(failure.value)
+    increment = float(re.search(r"last relative increment (\S+)", message).group(1))
+    assert increment < 1e-14 and "(rounding's size, but above the band of this step's own rounding" in message
+    import importlib
+    from elimfast.kernels import codes
+    driver = importlib.import_module("elimfast.integrate")   # the module: elimfast.integrate is the function
+    diagnostics = np.zeros(codes.N_DIAGNOSTICS)
+    diagnostics[codes.DIAG_INCREMENT] = 1e-3
+    far = driver.failure_message(ehbvm(12, 3), SolverSettings(method="newton"), codes.STATUS_NOT_CONVERGED, 3, 0.5,
+                                 0.01, diagnostics)
+    assert "last relative increment 1.00e-03; " in far and "rounding's size" not in far
 
 
 def test_a_failure_with_the_literal_right_hand_side_advises_the_stable_one():
