@@ -254,6 +254,18 @@ def test_a_killed_ensemble_sweep_leaves_a_readable_file_that_resume_completes(tm
         assert stored.swmr and stored.status == "incomplete" and stored.stored == first
         np.testing.assert_array_equal(stored.column("y_final", 0, first), reference["ensemble/y_final"][:first])
         assert np.isnan(stored.column("y_final", first)).all()      # not written yet
+    # A user trial: open_datatree showed the unwritten rows as status 0 ('ok') and the ensemble 'running'
+    tree = elimfast.open_datatree(out)
+    try:
+        ensemble = tree["ensemble"]
+        assert ensemble.attrs["status"] == "incomplete"
+        status = ensemble["status"].values
+        assert (status[:first] == 0).all() and (status[first:] == -1).all()
+        meanings = dict(zip(ensemble["status"].attrs["flag_values"].tolist(),
+                            ensemble["status"].attrs["flag_meanings"].split()))
+        assert meanings[-1] == "not_stored" and meanings[0] == "ok"
+    finally:
+        tree.close()
     inspected = CliRunner().invoke(cli, ["inspect", str(out)])
     assert inspected.exit_code == 0, inspected.output
     assert f"trajectories {first} of {N_TRAJECTORIES} stored" in inspected.output

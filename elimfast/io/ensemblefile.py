@@ -14,6 +14,7 @@ An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
     diagnostics               (n, 6)         of a failed step (kernels/stepper.py try_step)
     invariant_errors/<name>   (n,)           max |I(t) - I(0)|: H, then every invariant (NaN: no step done)
     stored                    (n,) uint8     the done record: 1 where the trajectory's row is written
+                                             (status is -1, not_stored, until it is)
     method/...                the method's tables (layout.write_method)
 
 Attributes of /ensemble: problem, method, h, n_steps, conserve, config (the resolved
@@ -46,6 +47,9 @@ from .safety import OutputError, _damaged, _open, _plain, _writer_lock_held
 GROUP = "ensemble"
 STORED = "stored"
 STATUS_RUNNING, STATUS_COMPLETE = "running", "complete"
+# The status of a trajectory whose row is not written yet: the fill value of /ensemble/status (a user
+# trial: a killed ensemble read with open_datatree showed its unwritten rows as status 0, 'ok').
+NOT_STORED, NOT_STORED_WORD = -1, "not_stored"
 READ_BLOCK_ROWS = 1 << 16     # rows per read where a reader scans a whole column (bounded memory)
 # The labels of the diagnostic dimension, in the order of kernels/stepper.py's DIAG_* indices
 # (not imported: the file layer loads no kernels; tests/test_ensemble_stream.py checks the order).
@@ -55,22 +59,33 @@ ROW_LONG_NAMES = {"y0": "initial state y = (q, p)", "y_final": "state after the 
                   "t_final": "time after the last completed step",
                   "iterations": "solver iterations summed over the steps (a failed step's included)",
                   "max_multiplier": "max |alpha| (ELIM) or |lambda| (LIM) over the steps",
-                  "status": "0: complete; otherwise why the trajectory stopped (flag_meanings; "
-                            "EnsembleResult.failure_message(i) explains it)",
+                  "status": "0: complete; -1: not yet written to the file; otherwise why the trajectory stopped "
+                            "(flag_meanings; EnsembleResult.failure_message(i) explains it)",
                   "steps_done": "steps completed", "split_steps": "steps split into substeps",
                   "diagnostics": "the failed step's diagnostics (0 where the trajectory completed)"}
 
 
-def _allocated(group, name: str, shape: tuple, dtype) -> h5py.Dataset:
-    """A contiguous dataset of its final shape with its storage allocated now (NaN for floats):
-    writing into it later writes data only, never metadata."""
+def _allocated(group, name: str, shape: tuple, dtype, fill=None) -> h5py.Dataset:
+    """A contiguous dataset of its final shape with its storage allocated now (``fill``, by default
+    NaN for floats and 0 otherwise): writing into it later writes data only, never metadata."""
     dtype = np.dtype(dtype)
     dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
     dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
-    if dtype.kind == "f":
-        dcpl.set_fill_value(np.array(np.nan, dtype=dtype))
+    if fill is None and dtype.kind == "f":
+        fill = np.nan
+    if fill is not None:
+        dcpl.set_fill_value(np.array(fill, dtype=dtype))
     space = h5py.h5s.create_simple(tuple(int(length) for length in shape))
     return h5py.Dataset(h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(dtype), space, dcpl=dcpl))
+
+
+def status_flags(status_names: dict, dtype) -> dict:
+    """CF's flag_values and flag_meanings of /ensemble/status (and of EnsembleResult.to_xarray's):
+    the words of the codes, one word each, and of the fill of rows not yet written."""
+    names = {NOT_STORED: NOT_STORED_WORD, **status_names}
+    codes = sorted(names)
+    return {"flag_values": np.array(codes, dtype=dtype),
+            "flag_meanings": " ".join(names[code].replace(" ", "_") for code in codes)}
 
 
 def bytes_on_disk(run, states: np.ndarray) -> int:
@@ -101,7 +116,7 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
     attach(y0, trajectory, component)
     label(y0, ROW_LONG_NAMES["y0"])
     for name, (shape, dtype) in run.row_layout().items():
-        dataset = _allocated(group, name, (n,) + shape, dtype)
+        dataset = _allocated(group, name, (n,) + shape, dtype, NOT_STORED if name == "status" else None)
         if not shape:
             attach(dataset, trajectory)
         elif name == "y_final":
@@ -114,10 +129,8 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
         else:   # a row of its own kind of entries
             attach(dataset, trajectory, dimension(group, name.removesuffix("s"), shape[0]))
         label(dataset, ROW_LONG_NAMES.get(name), time_unit if name == "t_final" else None)
-        if name == "status":   # CF flags: the words of the codes (one word each)
-            names = run.status_names
-            _set_attributes(dataset, {"flag_values": np.array(sorted(names), dtype=dtype),
-                                      "flag_meanings": " ".join(names[code].replace(" ", "_") for code in sorted(names))})
+        if name == "status":
+            _set_attributes(dataset, status_flags(run.status_names, dtype))
     errors = group.create_group("invariant_errors")
     _set_attributes(errors, {"order": list(run.invariant_names)})   # HDF5 lists members by name
     for name in run.invariant_names:
@@ -209,6 +222,15 @@ def is_ensemble_file(path) -> bool:
         return False
 
 
+def read_status(path, written) -> str:
+    """What /ensemble's status attribute ``written`` means to a reader: 'complete', 'running' (its
+    writer holds the file) or 'incomplete' (stopped or killed before every block was written: the
+    attribute still says 'running')."""
+    if str(written) == STATUS_COMPLETE:
+        return STATUS_COMPLETE
+    return STATUS_RUNNING if _writer_lock_held(Path(path)) else "incomplete"
+
+
 class EnsembleFile:
     """An ensemble sweep file opened for reading (a killed writer's file in SWMR mode).
 
@@ -234,10 +256,7 @@ class EnsembleFile:
             self.invariant_names = [str(name) for name in order]
             legacy = STORED not in self._group   # written whole at the end (before the done record)
             self.stored = self.n_trajectories if legacy else stored_count(self._group)
-            status = str(self.attrs.get("status", STATUS_COMPLETE if legacy else STATUS_RUNNING))
-            if status != STATUS_COMPLETE:
-                status = STATUS_RUNNING if _writer_lock_held(self.path) else "incomplete"
-            self.status = status
+            self.status = read_status(self.path, self.attrs.get("status", STATUS_COMPLETE if legacy else STATUS_RUNNING))
         except OutputError:
             self.close()
             raise

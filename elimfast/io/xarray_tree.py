@@ -38,6 +38,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from . import ensemblefile
 from .layout import DIMENSION_ONLY, FORMAT, STATUS_RUNNING, SWEEP_FORMAT, _plain, split_run_path
 from .safety import READ_ERRORS, NotAnElimfastFile, OutputError, _damaged
 
@@ -232,6 +233,9 @@ class _Walk:
         attributes = {key: _attribute(value) for key, value in group.attrs.items() if key not in HIDDEN_ATTRIBUTES}
         if location == "/":
             attributes.update(self.root_attributes)
+        elif location == f"/{ensemblefile.GROUP}" and "status" in attributes:
+            # a killed sweep's ensemble still says 'running' (a user trial), as EnsembleFile reads it
+            attributes["status"] = ensemblefile.read_status(self.path, attributes["status"])
         return xr.Dataset(variables, attrs=attributes)
 
     def dimensions(self, path: str, member, attrs, keys, scale: bool, scales: dict) -> tuple:

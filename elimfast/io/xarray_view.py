@@ -82,7 +82,7 @@ def ensemble_dataset(result, status_names: dict):
         import xarray as xr
     except ImportError:
         raise ImportError("EnsembleResult.to_xarray needs xarray: pip install xarray") from None
-    from .ensemblefile import DIAGNOSTIC_NAMES, ROW_LONG_NAMES
+    from .ensemblefile import DIAGNOSTIC_NAMES, ROW_LONG_NAMES, status_flags
     units = dict(getattr(result.problem, "units", {}) or {})
     time_unit = {"units": units["time"]} if "time" in units else {}
     n = result.n_trajectories
@@ -95,10 +95,7 @@ def ensemble_dataset(result, status_names: dict):
     for name in ("t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps"):
         data[name] = ("trajectory", np.asarray(getattr(result, name)),
                       {"long_name": ROW_LONG_NAMES[name], **(time_unit if name == "t_final" else {})})
-    names = status_names
-    codes = sorted(names)
-    data["status"][2].update({"flag_values": np.array(codes, dtype=np.asarray(result.status).dtype),
-                              "flag_meanings": " ".join(names[code].replace(" ", "_") for code in codes)})
+    data["status"][2].update(status_flags(status_names, np.asarray(result.status).dtype))
     diagnostics = np.asarray(result.diagnostics)
     coords["diagnostic"] = ("diagnostic", np.array(DIAGNOSTIC_NAMES[:diagnostics.shape[1]], dtype=object),
                             {"long_name": "diagnostic of the failed step (kernels/stepper.py try_step)"})
