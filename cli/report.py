@@ -10,6 +10,19 @@ import numpy as np
 import yaml
 
 
+def no_samples_text(run_file) -> str | None:
+    """What a run with steps done and no sample says of its invariants: it ended (a terminal event)
+    before its first output time, so nothing was sampled to measure them on. None otherwise. (A
+    user trial: such a run was told that H and every invariant were NaN in some samples, "not
+    defined on the whole orbit".)"""
+    if run_file.n_samples or run_file.steps_done <= 0:
+        return None
+    clock = run_file.saved_state().get("clock")   # a run of a sweep file keeps no state
+    ended = f" at t = {float(clock[0]):.10g}" if clock is not None else ""
+    return (f"no sample stored: the run ended{ended} before its first output time (output.times), so its invariants "
+            "are not measured; the last state is y_final (and a terminal event's state is under /events)")
+
+
 def _samples_end(run_file) -> str:
     """' (t <= 3; the run ended at t = 30.14)' when the samples stop before the run's last
     state (output times before a terminal event or before t_end): the figures do not cover
@@ -159,7 +172,9 @@ def run_notes(run_file) -> list[str]:
     warning = energy_note(run_file, drift)
     if warning:
         notes.append(warning)
-    if run_file.steps_done > 0:
+    if no_samples_text(run_file):
+        notes.append(no_samples_text(run_file))
+    elif run_file.steps_done > 0:
         undefined = [name for name, value in drift.items() if math.isnan(value)]
         if undefined:
             # a user trial: H NaN in a third of the samples (log(x) with x < 0 on the orbit, the check off)
@@ -329,7 +344,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
     scales = run_file.invariant_scales()
     if not any(math.isfinite(value) for value in drift.values()):
         # integrate.invariant_drift: no step done, no figure (0 would read as a perfect result)
-        if run_file.steps_done > 0:
+        if no_samples_text(run_file):
+            rows.append(f"invariants   no figures: {no_samples_text(run_file)}")
+        elif run_file.steps_done > 0:
             # a user trial: an H that was NaN in every sample read "no step done yet" after 100 steps
             rows.append(f"invariants   no figures: after {run_file.steps_done:,} steps, the invariants are NaN or "
                         "infinite in some or all of the samples (the problem's functions gave them there; the state "

@@ -226,6 +226,16 @@ def test_inspect_says_a_terminal_event_ended_the_run(tmp_path):
     invariants = next(line for line in report.output.splitlines() if line.startswith("invariants"))
     assert invariants.startswith(f"invariants   max |I(t) - I(t0)| over 2 samples (t <= 2; the run ended at "
                                  f"t = {loaded.t_final:.10g}, after the last sample)"), invariants
+    # output times that all come after the event: no sample (a user trial was told that H and every
+    # invariant were "NaN or infinite in some samples ... not defined on the whole orbit")
+    config["output"] = {"times": [50.0, 60.0]}
+    result = CliRunner().invoke(cli, ["run", str(write_config(tmp_path, config)), "-o", str(out), "--overwrite"])
+    assert result.exit_code == 0, result.output
+    said = f"no sample stored: the run ended at t = {loaded.t_final:.10g} before its first output time"
+    assert f"note: {said}" in result.output and "NaN" not in result.output
+    report = CliRunner().invoke(cli, ["inspect", str(out)])
+    invariants = next(line for line in report.output.splitlines() if line.startswith("invariants"))
+    assert invariants.startswith(f"invariants   no figures: {said}"), invariants
 
 
 def test_fixed_step_run_with_events_keeps_its_steps(tmp_path):
