@@ -669,3 +669,25 @@ def test_open_datatree_on_another_hdf5_file_says_it_is_not_elimfast_s(tmp_path):
         elimfast.open_datatree(path)
     assert str(info.value) == (f"{path}: not an elimfast run or sweep file (no 'elimfast-run' format attribute); "
                                "open another HDF5 file with xr.open_datatree(path, engine='h5netcdf')")
+
+
+def test_a_netcdf_copy_of_a_run_or_sweep_file_is_named_as_such_not_damaged(kepler_file, sweep_file, tmp_path):
+    """A user trial: open_datatree(...).to_netcdf(copy), then inspect or load of the copy, said it was
+    'damaged at its root attributes' and to start the run again with --overwrite. xarray writes each
+    scalar attribute as an array of one; open_datatree still reads the copy."""
+    from click.testing import CliRunner
+    from elimfast_cli.main import cli
+    run_copy, sweep_copy = tmp_path / "run.nc", tmp_path / "sweep.nc"
+    for source, copy in ((kepler_file[1], run_copy), (sweep_file[0], sweep_copy)):
+        with elimfast.open_datatree(source) as tree:
+            tree.to_netcdf(copy)
+    said = ("a copy written by xarray (to_netcdf) or another netCDF writer, whose attributes are arrays, not an "
+            "elimfast file: read it with elimfast.open_datatree or xarray, or give elimfast the original")
+    for copy, run in ((run_copy, None), (sweep_copy, "GHBVM/2*pi/80")):
+        with pytest.raises(elimfast.ElimfastError) as refused:
+            elimfast.load(copy, run=run)
+        assert str(refused.value) == f"{copy}: {said}"
+        result = CliRunner().invoke(cli, ["inspect", str(copy)])
+        assert result.exit_code == 2 and result.output == f"error: {copy}: {said}\n"
+    with elimfast.open_datatree(run_copy) as tree:
+        assert tree["steps"]["iterations"].size > 0

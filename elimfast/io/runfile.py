@@ -68,7 +68,7 @@ from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyErro
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
                      _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
                      damaged_row_ranges, ensure_not_busy, extended_to_recorded_end, no_room, open_unflagged,
-                     rows_text, set_consistency_flags)
+                     refuse_netcdf_copy, rows_text, set_consistency_flags)
 
 
 
@@ -254,7 +254,7 @@ class RunWriter:
                  sequence: int = 1):
         self.path = path
         self._file = file
-        # Handles kept: h5py's name lookups cost more than the writes of a chunk.
+        # Handles kept: h5py's name lookups cost more than a chunk's writes.
         self._datasets = datasets
         self._t, self._y = datasets["t"], datasets["y"]
         self._invariants = datasets["invariants"]    # in the column order of Chunk.invariants
@@ -402,12 +402,12 @@ class RunWriter:
             raise NotAnElimfastFile(f"{path}: not an HDF5 file, so not an elimfast run to resume")
         ensure_not_busy(path)
         # a write cut off part-way (a file-size limit) leaves the file shorter than HDF5 recorded:
-        # extended back (its saved part is whole, and verified here), or left as it was if not sound
+        # extended back (its saved part verified here), or left as it was if not sound
         with extended_to_recorded_end(path), RunFile(path) as existing:
             saved = existing.saved_state()
             existing.verify(stop=stop)
             # A failed fixed-step run ends with a sample of its last good state, off the grid
-            # (Integration.advance): the continuation samples the grid again. Adaptive-kernel runs
+            # (Integration.advance): the continuation samples the grid again. Adaptive runs
             # (/steps/h; not step_control: all files have it) add none.
             if "h" not in existing._root["steps"]:
                 saved["n_samples"] = min(saved["n_samples"], samples_on_grid(
@@ -474,7 +474,7 @@ class RunWriter:
             if stored_sets and stored_sets[SET_OVERRIDES] != attrs.get(SET_OVERRIDES):
                 _replace_attributes(f, stored_sets)
             # stats_*: those of the end before; gone while the run goes on, so that a file killed
-            # now claims none (finish writes the new ones, as it writes steps_done)
+            # now claims none (finish writes new ones, as steps_done)
             for key in ["failed_step_iterations", *(key for key in f.attrs if key.startswith(STATS_PREFIX))]:
                 if key in f.attrs:
                     del f.attrs[key]
@@ -733,6 +733,7 @@ class RunFile:
                 raise
             raise FileBusyError(message) from None
         try:
+            refuse_netcdf_copy(self.path, self._file.attrs)
             if run is None:
                 _require_ours(self.path, self._file)
                 self._root = self._file
@@ -832,7 +833,7 @@ class RunFile:
         if best is None:
             raise DamagedFileError(f"{self.path} is damaged at /state/record: neither copy of the saved state is "
                                    f"sound ({'; '.join(problems)}); {_DAMAGE_ADVICE}")
-        # the named datasets are written after the record: a later count there means the lost copy was the newer
+        # the named datasets follow the record: a later count there means the lost copy was the newer
         if problems and int(named["steps_done"]) > best["steps_done"]:
             self.state_damage = (f"the newest copy of the saved state is damaged ({'; '.join(problems)}); resume "
                                  f"continues from the other copy, at step {best['steps_done']}")
@@ -1120,7 +1121,7 @@ class RunFile:
         if self.multiplier_name != "alpha":
             return 0
         # alpha's rows are wider than h's: read both in blocks of the same rows, or the pairs part
-        # after the first block (a run of over 2^20 steps failed here)
+        # after the first block (a run of 2^20+ steps failed)
         adaptive = "h" in self._root["steps"]
         block = min(self._block_rows("steps/alpha"), self._block_rows("steps/h") if adaptive else np.inf)
         sizes = (self._blocks("steps/h", self.steps_done, block) if adaptive
