@@ -222,8 +222,8 @@ class SolverSettings:
         if self.lim_metric != "euclidean" and method.kernel_family != codes.FAMILY_LIM:
             raise ParameterError("lim_metric", f"{self.lim_metric!r} applies to LIM and GHBVM only (the metric of "
                                                "their correction W phi_0 lambda, docs/methods.md#the-metric-of-the-"
-                                               f"correction); {method.name} has none: leave lim_metric out, or use "
-                                               "a LIM method")
+                                               f"correction); {method.name} has none: leave lim_metric out or set it "
+                                               "to 'euclidean' (the default), or use a LIM method")
         settings = self
         if settings.method == "auto":
             settings = replace(settings, method="newton" if dimension <= AUTO_NEWTON_MAX_DIMENSION else "fixed_point")

@@ -98,6 +98,12 @@ def test_the_metric_is_refused_on_a_method_without_lims_correction(tmp_path):
     assert (f"{config}:4: solver.lim_metric: 'scaled' applies to LIM and GHBVM only" in refused.stderr
             and "EHBVM(6,3) has none" in refused.stderr), refused.stderr
     assert not (tmp_path / "e.h5").exists()
+    # a user trial: "leave lim_metric out" cannot be done by --set on a config that sets it (configs/nbody.yaml),
+    # and --set solver.lim_metric=null is refused; the value that undoes it is named, and works
+    assert "or set it to 'euclidean' (the default)" in refused.stderr
+    undone = CliRunner().invoke(cli, ["run", str(config), "-o", str(tmp_path / "e.h5"), "-q",
+                                      "--set", "solver.lim_metric=euclidean"])
+    assert undone.exit_code == 0, undone.output
     for method in (elimfast.methods.ehbvm(6, 3), elimfast.methods.gauss(3)):
         with pytest.raises(ParameterError, match="lim_metric 'scaled' applies to LIM and GHBVM only"):
             elimfast.integrate(kepler(0.6), method, 0.1, n_steps=2, solver=SCALED)
