@@ -673,6 +673,10 @@ def config_differences(old, new, prefix: str = ""):
             yield prefix.rstrip(".") or "config", new
         return
     keys = sorted(set(old) | set(new), key=str)
+    if not prefix:   # the sections as a config is read: the problem before its method (a user trial resumed
+        from .config_schema import RunConfig   # a Kepler run with a pendulum config: "method.name changes")
+        order = list(RunConfig.model_fields)
+        keys.sort(key=lambda key: order.index(key) if key in order else len(order))
     if "t_end" in keys and "n_steps" in keys:   # n_steps follows from t_end: name the one users write
         keys.remove("t_end")
         keys.insert(0, "t_end")
