@@ -534,7 +534,7 @@ def _report_run(outcome, config, path, quiet) -> int:
             # time; this session's steps over this session's elapsed time printed another number
             rate_text = (f", {_rate(outcome.steps_done, outcome.wall_time_s)}"
                          if outcome.steps_done and outcome.wall_time_s > 0 else "")
-            click.echo(f"{path}: complete, {outcome.steps_done} steps, wall time {outcome.wall_time_s:.3g} s"
+            click.echo(f"{path}: complete, {outcome.steps_done:,} steps, wall time {outcome.wall_time_s:.3g} s"
                        f"{rate_text}{note}", err=True)
             from elimfast.io.hdf5 import RunFile
 

@@ -53,6 +53,9 @@ def test_run_quiet_prints_nothing_and_the_default_prints_one_line(tmp_path):
     import re
     wall, rate = re.search(r"wall time (\S+) s, ([\d,]+) steps/s", loud.stderr).groups()
     assert abs(200 / float(wall) / float(rate.replace(",", "")) - 1) < 0.01 + 1 / float(rate.replace(",", ""))
+    # the step count as the rate and inspect write it (a user trial: "763336 steps ... 106,950 steps/s")
+    thousands = invoke("run", KEPLER, "-o", tmp_path / "q.h5", "--overwrite", "--set", "integration.t_end=200")
+    assert "complete, 2,000 steps" in thousands.stderr, thousands.stderr
 
 
 def test_inspect_summary(kepler_file):
