@@ -1208,11 +1208,16 @@ def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, flo
         groups.setdefault(key, []).append(outcome)
     written = {run.label: run.config for run in spec.runs}
     for members in groups.values():
-        for previous, current in zip(members, members[1:]):
-            e0, e1 = errors[previous.label], errors[current.label]
-            x0, x1 = (order_axis_value(spec, o, written.get(o.label)) for o in (previous, current))
-            if previous.ok and current.ok and e0 > 0 and e1 > 0 and x0 > 0 and x1 > 0 and x0 != x1:
-                orders[current.label] = math.log(e0 / e1) / math.log(x0 / x1)
+        # Against the last run before it that has an error and a value: a failed or refused run in
+        # between left the next row's order empty (a user trial: h = pi/30, 0.7 refused, pi/60).
+        usable = None
+        for current in members:
+            e1, x1 = errors[current.label], order_axis_value(spec, current, written.get(current.label))
+            if not (current.ok and e1 > 0 and x1 > 0):
+                continue
+            if usable is not None and usable[1] != x1:
+                orders[current.label] = math.log(usable[0] / e1) / math.log(usable[1] / x1)
+            usable = (e1, x1)
     return orders
 
 

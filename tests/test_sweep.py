@@ -208,6 +208,23 @@ def test_the_observed_order_is_taken_along_any_axis_of_numbers_and_named_after_i
     assert [float(row[column]) for row in csv_rows[1:]] == [orders[o.label] for o in outcomes[1:]]
 
 
+def test_the_order_next_to_a_run_without_an_error_is_taken_against_the_run_before_it(tmp_path):
+    """A user trial: h = pi/30, 0.7 (refused: no whole number of steps), pi/60 left the pi/60 row's
+    order empty, though the order between pi/30 and pi/60 is there to take."""
+    base = {**BASE, "method": {"name": "gauss", "s": 2}, "conserve": [], "integration": {"t_end": "2*pi"}}
+    path = write_sweep(tmp_path, {"base": base, "grid": [
+        {"name": "h", "key": "integration.h", "values": ["pi/30", 0.7, "pi/60"]}],
+        "error": {"exact": "initial"}, "order_axis": "h"})
+    spec = load_sweep(path)
+    outcomes, _ = run_sweep(spec, workers=1)
+    assert [o.ok for o in outcomes] == [True, False, True]
+    errors = errors_of(spec, outcomes, None)
+    orders = orders_of(spec, outcomes, errors)
+    expected = math.log(errors[outcomes[0].label] / errors[outcomes[2].label]) / math.log(2.0)
+    assert orders[outcomes[2].label] == pytest.approx(expected, rel=1e-12) and abs(expected - 4.0) < 0.3   # GAUSS2
+    assert math.isnan(orders[outcomes[0].label]) and math.isnan(orders[outcomes[1].label])
+
+
 def test_a_failing_run_does_not_stop_the_others(tmp_path):
     path = write_sweep(tmp_path, {
         "base": {**BASE, "solver": {"max_iter": 30, "method": "fixed_point", "max_halvings": 0}},
