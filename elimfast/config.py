@@ -580,20 +580,22 @@ class _Builder:
                 line = self.lines[found]
         return line
 
-    def message(self, path, text: str) -> str:
-        override = self.override_of(path)
+    def message(self, path, text: str, sets: bool = True) -> str:
+        """``text`` at the key ``path``, with the --set that gave it or those below it (sets=False:
+        none, for an error no value can cause: the cache's)."""
+        override = self.override_of(path) if sets else None
         if override is not None:
             return f"{self.source}: {_join(path)}: {text} (value from --set {_clip(override)})"
         line = self.line_of(path)
         where = f"{self.source}:{line}" if line is not None else self.source
         keys = tuple(p for p in path if isinstance(p, str))
-        below = [item for o, item in self.overridden.items() if keys and o[:len(keys)] == keys]
+        below = [item for o, item in self.overridden.items() if sets and keys and o[:len(keys)] == keys]
         # every --set below the key: the error may be any of them (output.times.stop, not .start)
         suffix = f" (with --set {', --set '.join(_clip(item) for item in below)})" if below else ""
         return f"{where}: {_join(path)}: {text}{suffix}"
 
-    def error(self, path, text: str):
-        return ConfigError(self.message(path, text), key=_join(path), line=self.line_of(path))
+    def error(self, path, text: str, sets: bool = True):
+        return ConfigError(self.message(path, text, sets), key=_join(path), line=self.line_of(path))
 
     def parameter_error(self, err: ParameterError, section: tuple = ()):
         """A library validator's error at the parameter's YAML key (section: where its
@@ -916,8 +918,8 @@ class _Builder:
             if section.check:
                 from .problems.check import require_problem
                 require_problem(problem)
-        except CacheError as err:
-            raise self.error(("problem",), str(err)) from None
+        except CacheError as err:   # the machine's, not a value's (a user trial: "(with --set problem.parameters.mu=...)")
+            raise self.error(("problem",), str(err), sets=False) from None
         except ProblemDefinitionError as err:
             if (mode == "expressions" and err.key) or err.key == "time_scale":
                 path = ("problem", *err.key.split("."))

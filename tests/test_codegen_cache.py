@@ -383,6 +383,10 @@ def test_an_unwritable_cache_is_a_config_error(tmp_path, monkeypatch):
     for name in ("kepler_expressions", "kepler_python"):
         with pytest.raises(ConfigError, match="problem: cannot write the elimfast cache .* set ELIMFAST_CACHE_DIR"):
             load_run(CONFIGS / f"{name}.yaml")
+    # no --set is to blame (a user trial was told "(with --set problem.parameters.mu=1.0000001)")
+    with pytest.raises(ConfigError) as refused:
+        load_run(CONFIGS / "kepler_expressions.yaml", overrides=["problem.parameters.mu=1.0000001"])
+    assert str(refused.value).endswith("set ELIMFAST_CACHE_DIR to a writable directory"), str(refused.value)
 
 
 
