@@ -843,7 +843,11 @@ def refuse_netcdf_copy(path, attrs) -> None:
     """OutputError for a copy of an elimfast file written by xarray (to_netcdf) or another netCDF
     writer, which stores every scalar attribute as an array of one: readers of elimfast's layout
     would call it damaged (a user trial). elimfast.open_datatree reads such a copy."""
-    if "format" in attrs and np.ndim(attrs.get("format_version", 0)) == 1:
+    try:
+        copy = "format" in attrs and np.ndim(attrs.get("format_version", 0)) == 1
+    except READ_ERRORS:   # damaged attributes: the reader that follows names the damage
+        return
+    if copy:
         raise OutputError(f"{path}: a copy written by xarray (to_netcdf) or another netCDF writer, whose attributes "
                           "are arrays, not an elimfast file: read it with elimfast.open_datatree or xarray, or give "
                           "elimfast the original")
