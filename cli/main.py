@@ -793,7 +793,7 @@ def methods():
     rows = [(family.signature(), family.description) for family in FAMILIES.values()]
     width = max(len(r[0]) for r in rows)
     click.echo("\n".join(f"{sig:<{width}}  {note}" for sig, note in rows))
-    click.echo("\nk, r: quadrature nodes (k >= s, r >= s, at most 64); s: the order is 2s. "
+    click.echo("\nk, r: quadrature nodes (k >= s, r >= s, at most 64); s: the order is 2s (s at most 63). "
                "Tableau: elimfast tableau NAME --k K --s S [--r R] [--eta ...]. "
                "The methods and their math: docs/methods.md")
     return EXIT_OK

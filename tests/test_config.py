@@ -230,6 +230,9 @@ BAD = [
      "integration.h", "missing; give the step size, e.g. h: pi/30, or rtol: 1e-12 for adaptive steps"),
     ("method extra r", _set(("method", "r"), 12), "method.r", "takes no r"),
     ("method k too large", _set(("method", "k"), 65), "method.k", "must be <= 64"),
+    # a user trial: GAUSS(64) was refused as "--n must be <= 64 ..., got 65" (the predictor's s + 1 nodes)
+    ("method s too large", lambda d: {**d, "method": {"name": "gauss", "s": 64}, "conserve": []}, "method.s",
+     r"must be <= 63 \(the predictor's s \+ 1 Gauss-Legendre nodes are verified up to 64\), got 64"),
     ("method k bool", _set(("method", "k"), True), "method.k", "whole number"),
     ("s not above nu", _set(("method", "s"), 2), "method.s", r"at most s - 1 = 1.* raise s to 3"),
     ("conserve unknown", _set(("conserve",), ["angular_momentum", "lrl_z"]), "conserve[1]",

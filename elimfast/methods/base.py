@@ -338,6 +338,9 @@ def build(family: str, r: int, k: int, s: int) -> Method:
     if r < s:
         raise ParameterError(own("r"), f"must be >= s = {s} (the invariants' quadrature needs at least s nodes), "
                                        f"got {r}; raise r or lower s")
+    if s >= MAX_NODES:   # the predictor takes s + 1 nodes (a user trial: GAUSS(64) was told "--n must be <= 64")
+        raise ParameterError(own("s"), f"must be <= {MAX_NODES - 1} (the predictor's s + 1 Gauss-Legendre nodes are "
+                                       f"verified up to {MAX_NODES}), got {s}")
     for name, value in (("k", k), ("r", r)):
         if value > MAX_NODES:
             raise ParameterError(own(name), f"must be <= {MAX_NODES} (the Gauss-Legendre nodes are verified up to "
