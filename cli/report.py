@@ -163,7 +163,8 @@ def run_notes(run_file) -> list[str]:
                      "could not converge them whole, or could only with alpha carrying rounding into the step "
                      "(docs/solver.md#when-a-step-fails-retry-then-split); every invariant is kept there too")
     if substeps.get("unimposed"):
-        notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive))
+        notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive,
+                                    _literal_sum(run_file)))
     spikes = run_file.alpha_spikes()
     if spikes:
         from elimfast.integrate import alpha_spike_note
@@ -201,13 +202,24 @@ def unused_h_note(h, first=None) -> str:
 UNIMPOSED_DEGENERATE_FRACTION = 0.01
 
 
-def unimposed_text(count: int, steps_done: int, adaptive: bool = False) -> str:
-    """What a run's steps with a substep taken without imposing the invariants mean (docs/solver.md)."""
+def _literal_sum(run_file) -> str | None:
+    """integrate.literal_sum_note of a run file's method and right-hand side."""
+    from elimfast.integrate import literal_sum_note
+    attrs = run_file.attrs
+    rhs = (config_of(run_file).get("solver") or {}).get("rhs", "stable")
+    return literal_sum_note(str(attrs.get("family")), attrs.get("r"), attrs.get("k"), attrs.get("s"), str(rhs))
+
+
+def unimposed_text(count: int, steps_done: int, adaptive: bool = False, literal_sum: str | None = None) -> str:
+    """What a run's steps with a substep taken without imposing the invariants mean (docs/solver.md).
+    ``literal_sum``: integrate.literal_sum_note of the run's method, the likelier cause when given."""
     text = (f"{count:,} step(s) were taken, or had a substep taken, without imposing the invariants, because "
             "imposing failed there (alpha was rounding over rounding, or the solver could not converge even after "
             "the last halving) and the step kept them to round-off anyway (their alpha is NaN; "
             "docs/solver.md#a-substep-without-imposing)")
-    if count > UNIMPOSED_DEGENERATE_FRACTION * steps_done and adaptive:
+    if count > UNIMPOSED_DEGENERATE_FRACTION * steps_done and literal_sum:
+        text += f"; that many: {literal_sum}"
+    elif count > UNIMPOSED_DEGENERATE_FRACTION * steps_done and adaptive:
         # a user trial: Kepler e = 0.99 under the time-scale controller, epsilon 0.05, whose pericentre
         # steps of 5e-5 are too short for Gamma, was told that L and A_y were degenerate on its orbit
         text += ("; that many means that its shortest steps (at close approaches) are too short for Gamma, "
@@ -419,7 +431,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
     if substeps.get("unimposed"):
-        row("", unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive))
+        row("", unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive, _literal_sum(run_file)))
     warning = energy_note(run_file, samples_drift)
     if warning:
         row("note", warning)
@@ -429,7 +441,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
         row("max |alpha|", f"none: {a.get('method')} imposes no invariant")
     else:
         symbol = run_file.multiplier_name
-        text = ", ".join(f"{v:.3e} ({label.split('[', 1)[1].rstrip(']')})" for v, label in zip(maxima, labels))
+        text = ", ".join((f"{v:.3e}" if v == v else "none (no step imposed it)")   # NaN: every step unimposed
+                         + f" ({label.split('[', 1)[1].rstrip(']')})" for v, label in zip(maxima, labels))
         row(f"max |{symbol}|", text if done else "no steps yet")
         spikes = run_file.alpha_spikes()
         if spikes:

@@ -99,6 +99,27 @@ _LIM_SINGULAR_ADVICE = ("the gradients of H and the imposed invariants are (near
 # Kepler e = 0.6, after 4 halvings (tests/test_step_engine.py).
 _LITERAL_RHS_ADVICE = ("the literal right-hand side's multipliers are rounding noise at small steps: use the stable "
                        "one (solver.rhs: stable, the default; docs/methods.md#stable-right-hand-side)")
+# s from which the paper's literal sum for alpha's right-hand side is noise that slows or stalls the solve
+# (docs/methods.md#stable-right-hand-side; s <= 3, the paper's, stays clean)
+LITERAL_SUM_NOISY_S = 4
+
+
+def literal_sum_note(family: str, r, k, s, rhs: str) -> str | None:
+    """Why an imposing method whose right-hand side is the paper's literal sum (solver.rhs: literal,
+    or r > k, where no stable form exists) at s >= LITERAL_SUM_NOISY_S splits or leaves unimposed
+    so many steps; None for every other method. A user trial ran ELIM(16,12,6): every step was
+    split and taken unimposed, at 917 iterations a step, and the note blamed the invariants."""
+    if family not in ("elim", "ehbvm", "lim", "ghbvm") or s is None or int(s) < LITERAL_SUM_NOISY_S:
+        return None
+    if rhs == "literal" and int(r) <= int(k):
+        return _LITERAL_RHS_ADVICE
+    if int(r) > int(k):
+        return (f"with r > k (r = {int(r)}, k = {int(k)}) alpha's right-hand side is the paper's literal sum, whose "
+                f"rounding at s >= {LITERAL_SUM_NOISY_S} makes alpha noise at small steps "
+                "(docs/methods.md#stable-right-hand-side): take r <= k, or s <= 3")
+    return None
+
+
 _NEARLY_SINGULAR_ADVICE = ("Gamma is nearly singular here: Assumption 1 of the paper fails for these invariants at "
                            "this point of the orbit (docs/methods.md), which smaller steps do not cure; impose "
                            f"other invariants, whose gradients stay independent along the orbit, or {_TAKE_GHBVM})")
@@ -1199,6 +1220,9 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if solver.rhs == "literal" and method.kind.imposes != IMPOSES_NONE and method.r <= method.k and \
             status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR):
         advice = _LITERAL_RHS_ADVICE
+    elif status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR) and method.r > method.k and \
+            literal_sum_note(method.family, method.r, method.k, method.s, solver.rhs):
+        advice = literal_sum_note(method.family, method.r, method.k, method.s, solver.rhs)
     if status == codes.STATUS_NOT_CONVERGED and max_iter_below_defaults(solver):
         # a cap set below any default is the likelier cause (a user trial: max_iter = 1 was told to reduce h)
         advice = f"{raise_max_iter(solver)}, or " + advice.removesuffix("; raise solver.max_iter")

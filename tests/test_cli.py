@@ -178,6 +178,26 @@ def test_many_unimposed_steps_of_an_adaptive_run_name_its_shortest_steps(tmp_pat
     assert "too short for Gamma" in invoke("inspect", out).stdout
 
 
+def test_elim_with_r_above_k_at_s_4_or_more_is_told_its_literal_sum_not_degenerate_invariants(tmp_path):
+    """A user trial: ELIM(16,12,6) (r > k: the paper's literal sum, the only form there) imposing L
+    on Kepler split every step and took it unimposed, at ~900 iterations a step; the note blamed L as
+    degenerate along the orbit (EHBVM(12,6) imposes it there with no split), and inspect gave
+    max |alpha| 0.000e+00 where every alpha is NaN."""
+    import yaml
+    config = tmp_path / "elim.yaml"
+    config.write_text(yaml.safe_dump({"problem": {"builtin": "kepler"}, "method": "ELIM(16,12,6)",
+                                      "conserve": ["angular_momentum"],
+                                      "integration": {"h": "pi/20", "t_end": "2*pi"},
+                                      "solver": {"method": "fixed_point"}}))
+    out = tmp_path / "elim.h5"
+    ran = invoke("run", config, "-o", out)
+    assert ran.exit_code == 0, ran.output
+    literal = "with r > k (r = 16, k = 12) alpha's right-hand side is the paper's literal sum"
+    assert literal in ran.stderr and "degenerate along this orbit" not in ran.stderr, ran.stderr
+    text = invoke("inspect", out).stdout
+    assert literal in text and "max |alpha|  none (no step imposed it) (angular_momentum)" in text, text
+
+
 def test_inspect_says_which_iterations_its_figures_count(tmp_path):
     """A user trial: inspect's total for an adaptive run (the accepted steps') differed from the sweep
     table's (every solve, rejected and side steps too, as grad H counts them), and neither said which."""

@@ -25,7 +25,7 @@ The file is written in SWMR mode (``safety.py``): root attributes cannot change 
 they are final only once the run ends (the writer then reopens the file normally);
 while a run is going, or after a kill, ``status`` still says ``running`` and /state holds
 the truth. Data rows beyond the saved state may exist after a kill; they belong to the
-chunk being written and are dropped by resume and by ``repair``.
+chunk being written; resume and ``repair`` drop them.
 
 Saved state. The named /state datasets are written one by one, so a kill between two
 of those writes would leave them mixed (y of one chunk, steps_done of the one before).
@@ -34,8 +34,8 @@ sequence number and a CRC-32 of its values (and HDF5's fletcher32 on each row): 
 valid row with the higher sequence number is the state, and if a kill or a damaged
 sector spoils one row, the other still holds the state of the chunk before.
 
-Damage. A resume first reads everything it will build on and refuses a damaged file,
-leaving it as it was; every read error names the file and the place (``DamagedFileError``).
+Damage. A resume first reads all it builds on and refuses a damaged file, leaving it
+as it was; every read error names the file and the place (``DamagedFileError``).
 
 The reader also opens one run of a sweep file (``RunFile("sweep.h5:/runs/<label>")``),
 whose group has the same layout without /state.
@@ -1134,8 +1134,8 @@ class RunFile:
         name = f"steps/{self.multiplier_name}"
         with self._reading(f"/{name}"):
             width = self._root[name].shape[1]
-        result = np.zeros(width)
+        result = np.full(width, np.nan)   # NaN where no step imposed
         for block in self._blocks(name, self.steps_done):
             if block.size:
-                result = np.fmax(result, np.fmax.reduce(np.abs(block), axis=0))   # NaN: not imposed
+                result = np.fmax(result, np.fmax.reduce(np.abs(block), axis=0))
         return result.tolist()
