@@ -31,7 +31,7 @@ from .kernels.codes import STATUS_EXCEPTION, STATUS_TIME_SCALE
 from .function_addresses import remembered_addresses
 from .methods import Method, as_method
 from .problems import Problem
-from .problems.base import real_state
+from .problems.base import real_state, require_problem_object
 
 # Blocks of a local ensemble written to a file (elimfast sweep -o): sized from the measured
 # speed, as a run's chunks are (streaming.next_chunk_steps), to take about this long. Each
@@ -145,8 +145,7 @@ def _thread_count(n_threads) -> int:
 def check_states(problem: Problem, Y0) -> np.ndarray:
     """Y0 as a C-contiguous float64 array (n_traj, 2m) of finite initial states; TypeError or
     ValueError naming what is wrong."""
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
+    require_problem_object(problem)
     n = 2 * problem.degrees_of_freedom
     states = np.ascontiguousarray(real_state(Y0, "Y0"))
     if states.ndim != 2 or states.shape[0] < 1 or states.shape[1] != n:

@@ -20,7 +20,7 @@ from . import methods
 from .methods import Method
 from .methods.base import IMPOSES_NONE
 from .problems import Problem
-from .problems.base import real_state
+from .problems.base import real_state, require_problem_object
 
 # The kernels are loaded (or compiled) from their key folder: mark it used, and prune the
 # key folders of old kernels if it is new (cache.py). Once per process, a few system calls.
@@ -953,8 +953,7 @@ class Integration:
                  rhs: str = "stable", warm_start: bool = True, t0: float = 0.0, y0=None,
                  backward: bool = False, solver: str | SolverSettings = DEFAULT_SOLVER,
                  predictor: bool = True, max_halvings: int = DEFAULT_MAX_HALVINGS, check_y0: bool = True):
-        if not isinstance(problem, Problem):
-            raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
+        require_problem_object(problem)
         if not isinstance(method, Method):
             raise TypeError(f"method must be an elimfast Method (e.g. elimfast.methods.ehbvm(12, 3)), "
                             f"got {type(method).__name__}")
@@ -1439,8 +1438,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     """Adaptive steps, or fixed steps with output times or events (elimfast.adaptive)."""
     from .adaptive import AdaptiveIntegration, EventSpec, resolve_span, resolve_t_eval
 
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}")
+    require_problem_object(problem)
     if not isinstance(method, Method):
         raise TypeError(f"method must be an elimfast Method, got {type(method).__name__}")
     if backward:

@@ -423,6 +423,18 @@ def test_a_builtin_problems_parameter_given_as_a_string_is_refused_like_integrat
         getattr(elimfast.problems, builder)(**{parameter: "4"})
 
 
+def test_a_problem_given_by_its_name_is_told_how_to_build_it():
+    """A user trial: integrate("kepler", "GAUSS(2)", ...) raised "problem must be an elimfast Problem,
+    got str", where a method may be given by its name."""
+    from elimfast.ensemble import integrate_ensemble
+    with pytest.raises(TypeError, match=r"got str \(build it: elimfast\.problems\.kepler\(\)\)$"):
+        elimfast.integrate("kepler", "GAUSS(2)", h=0.1, n_steps=2)
+    with pytest.raises(TypeError, match=r"got str \(build it: elimfast\.problems\.kepler\(\)\)$"):
+        elimfast.integrate("kepler", "GAUSS(2)", rtol=1e-8, t_end=1.0)
+    with pytest.raises(TypeError, match=r"got str \(build one with elimfast\.problems\.<name>\(\), "):
+        integrate_ensemble("kepleer", ehbvm(8, 4), 0.1, np.zeros((1, 4)), n_steps=2)
+
+
 def test_conserve_none_imposes_nothing_and_a_non_list_is_one_line():
     """A user trial: conserve=None raised TypeError: 'NoneType' object is not iterable (integrate and
     integrate_ensemble alike)."""

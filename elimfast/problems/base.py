@@ -42,6 +42,19 @@ def real_parameter(parameter: str, value) -> float:
         raise ParameterError(parameter, f"must be a number, got {_shown(value)}") from None
 
 
+def require_problem_object(problem) -> None:
+    """TypeError unless ``problem`` is a Problem; a name of a built-in one says how to build it (a
+    user trial passed "kepler", as a method may be passed by its name)."""
+    if isinstance(problem, Problem):
+        return
+    hint = ""
+    if isinstance(problem, str):
+        from .catalogue import BUILTINS
+        hint = (f" (build it: elimfast.problems.{problem}())" if problem in BUILTINS
+                else " (build one with elimfast.problems.<name>(), problem_from_expressions or problem_from_file)")
+    raise TypeError(f"problem must be an elimfast Problem, got {type(problem).__name__}{hint}")
+
+
 def real_state(value, parameter: str = "y0") -> np.ndarray:
     """An initial state as a fresh float64 array, or a ParameterError naming ``parameter``.
 
