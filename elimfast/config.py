@@ -637,6 +637,11 @@ class _Builder:
             if not adaptive and integration.h is None:
                 # before the method: without h or rtol, a missing k is not the fix (rtol makes k = 2s)
                 raise self.error(("integration", "h"), f"missing; {_EXAMPLES['integration.h']}")
+            if not adaptive and "k" in kind.parameters and "k" not in method_parameters and "s" in method_parameters:
+                # a user trial made an adaptive config of no k fixed-step (--set integration.rtol=null)
+                raise self.error(("method", "k"), f"is missing; {kind.signature()} needs k: k = 2s is the default of "
+                                                  f"adaptive runs only (rtol or step_control), so give k (e.g. k: "
+                                                  f"{2 * method_parameters['s']})")
             method = methods.get(config.method.name, **method_parameters)
             if adaptive:
                 step_control = self.step_control(integration).for_method(method, len(config.conserve))

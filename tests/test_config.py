@@ -229,6 +229,9 @@ BAD = [
     ("h and k missing", lambda d: _set(("method", "k"), DELETE)(_set(("integration", "h"), DELETE)(d)),
      "integration.h", "missing; give the step size, e.g. h: pi/30, or rtol: 1e-12 for adaptive steps"),
     ("method extra r", _set(("method", "r"), 12), "method.r", "takes no r"),
+    # a user trial made an adaptive config without k fixed-step: "is missing; ... needs k, s" said not why
+    ("k missing, fixed steps", _set(("method", "k"), DELETE), "method.k",
+     r"is missing; ehbvm\(k, s\) needs k: k = 2s is the default of adaptive runs only .* \(e\.g\. k: 6\)"),
     ("method k too large", _set(("method", "k"), 65), "method.k", "must be <= 64"),
     # a user trial: GAUSS(64) was refused as "--n must be <= 64 ..., got 65" (the predictor's s + 1 nodes)
     ("method s too large", lambda d: {**d, "method": {"name": "gauss", "s": 64}, "conserve": []}, "method.s",
