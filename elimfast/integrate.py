@@ -828,7 +828,9 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
         return h, n_steps
     span = real_number("t_end", t_end) - t0
     if not (math.isfinite(span) and span > 0.0):
-        raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}")
+        # (a user trial looked for backward runs here: only the Python API's backward=True makes one)
+        raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}; runs go forward in "
+                                      "time (a backward one: elimfast.integrate(..., backward=True) in Python)")
     if not span / h <= MAX_STEPS:
         raise ParameterError("t_end", f"(t_end - t0)/h = {span / h:.3g} steps, more than "
                                       f"{compact_number(MAX_STEPS)}: {STEPS_REASON}", related=("h", "t0"))
@@ -1271,7 +1273,8 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     initial state, 2m finite real numbers (q, then p; default: the problem's own).
     conserve: names of the problem's invariants to impose (ELIM/EHBVM: fewer than s;
     LIM/GHBVM: any number; must be empty for GAUSS/HBVM). store_every: keep every n-th
-    state (the last one always). backward: integrate towards t0 - n_steps h.
+    state (the last one always). backward: integrate towards t0 - n_steps h (fixed steps only,
+    without t_eval or events; configs run forward).
 
     How each step is solved (docs/solver.md): solver 'auto' (the default: simplified Newton
     up to 48 state components, the fixed point above), 'newton' (simplified Newton),

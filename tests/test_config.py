@@ -217,7 +217,9 @@ BAD = [
     ("h bad expression", _set(("integration", "h"), "pi/"), "integration.h", "not a valid expression"),
     ("h negative", _set(("integration", "h"), "-pi/30"), "integration.h", "must be > 0"),
     ("t_end not whole steps", _set(("integration", "h"), 0.3), "integration.t_end", "not a whole number of steps"),
-    ("t_end before t0", _set(("integration", "t0"), 2000), "integration.t_end", "must be after t0"),
+    # a user trial looked for backward runs here
+    ("t_end before t0", _set(("integration", "t0"), 2000), "integration.t_end",
+     r"must be after t0 .*; runs go forward in time \(a backward one: elimfast.integrate\(..., backward=True\)"),
     ("no t_end nor n_steps", _set(("integration", "t_end"), DELETE), "integration.t_end", "is missing; give t_end"),
     ("n_steps not integer", _set(("integration", "n_steps"), 10.5), "integration.n_steps", "whole number"),
     ("method unknown", _set(("method", "name"), "ehbmv"), "method.name", "did you mean 'ehbvm'"),
