@@ -318,8 +318,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
         shown = ", ".join(f"{t:.10g}" for t in times[:3]) + (", ..." if times.size > 3 else "")
         row("events" if name == run_file.event_names()[0] else "",
             f"{name}: {times.size} found" + (f", t = {shown}" if times.size else "")
-            + (f"; NaN or infinite at samples from t = {not_finite[name]:.6g} on, where no crossing can be found "
-               "(check the expression)" if name in not_finite else ""))
+            # "from t on" read as "everywhere after" beside crossings found later (a user trial: log(q1) + 2)
+            + (f"; NaN or infinite at samples, first at t = {not_finite[name]:.6g}: no crossing can be found "
+               "where it is (check the expression)" if name in not_finite else ""))
     status = run_file.status
     if status == "killed":
         status = ("killed (the writer stopped without closing the file; continue with elimfast run ... --resume"

@@ -890,7 +890,7 @@ def test_an_event_that_turns_nan_is_named_by_the_run_file_too(tmp_path):
     assert stored.events_not_finite == in_memory.events_not_finite and set(stored.events_not_finite) == {"nan"}
     report = CliRunner().invoke(cli, ["inspect", str(path)]).stdout
     first = stored.events_not_finite["nan"]
-    assert f"nan: 0 found; NaN or infinite at samples from t = {first:.6g} on" in report, report
+    assert f"nan: 0 found; NaN or infinite at samples, first at t = {first:.6g}: no crossing" in report, report
     assert "q2: " in report and "q2: 0 found" not in report
 
 
