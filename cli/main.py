@@ -691,7 +691,8 @@ def inspect(file):
               default="invariants",
               show_default=True, help="orbit: the trajectory; invariants: |I(t) - I(t0)| on a log scale; "
                                       "alpha: the multipliers per step (lambda for LIM); iterations: per step; "
-                                      "section: the states at an event (a surface of section; --event).")
+                                      "section: the states at an event (a surface of section; --event), q_j against p_j "
+                                      "for the last degree of freedom the event leaves free.")
 @click.option("--event", metavar="NAME", help="The event of --kind section (default: the run's first).")
 @click.option("-o", "--output", metavar="FIG.png", callback=_file_name,
               help="Image file (default: OUT_<kind>.png beside OUT.h5); the suffix picks the format (png, pdf, svg).")

@@ -314,10 +314,16 @@ def _step_times(run_file, count: int, stride: int) -> np.ndarray:
     return float(attrs["t0"]) + float(attrs["h"]) * (np.arange(0, count, stride) + 1)
 
 
+# A coordinate whose values over a section's crossings spread by less than this fraction of the state's
+# size is the one the event pins (q1 = 0: its crossings' q1 are rounding, ~1e-14).
+SECTION_PINNED = 1e-9
+
+
 def _section(run_file, axes, event: str | None = None) -> None:
     """A surface of section: the states at the occurrences of an event (the run's first unless
-    event names one), the last q against the last p (Henon-Heiles with the event q1 = 0: the
-    (q2, p2) plane)."""
+    event names one), q_j against p_j for the last degree of freedom j whose q_j and p_j both vary
+    over the crossings (Henon-Heiles with the event q1 = 0: the (q2, p2) plane; with q2 = 0, the
+    (q1, p1) plane, where a user trial got q2 against p2, the section's own coordinate at 0)."""
     names = run_file.event_names()
     if not names:
         raise PlotError(f"{run_file.name}: the run has no events; a section plot needs one, e.g. events: "
@@ -332,9 +338,13 @@ def _section(run_file, axes, event: str | None = None) -> None:
         raise PlotError(f"{run_file.name}: event {name!r} never occurred; nothing to draw{hint}")
     coordinates = run_file.coordinate_names
     m = len(coordinates) // 2
-    axes.plot(states[:, m - 1], states[:, 2 * m - 1], ".", ms=2.0, color="k")
-    axes.set_xlabel(coordinates[m - 1])
-    axes.set_ylabel(coordinates[2 * m - 1])
+    spread = np.ptp(states, axis=0) if times.size > 1 else np.ones(2 * m)
+    pinned = spread <= SECTION_PINNED * max(float(np.max(np.abs(states))), 1e-300)
+    free = [j for j in range(m) if not (pinned[j] or pinned[m + j])]
+    j = free[-1] if free else m - 1
+    axes.plot(states[:, j], states[:, m + j], ".", ms=2.0, color="k")
+    axes.set_xlabel(coordinates[j])
+    axes.set_ylabel(coordinates[m + j])
     axes.annotate(f"{times.size} crossings of {name}", (0.01, 0.01), xycoords="axes fraction",
                   fontsize="small", color="0.4")
 

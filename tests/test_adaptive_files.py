@@ -283,6 +283,24 @@ def test_section_plot_of_the_henon_heiles_config(tmp_path):
     chosen = CliRunner().invoke(cli, ["plot", str(two), "--kind", "section", "--event", "section",
                                       "-o", str(tmp_path / "s.png")])
     assert chosen.exit_code == 0, chosen.output
+    # A user trial: the plane was always the last q against the last p, so the section q2 = 0 drew q2
+    # (pinned at 0) against p2. It is now the last degree of freedom the event leaves free.
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from elimfast_cli import plots
+    q2 = tmp_path / "q2.h5"
+    ran = CliRunner().invoke(cli, ["run", str(root / "configs" / "henon_heiles_section.yaml"), "-o", str(q2),
+                                   "--quiet", "--set", "integration.t_end=100", "--set", "events.section.expression=q2"])
+    assert ran.exit_code == 0, ran.output
+    for path, plane in ((out, ("q2", "p2")), (q2, ("q1", "p1"))):
+        figure, axes = plt.subplots()
+        try:
+            with RunFile(path) as run_file:
+                plots._section(run_file, axes)
+            assert (axes.get_xlabel(), axes.get_ylabel()) == plane
+        finally:
+            plt.close(figure)
     assert (tmp_path / "s.png").stat().st_size > 5000
     unknown = CliRunner().invoke(cli, ["plot", str(two), "--kind", "section", "--event", "sectoin",
                                        "-o", str(tmp_path / "u.png")])
