@@ -109,7 +109,8 @@ def literal_sum_note(family: str, r, k, s, rhs: str) -> str | None:
     or r > k, where no stable form exists) at s >= LITERAL_SUM_NOISY_S splits or leaves unimposed
     so many steps; None for every other method. A user trial ran ELIM(16,12,6): every step was
     split and taken unimposed, at 917 iterations a step, and the note blamed the invariants."""
-    if family not in ("elim", "ehbvm", "lim", "ghbvm") or s is None or int(s) < LITERAL_SUM_NOISY_S:
+    kind = methods.FAMILIES.get(family)
+    if kind is None or kind.imposes == IMPOSES_NONE or s is None or int(s) < LITERAL_SUM_NOISY_S:
         return None
     if rhs == "literal" and int(r) <= int(k):
         return _LITERAL_RHS_ADVICE
@@ -1221,9 +1222,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if solver.rhs == "literal" and method.kind.imposes != IMPOSES_NONE and method.r <= method.k and \
             status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR):
         advice = _LITERAL_RHS_ADVICE
-    elif status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR) and method.r > method.k and \
-            literal_sum_note(method.family, method.r, method.k, method.s, solver.rhs):
-        advice = literal_sum_note(method.family, method.r, method.k, method.s, solver.rhs)
+    elif status in (codes.STATUS_NOT_CONVERGED, codes.STATUS_SINGULAR) and method.r > method.k:
+        advice = literal_sum_note(method.family, method.r, method.k, method.s, solver.rhs) or advice
     if status == codes.STATUS_NOT_CONVERGED and max_iter_below_defaults(solver):
         # a cap set below any default is the likelier cause (a user trial: max_iter = 1 was told to reduce h)
         advice = f"{raise_max_iter(solver)}, or " + advice.removesuffix("; raise solver.max_iter")

@@ -487,6 +487,21 @@ def test_a_solve_that_stalls_at_rounding_says_so_and_a_large_increment_does_not(
     assert "last relative increment 1.00e-03; " in far and "rounding's size" not in far
 
 
+def test_a_failure_of_elim_with_r_above_k_at_s_4_advises_r_at_most_k():
+    """There the right-hand side is the paper's literal sum whatever solver.rhs says (maps.elim_rhs_terms),
+    whose noise at s >= 4 no smaller step cures (a user trial: ELIM(16,12,6), ELIM(15,10,5))."""
+    import importlib
+    from elimfast.kernels import codes
+    from elimfast.methods import elim
+    driver = importlib.import_module("elimfast.integrate")
+    diagnostics = np.zeros(codes.N_DIAGNOSTICS)
+    diagnostics[codes.DIAG_INCREMENT] = 1e-3
+    for method, said in ((elim(16, 12, 6), True), (elim(9, 6, 3), False), (elim(6, 12, 6), False)):
+        message = driver.failure_message(method, SolverSettings(method="newton"), codes.STATUS_NOT_CONVERGED, 3,
+                                         0.5, 0.01, diagnostics)
+        assert ("alpha's right-hand side is the paper's literal sum" in message and "take r <= k" in message) == said
+
+
 def test_a_failure_with_the_literal_right_hand_side_advises_the_stable_one():
     """The paper's literal right-hand side turns alpha into rounding noise at small steps
     (docs/methods.md#stable-right-hand-side): EHBVM(12,3) imposing L and A_y fails at h = 1e-5, and
