@@ -173,8 +173,9 @@ def run_notes(run_file) -> list[str]:
     warning = energy_note(run_file, drift)
     if warning:
         notes.append(warning)
-    if no_samples_text(run_file):
-        notes.append(no_samples_text(run_file))
+    no_samples = no_samples_text(run_file)   # reads the saved state: once
+    if no_samples:
+        notes.append(no_samples)
     elif run_file.steps_done > 0:
         undefined = [name for name, value in drift.items() if math.isnan(value)]
         if undefined:
@@ -357,8 +358,9 @@ def summary(run_file, integrity: dict | None = None) -> str:
     scales = run_file.invariant_scales()
     if not any(math.isfinite(value) for value in drift.values()):
         # integrate.invariant_drift: no step done, no figure (0 would read as a perfect result)
-        if no_samples_text(run_file):
-            rows.append(f"invariants   no figures: {no_samples_text(run_file)}")
+        no_samples = no_samples_text(run_file)   # reads the saved state: once
+        if no_samples:
+            rows.append(f"invariants   no figures: {no_samples}")
         elif run_file.steps_done > 0:
             # a user trial: an H that was NaN in every sample read "no step done yet" after 100 steps
             rows.append(f"invariants   no figures: after {run_file.steps_done:,} steps, the invariants are NaN or "

@@ -629,7 +629,8 @@ class _Builder:
             method_parameters = {p: getattr(config.method, p) for p in ("r", "k", "s")
                                  if getattr(config.method, p) is not None}
             kind = methods.family(config.method.name)
-            if adaptive and "k" in kind.parameters and "k" not in method_parameters and "s" in method_parameters:
+            k_left_out = "k" in kind.parameters and "k" not in method_parameters and "s" in method_parameters
+            if adaptive and k_left_out:
                 # docs/adaptive.md: k = 2s keeps H at round-off with the small steps of an adaptive run
                 method_parameters["k"] = 2 * method_parameters["s"]
                 if "r" in kind.parameters and "r" not in method_parameters:
@@ -637,7 +638,7 @@ class _Builder:
             if not adaptive and integration.h is None:
                 # before the method: without h or rtol, a missing k is not the fix (rtol makes k = 2s)
                 raise self.error(("integration", "h"), f"missing; {_EXAMPLES['integration.h']}")
-            if not adaptive and "k" in kind.parameters and "k" not in method_parameters and "s" in method_parameters:
+            if not adaptive and k_left_out:
                 # a user trial made an adaptive config of no k fixed-step (--set integration.rtol=null)
                 raise self.error(("method", "k"), f"is missing; {kind.signature()} needs k: k = 2s is the default of "
                                                   f"adaptive runs only (rtol or step_control), so give k (e.g. k: "
