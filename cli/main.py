@@ -183,53 +183,11 @@ def _print_version(ctx, param, value):
         ctx.exit(EXIT_OK)
 
 
-_ANNOUNCED = []   # the listener, once registered
-
-
 def announce_compilation():
-    """Print one line on stderr when Numba starts compiling (a cache miss), at most once per
-    process and kind: elimfast's kernels (after an install, a change of elimfast or Numba,
-    `elimfast cache clear --kernels`), or the functions of a problem, an event or a time scale
-    from expressions or a Python file, which `elimfast cache warm` cannot compile ahead.
-    Warm runs print nothing. Imports Numba."""
-    if _ANNOUNCED:
-        return
-    from numba.core import event
-
-    class Announce(event.Listener):
-        said = set()
-
-        def on_start(self, ev):
-            dispatcher = (ev.data or {}).get("dispatcher") if isinstance(ev.data, dict) else None
-            module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
-            from elimfast.per_problem import MODULE_PREFIX as PER_PROBLEM_PREFIX
-            if module == "numba" or module.startswith("numba."):
-                # Numba's own jitted helpers (np.linalg's, for one), compiled for whatever is compiling:
-                # that one is announced (they were taken for the problem's functions, on a config naming none)
-                return
-            kind = ("kernels" if module == "elimfast" or module.startswith("elimfast.")
-                    else "per_problem" if module.startswith(PER_PROBLEM_PREFIX) else "user")
-            if kind in self.said:
-                return
-            self.said.add(kind)
-            if kind == "per_problem":
-                # it compiles elimfast's kernel code again for the problem, and the problem's functions
-                # once more for their calls there: one line says it all
-                self.said.update(("kernels", "user"))
-                click.echo("compiling the kernel for this problem (solver.kernel: per_problem; about 90 s, "
-                           "once: later runs of this problem load it from the cache) ...", err=True)
-            elif kind == "kernels":
-                click.echo("compiling Numba kernels (once: later runs load them from the cache; "
-                           "`elimfast cache warm` does it ahead) ...", err=True)
-            else:
-                click.echo("compiling the problem's own functions (once: later runs load them from the cache) ...",
-                           err=True)
-
-        def on_end(self, ev):
-            pass
-
-    _ANNOUNCED.append(Announce())
-    event.register("numba:compile", _ANNOUNCED[0])
+    """Say on stderr, in one line, when Numba starts compiling (elimfast/compile_notice.py owns
+    the lines and when they are said). Imports Numba."""
+    from elimfast import compile_notice
+    compile_notice.announce(write=lambda line: click.echo(line, err=True))
 
 
 @click.group(name="elimfast", cls=ElimfastGroup, context_settings=CONTEXT, invoke_without_command=True)
@@ -1173,6 +1131,8 @@ def cache_warm(quiet):
     Example:
       elimfast cache warm
     """
+    from elimfast import compile_notice
+    compile_notice.announce(write=lambda line: None)   # the lines below say it, step by step
     from elimfast.warm import warm
 
     if not quiet:

@@ -197,6 +197,33 @@ def test_compile_notice_is_one_line_on_a_cache_miss(tmp_path):
     assert again.returncode == 0 and again.stderr == ""
 
 
+API_RUN = """
+import logging, sys
+from elimfast import integrate
+from elimfast.methods import gauss
+from elimfast.problems import problem_from_expressions
+if sys.argv[1] == "silenced":
+    logging.getLogger("elimfast").setLevel(logging.ERROR)
+problem = problem_from_expressions({"q": ["q"], "p": ["p"]}, "p**2/2 + 2.3456*q**2/2", initial={"q": 1, "p": 0})
+integrate(problem, gauss(2), h=0.1, t_end=0.5)
+"""
+
+
+def test_python_api_says_when_it_compiles(tmp_path):
+    """A user trial: the Python API compiled for up to 2 minutes without a word (the command line
+    said so). It now says the same line once on stderr, through the 'elimfast' logger, which a
+    user can silence; a warm second process says nothing."""
+    env = dict(__import__("os").environ, ELIMFAST_CACHE_DIR=str(tmp_path / "cache"))
+    first = subprocess.run([sys.executable, "-c", API_RUN, "said"], capture_output=True, text=True, env=env)
+    assert first.returncode == 0, first.stderr
+    assert first.stderr == "compiling the problem's own functions (once: later runs load them from the cache) ...\n"
+    again = subprocess.run([sys.executable, "-c", API_RUN, "said"], capture_output=True, text=True, env=env)
+    assert again.returncode == 0 and again.stderr == ""
+    env["ELIMFAST_CACHE_DIR"] = str(tmp_path / "other")
+    silenced = subprocess.run([sys.executable, "-c", API_RUN, "silenced"], capture_output=True, text=True, env=env)
+    assert silenced.returncode == 0 and silenced.stderr == ""
+
+
 LOAD_CONFIG = """
 import json, sys
 from elimfast.config import load_run
