@@ -373,10 +373,15 @@ class EventSpec:
 
 @dataclass
 class EventRecord:
-    """The occurrences of one event: times t (n,) and states y (n, 2m)."""
+    """The occurrences of one event: times t (n,) and states y (n, 2m), and the event as it
+    was given (EventSpec.definitions: expression, direction, terminal), which Result.to_xarray
+    carries as a run file's /events/<name> does."""
 
     t: np.ndarray
     y: np.ndarray
+    expression: str = ""
+    direction: int = 0
+    terminal: bool = False
 
     def __repr__(self) -> str:
         return f"<EventRecord {self.t.size} occurrence(s)>"
@@ -563,7 +568,9 @@ class AdaptiveIntegration:
         index = np.concatenate([c.event_index for c in chunks])
         times = np.concatenate([c.event_t for c in chunks])
         states = np.concatenate([c.event_y for c in chunks])
-        found = {name: EventRecord(times[index == i], states[index == i]) for i, name in enumerate(self.event_names)}
+        given = self.events.definitions()
+        found = {name: EventRecord(times[index == i], states[index == i], **given[name])
+                 for i, name in enumerate(self.event_names)}
         return Result(
             problem=problem, method=method, h=float(self.h), conserve=self.conserve,
             t=np.concatenate([c.t for c in chunks]), y=np.concatenate([c.y for c in chunks]), invariants=invariants,

@@ -83,8 +83,10 @@ def _adaptive_parts(stored, spec) -> dict:
         return {}
     from .adaptive import AdaptiveIntegration, EventRecord
 
+    given = {name: {key: event[key] for key in ("expression", "direction", "terminal")}
+             for name, event in (spec.events or {}).items()}   # the stored config's events section
     parts = {"step_t": stored.step_times(), "step_h": stored.step_sizes(), "step_control": spec.step_control,
-             "events": {name: EventRecord(*stored.event(name)) for name in stored.event_names()},
+             "events": {name: EventRecord(*stored.event(name), **given.get(name, {})) for name in stored.event_names()},
              "events_not_finite": stored.events_not_finite()}
     counters = stored.saved_state().get("counters")
     if counters is not None:

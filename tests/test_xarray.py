@@ -214,6 +214,33 @@ def test_an_adaptive_result_in_xarray_has_its_steps_events_and_step_control():
     assert "step_h" not in fixed and "rtol" not in fixed.attrs and fixed.attrs["step_control"] == "fixed"
 
 
+def test_events_in_xarray_carry_their_definition_and_where_they_stopped_being_finite(tmp_path):
+    """A user trial: Result.to_xarray() dropped each event's expression, direction, terminal
+    and not_finite_from, which the run file's /events/<name> has. Now <name>_t carries them,
+    from integrate's Result and from load(FILE)'s alike."""
+    events = {"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1},
+              "right": {"expression": "sqrt(q1) - 0.2", "direction": -1, "terminal": False}}
+    r = elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=4 * math.pi, rtol=1e-10,
+                           conserve=CONSERVE, events=events)
+    assert "right" in r.events_not_finite   # q1 < 0 on the far side of the orbit
+    config = tmp_path / "events.yaml"
+    config.write_text("problem: {builtin: kepler, parameters: {eccentricity: 0.9}}\n"
+                      "method: {name: ehbvm, k: 8, s: 4}\nconserve: [angular_momentum, lrl_y]\n"
+                      "integration: {rtol: 1e-10, t_end: 4*pi}\n"
+                      "events: {pericentre: {expression: 'q1*p1 + q2*p2', direction: 1},\n"
+                      "         right: {expression: 'sqrt(q1) - 0.2', direction: -1}}\n")
+    path = tmp_path / "events.h5"
+    assert run_file(path, config=config)[1].status == "complete"
+    for ds in (r.to_xarray(), elimfast.load(path).to_xarray()):
+        pericentre, right = ds["pericentre_t"].attrs, ds["right_t"].attrs
+        assert (pericentre["expression"], pericentre["direction"], pericentre["terminal"]) == ("q1*p1 + q2*p2", 1, 0)
+        assert "not_finite_from" not in pericentre
+        assert (right["expression"], right["direction"], right["terminal"]) == ("sqrt(q1) - 0.2", -1, 0)
+        assert right["not_finite_from"] == r.events_not_finite["right"] > 0
+    with h5py.File(path, "r") as f:
+        assert f["events/right"].attrs["not_finite_from"] == r.events_not_finite["right"]
+
+
 def test_an_adaptive_run_file_loads_with_the_attributes_of_the_result_it_stores(tmp_path):
     """elimfast.load(FILE).to_xarray() of an adaptive run has the attributes integrate's Result
     gives: n_steps is the steps taken (the file's root says 0: no count was set in advance)."""

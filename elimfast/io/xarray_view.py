@@ -3,15 +3,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import LONG_NAMES, STEP_CONTROL_FIXED, VALUE_AT_T0, stats_attributes, unit_attributes
+from .layout import LONG_NAMES, NOT_FINITE_FROM, STEP_CONTROL_FIXED, VALUE_AT_T0, stats_attributes, unit_attributes
 
 
 def result_dataset(result):
     """y on (t, component); H and every invariant on t; iterations, substeps and alpha or
     lambda on step (alpha/lambda also on ``invariant``, the invariant of each column).
     Adaptive runs add step_t and step_h on step (a run file's /steps/t and /steps/h), and
-    every event its times ``<name>_t`` on ``<name>_occurrence`` and states ``<name>_y`` on
-    (``<name>_occurrence``, component) (a run file's /events/<name>). H and each invariant
+    every event its times ``<name>_t`` on ``<name>_occurrence`` (attributes: the event's
+    expression, direction, terminal 0/1 and, where it was NaN or infinite at a sample, the first
+    such time not_finite_from) and states ``<name>_y`` on (``<name>_occurrence``, component)
+    (a run file's /events/<name>). H and each invariant
     carry ``value_at_t0``, I of the initial state, and ``scale``, the size of its terms there
     (for relative errors), as in a run file; ``imposed`` is 0 or 1.
     Attributes: problem, method, h (adaptive: the first step, also as h_first), conserve,
@@ -49,7 +51,14 @@ def result_dataset(result):
         data["step_h"] = ("step", np.asarray(result.step_h[:done]), {"long_name": LONG_NAMES["step_h"], **time_unit})
     for name, record in result.events.items():
         occurrence = f"{name}_occurrence"
-        data[f"{name}_t"] = (occurrence, np.asarray(record.t), {"long_name": f"time of event {name}", **time_unit})
+        # the event as given and where it stopped being finite, as a run file's /events/<name> has them
+        # (terminal as 0/1: netCDF has no boolean attributes)
+        given = {"expression": record.expression, "direction": int(record.direction),
+                 "terminal": int(bool(record.terminal))}
+        if name in result.events_not_finite:
+            given[NOT_FINITE_FROM] = float(result.events_not_finite[name])
+        data[f"{name}_t"] = (occurrence, np.asarray(record.t), {"long_name": f"time of event {name}", **given,
+                                                               **time_unit})
         data[f"{name}_y"] = ((occurrence, "component"), np.asarray(record.y), {"long_name": f"state at event {name}"})
     attrs = {"problem": result.problem.name, "method": result.method.name, "h": float(result.h),
              "conserve": list(result.conserve), "n_steps": int(result.n_steps), "steps_done": int(done),
