@@ -77,6 +77,17 @@ def test_names_and_orders():
     assert [m.order for m in (gauss(1), hbvm(12, 3), ehbvm(9, 4))] == [2, 6, 8]
 
 
+def test_methods_compare_by_family_and_parameters():
+    """A user trial: ehbvm(12, 3) == ehbvm(12, 3) was False (identity). Methods built alike are
+    equal and hash alike (one dict entry, one set member); other parameters or another family
+    name are not."""
+    assert ehbvm(12, 3) == ehbvm(12, 3) == methods.as_method("EHBVM(12,3)")
+    assert len({ehbvm(12, 3), ehbvm(12, 3), methods.get("ehbvm", k=12, s=3)}) == 1
+    assert ehbvm(12, 3) != ehbvm(12, 4) and ehbvm(12, 3) != hbvm(12, 3) and elim(8, 12, 3) != elim(12, 12, 3)
+    assert ehbvm(12, 3) != elim(12, 12, 3)   # the same method, named apart
+    assert gauss(3) != "GAUSS(3)" and gauss(3) != hbvm(3, 3)   # a string is not built; HBVM(3,3) is named apart
+
+
 def test_registry_builds_every_family():
     assert set(METHODS) == {"gauss", "hbvm", "elim", "ehbvm", "lim", "ghbvm"}
     assert methods.get("ehbvm", k=12, s=3).name == "EHBVM(12,3)"

@@ -238,6 +238,17 @@ class Method:
     def __repr__(self) -> str:
         return f"<Method {self.name}, order {self.order}>"
 
+    # Equal when built from the same family and parameters (the tables follow from them): a user
+    # trial found ehbvm(12, 3) != ehbvm(12, 3). EHBVM(12,3) and ELIM(12,12,3), the same method under
+    # two names, stay apart, as their names do.
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Method):
+            return NotImplemented
+        return (self.family, self.r, self.k, self.s) == (other.family, other.r, other.k, other.s)
+
+    def __hash__(self) -> int:
+        return hash((self.family, self.r, self.k, self.s))
+
     def max_conserved(self) -> int | None:
         """How many invariants (besides H) the method can impose; None: no limit."""
         imposes = self.kind.imposes
