@@ -830,6 +830,13 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 steps_done = existing.steps_done
                 stored_t = existing.t() if attrs.get("output_times") else None
                 clock = existing.saved_state().get("clock")
+                # Events NaN or infinite before a kill are in no attribute (RunWriter.finish writes them):
+                # the stored samples are checked again, as the run checked its own
+                not_finite = None
+                if getattr(integration, "events_not_finite", None) is not None and existing.event_names():
+                    from .adaptive import EVENT_CHECK_SAMPLES
+                    stride = max(1, existing.n_samples // EVENT_CHECK_SAMPLES)
+                    not_finite = (existing.events_not_finite(), existing.t(stride), existing.y(stride))
             stored = str(attrs.get("config", ""))
             difference = config_difference(stored, config_text, ignore=SOLVER_SECTIONS,
                                            ignore_keys=EXTENSION_KEYS + LOAD_ONLY_KEYS, prefer=tuple(origins or ()))
@@ -876,6 +883,10 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                 config_text=config_text if (solver_changed or extension is not None) else None,
                 set_overrides=set_overrides)
             wall_offset, kernel_offset = float(saved["wall_time_s"]), float(saved["kernel_time_s"])
+            if not_finite is not None and not_finite[1].size:
+                integration.check_events_finite(*not_finite[1:])
+                for name, first in not_finite[0].items():
+                    integration.events_not_finite[name] = min(first, integration.events_not_finite.get(name, first))
             note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
             if extension is not None:
                 note += f", continued to t_end = {extension['t_end']:.10g} (it ended at {float(attrs['t_end']):.10g})"

@@ -587,3 +587,22 @@ def test_run_names_an_event_that_turns_nan(tmp_path):
     ran = CliRunner().invoke(cli, ["run", str(path), "-o", str(tmp_path / "nan.h5")])
     assert ran.exit_code == 0, ran.output
     assert "event 'nan' (first at t = " in ran.stderr and "NaN or infinite at samples of this run" in ran.stderr
+
+
+def test_an_event_nan_before_a_kill_is_named_after_the_resume(tmp_path):
+    """An event NaN or infinite is written to /events/<name> when a run ends: a run killed after
+    seeing it, then resumed, lost it (the resumed part may never see it again). The resume now
+    checks the stored samples again, so the file names the first time from before the kill."""
+    config = write_config(tmp_path, {**CONFIG, "integration": {"rtol": 1e-10, "t_end": "4000*pi"},
+                                     "events": {"nan": {"expression": "sqrt(q1 + 0.5)"}}})
+    out = tmp_path / "nan.h5"
+    kill_after(config, out, 2000)
+    with h5py.File(out, "r", swmr=True) as f:
+        assert "not_finite_from" not in f["events/nan"].attrs
+    with RunFile(out) as stored:
+        killed_at = float(stored.t()[-1])   # the last sample the killed run stored
+    assert subprocess.run([ELIMFAST, "run", str(config), "-o", str(out), "--resume", "--quiet"]).returncode == 0
+    resumed = elimfast.load(out)
+    first = resumed.events_not_finite["nan"]
+    index = int(np.searchsorted(resumed.t, first))
+    assert first < killed_at and resumed.t[index] == first and resumed.y[index, 0] < -0.5   # a stored sample's time
