@@ -137,6 +137,21 @@ class RunOutcome:
     def ok(self) -> bool:
         return self.status == "complete"
 
+    @property
+    def ended_before_t_end(self) -> bool:
+        """Complete, but stopped by a terminal event before its t_end (t_final short of it by more
+        than the rounding of n steps of h)."""
+        if not self.ok or self.t_end is None or not math.isfinite(self.t_final):
+            return False
+        return self.t_end - self.t_final > 1e-9 * max(abs(self.t_end), 1.0)
+
+    @property
+    def status_text(self) -> str:
+        """The status as the tables write it: a terminal event's end is said, as `elimfast run` says it."""
+        if self.ended_before_t_end:
+            return f"{self.status} (ended by a terminal event at t = {self.t_final:.10g})"
+        return self.status
+
 
 @dataclass
 class SweepSpec:
@@ -356,6 +371,13 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
         if "key" in axis:
             if not isinstance(axis["key"], str) or not all(axis["key"].split(".")):
                 _fail(source, f"{key}.key", "must be a dotted key such as integration.h")
+            for j, value in enumerate(values):
+                if isinstance(value, dict) and "set" in value and set(value) <= set(VARIANT_KEYS):
+                    # a user trial: each run failed with 'events.set.events: unknown key', labelled by the
+                    # whole mapping
+                    _fail(source, f"{key}.values[{j}]", f"is a variant ({{label, set}}), but the axis has a key "
+                                                        f"({axis['key']}), whose values are that key's: remove "
+                                                        "'key' to make it an axis of variants")
             _check_axis_key(source, f"{key}.key", base, axis["key"], values[0])
             parts = axis["key"].split(".")
             for other, other_key in axis_keys.items():
@@ -1013,7 +1035,7 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
     outcome = RunOutcome(label=run.label, coordinates=run.coordinates, status="complete",
                          resolved=resolved.resolved, n_steps=result.n_steps, steps_done=result.steps_done,
                          h=resolved.h, wall_time=wall_time_s, y_initial=result.y0.copy(),
-                         y_final=result.y_final.copy(), t_final=result.t_final)
+                         y_final=result.y_final.copy(), t_final=result.t_final, t_end=resolved.t_end)
     _summarise(outcome, result, resolved.solver)
     if keep_result:
         outcome.result = result
@@ -1181,11 +1203,15 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
 # --- tables -------------------------------------------------------------------------
 
 def errors_of(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome | None) -> dict[str, float]:
-    """max-norm error of each run's final state (nan where there is no error to compute)."""
+    """max-norm error of each run's final state (nan where there is no error to compute: a run
+    that a terminal event stopped before its t_end has no state at t_end to compare; a user trial
+    got 'error 2.5, order 0.00' for runs stopped at the apocentre, compared with y0)."""
     errors = {}
     for outcome in outcomes:
         value = math.nan
-        if outcome.ok and outcome.y_final is not None:
+        if reference is not None and reference.ended_before_t_end:
+            reference = None
+        if outcome.ok and outcome.y_final is not None and not outcome.ended_before_t_end:
             if spec.error_mode == "initial":
                 value = float(np.max(np.abs(outcome.y_final - outcome.y_initial)))
             elif spec.error_mode == "reference" and reference is not None and reference.ok:
@@ -1313,7 +1339,7 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
         relative = outcome.relative_invariant_errors
         for name in invariant_names:
             row += [figure(outcome.invariant_errors.get(name, math.nan)), figure(relative.get(name, math.nan))]
-        row.append(outcome.status)
+        row.append(outcome.status_text)
         rows.append(row)
     return header, rows
 

@@ -150,6 +150,11 @@ def test_a_sweep_wide_method_that_names_its_family_replaces_the_base_method(tmp_
      r"integration \(h, rtol, step_control, epsilon\)"),
     ({"base": BASE, "grid": [{"name": "m", "values": [{"label": "s4", "set": {"method": {"s": 4}}}]}]},
      r"grid\[0\]\.values\[0\]\.set\.method: replaces the base's whole method section .* naming no method \(name\)"),
+    # variants under an axis with a key: every run failed with 'events.set.events: unknown key' (a user trial)
+    ({"base": BASE, "grid": [{"name": "ev", "key": "events", "values": [
+        {"label": "stop", "set": {"events": {"apo": {"expression": "q1*p1+q2*p2", "terminal": True}}}}]}]},
+     r"grid\[0\]\.values\[0\]: is a variant \(\{label, set\}\), but the axis has a key \(events\), whose values "
+     r"are that key's: remove 'key' to make it an axis of variants"),
 ])
 def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     path = write_sweep(tmp_path, data)
@@ -1187,3 +1192,34 @@ def test_a_run_whose_config_is_refused_makes_the_sweep_a_usage_error(tmp_path):
     result = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "-q"])
     assert result.exit_code == 2, result.output
     assert "integration.h: must be > 0" in result.stdout and "| complete" in result.stdout
+
+
+def test_runs_a_terminal_event_ended_early_have_no_error_and_say_why(tmp_path):
+    """A user trial: a sweep with error {exact: initial} whose runs a terminal event stopped at
+    the apocentre (t = pi) printed 'error 2.500e+00, order 0.00', status 'complete': y(pi)
+    against y0. Such a run has no state at t_end to compare: its error and order are empty, and
+    its status says where it ended, as `elimfast run` does; a run to t_end keeps its error."""
+    from elimfast.sweep import run_to_file
+
+    sweep = {"base": {"problem": "kepler", "method": "HBVM(12,3)", "integration": {"h": "pi/60", "t_end": "20*pi"}},
+             "grid": [{"name": "events",
+                       "values": [{"label": "stop", "set": {"events": {"apo": {
+                                       "expression": "q1*p1+q2*p2", "direction": -1, "terminal": True}}}},
+                                  {"label": "count", "set": {"events": {"apo": {
+                                      "expression": "q1*p1+q2*p2", "direction": -1}}}}]},
+                      {"name": "h", "key": "integration.h", "values": ["pi/60", "pi/120"]}],
+             "error": {"exact": "initial"}, "order_axis": "h"}
+    path, out = write_sweep(tmp_path, sweep), tmp_path / "ev.h5"
+    done = run_to_file(path, out, workers=1)
+    header, rows = done.table()
+    column = {name: header.index(name) for name in ("events", "h", "error", "order", "status")}
+    by_label = {(row[column["events"]], row[column["h"]]): row for row in rows}
+    for h in ("pi/60", "pi/120"):
+        stopped = by_label[("stop", h)]
+        assert stopped[column["error"]] == "-" and stopped[column["order"]] == ""
+        assert stopped[column["status"]].startswith("complete (ended by a terminal event at t = 3.14159")
+        counted = by_label[("count", h)]
+        assert float(counted[column["error"]]) < 1e-5 and counted[column["status"]] == "complete"
+    assert float(by_label[("count", "pi/120")][column["order"]]) > 5
+    resumed = run_to_file(path, out, workers=1, resume=True)   # read back: the same table
+    assert resumed.table() == (header, rows)
