@@ -249,8 +249,11 @@ def resolve_span(t0: float, t_end, n_steps=None) -> float:
     """An adaptive run's t_end: given, finite and after t0 (n_steps does not apply)."""
     from .integrate import resolve_t0
     t0 = resolve_t0(t0)
-    if t_end is None or n_steps is not None:
-        raise ParameterError("t_end", "is needed for adaptive steps (and n_steps does not apply: the number of "
+    if n_steps is not None:   # named itself: a user trial was told 't_end is needed' beside its t_end
+        raise ParameterError("n_steps", "does not apply to adaptive steps: the controller decides how many it "
+                                        "takes; remove it and give t_end")
+    if t_end is None:
+        raise ParameterError("t_end", "is needed for adaptive steps (n_steps does not apply: the number of "
                                       "steps is what the controller decides)")
     t_end = float(t_end)
     if not (math.isfinite(t_end) and t_end > t0):

@@ -76,7 +76,10 @@ def test_config_defaults_k_to_2s_and_records_the_step_control(tmp_path):
 
 @pytest.mark.parametrize("change, key", [
     ({"integration": {"rtol": "x", "t_end": 10}}, "integration.rtol"),
-    ({"integration": {"rtol": 1e-10, "n_steps": 10}}, "integration.t_end"),
+    # n_steps named itself (a user trial was told 't_end is needed' beside its t_end)
+    ({"integration": {"rtol": 1e-10, "n_steps": 10}}, "integration.n_steps"),
+    ({"integration": {"rtol": 1e-10, "n_steps": 10, "t_end": 20}}, "integration.n_steps"),
+    ({"integration": {"rtol": 1e-10}}, "integration.t_end"),
     ({"integration": {"step_control": "time_scale", "epsilon": 5, "t_end": 10}}, "integration.epsilon"),
     ({"output": {"times": {"start": 0, "stop": 1e9, "step": 1}}}, "output.times"),
     ({"events": {"p": {"expression": "q1", "direction": 5}}}, "events.p.direction"),
