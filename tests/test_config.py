@@ -141,6 +141,15 @@ def test_keys_with_brackets_are_config_errors(overrides, top_key, match):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("name, key, text", [("gauss", "method.k", "does not apply: gauss(s) takes no k"),
+                                               ("elim", "method.r", "is missing; elim(r, k, s) needs r, k, s")])
+def test_a_method_parameter_error_names_the_set_of_the_method_it_comes_from(name, key, text):
+    """A user trial: --set method.name=gauss was told only 'k.yaml:N: method.k: does not apply ...
+    remove it', pointing at the file's k, which the --set had made wrong."""
+    err = config_error(kepler_data(), overrides=[f"method.name={name}"])
+    assert err.key == key and text in str(err) and str(err).endswith(f"(with --set method.name={name})"), str(err)
+
+
 @pytest.mark.parametrize("h", ["1e-30", "0.0999"])
 def test_a_step_count_error_names_the_set_of_h_it_comes_from(h):
     # the rule is t_end's (the file's line), the value at fault h's: both are named

@@ -36,11 +36,15 @@ def get(name: str, **parameters) -> Method:
     signature = kind.signature()
     for parameter in parameters:
         if parameter not in kind.parameters:
-            raise ParameterError(parameter, f"does not apply: {signature} takes no {parameter}; remove it")
+            # related: a --set of the name that made it so is named (a user trial: --set method.name=gauss
+            # was told only to edit the file's k)
+            raise ParameterError(parameter, f"does not apply: {signature} takes no {parameter}; remove it",
+                                 related=("name",))
     missing = [parameter for parameter in kind.parameters if parameter not in parameters]
     if missing:
         also = f", and so {'is' if len(missing) == 2 else 'are'} {' and '.join(missing[1:])}" if missing[1:] else ""
-        raise ParameterError(missing[0], f"is missing{also}; {signature} needs {', '.join(kind.parameters)}")
+        raise ParameterError(missing[0], f"is missing{also}; {signature} needs {', '.join(kind.parameters)}",
+                             related=("name",))
     return kind.constructor(**parameters)
 
 
