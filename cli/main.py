@@ -786,8 +786,10 @@ def _quadrature_of_H(problem, method) -> str:
     what = (f"a polynomial of degree {degree} > 2k/s = {2 * k / s:.3g}" if degree is not None
             else {"analytic": "not a polynomial", "symbolic": "not a polynomial as written"}.get(
                 problem.hessian_source, "not known to be a polynomial (a python: problem)"))
+    from elimfast.problems.expressions import kink_note
+    kinks = f"; {kink_note(problem.hamiltonian_kinks)}" if problem.hamiltonian_kinks else ""
     return (f"{what}: {method.name} keeps it up to the quadrature error of its k = {k} nodes, O(h^{2 * k + 1}) "
-            "per step (inspect and the end-of-run line flag a loss above 1e-12)")
+            f"per step (inspect and the end-of-run line flag a loss above 1e-12){kinks}")
 
 
 @cli.command(context_settings=CONTEXT)

@@ -151,7 +151,22 @@ def energy_note(run_file, drift=None) -> str | None:
                 s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"), roundoff=roundoff, steps=steps,
                 tol=tol if isinstance(tol, (int, float)) else None,
                 hand_written="python" in (config_of(run_file).get("problem") or {}),
-                unchecked=(config_of(run_file).get("problem") or {}).get("check") is False)
+                unchecked=(config_of(run_file).get("problem") or {}).get("check") is False,
+                kinks=_kinks(config_of(run_file).get("problem") or {}))
+
+
+def _kinks(problem_section) -> tuple:
+    """The kinked functions of a stored config's H from expressions (Problem.hamiltonian_kinks)."""
+    hamiltonian = problem_section.get("hamiltonian") if isinstance(problem_section, dict) else None
+    if not isinstance(hamiltonian, str):
+        return ()
+    import ast
+
+    from elimfast.problems.expressions import kinked_functions
+    try:   # the run validated it; its calls are read, nothing is evaluated
+        return kinked_functions(ast.parse(hamiltonian, mode="eval"))
+    except (SyntaxError, ValueError, RecursionError):
+        return ()
 
 
 def run_notes(run_file) -> list[str]:

@@ -431,6 +431,7 @@ class Result:
                            adaptive=self.step_control is not None, s=self.method.s,
                            degree=self.problem.hamiltonian_degree, steps=steps,
                            hand_written=self.problem.source_file is not None,
+                           kinks=self.problem.hamiltonian_kinks,
                            roundoff={name: roundoff_allowance(steps, initial[name], scales.get(name, 0.0))
                                      for name in names},
                            tol=self.solver.tol if self.solver is not None else None)
@@ -564,7 +565,8 @@ def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
 
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
                 s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0,
-                tol: float | None = None, hand_written: bool = False, unchecked: bool = False) -> str | None:
+                tol: float | None = None, hand_written: bool = False, unchecked: bool = False,
+                kinks: tuple = ()) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -596,7 +598,9 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     file's), a grad_H that is not H's gradient (another: a 1% error in grad_H with the check off
     lost 7.7e-6 whatever k and h). ``unchecked``: the problem's check (grad L . J grad H = 0) was
     switched off, so an imposed invariant may not be one (a user trial imposed q . p on Kepler
-    with problem.check: false and was told of quadrature, k and h)."""
+    with problem.check: false and was told of quadrature, k and h). ``kinks``: functions with a
+    kink that H calls (Problem.hamiltonian_kinks): named first where H is lost (a user trial's
+    p**2/2 + abs(x) lost H to 1.6e-2 and was told to raise k)."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
@@ -643,6 +647,10 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
                     else "")
                  + (", or an imposed quantity that the flow of H does not conserve (problem.check is off: "
                     "elimfast check tests it)" if unchecked and imposed else ""))
+    if kinks and "H" in above:   # named first: a kink is lost whatever k and h
+        from .problems.expressions import kink_note
+        return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off. {kink_note(kinks)}; "
+                f"else: {method_name} keeps {', '.join(kept)} {where}{otherwise}")
     return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off: {method_name} keeps "
             f"{', '.join(kept)} {where}{otherwise}")
 

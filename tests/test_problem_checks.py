@@ -616,3 +616,34 @@ def test_a_non_invariant_imposed_with_the_check_off_is_named_in_the_note(tmp_pat
     path.write_text(yaml.safe_dump(config))
     refused = CliRunner().invoke(cli, ["run", str(path), "-o", str(tmp_path / "checked.h5")])
     assert refused.exit_code == 2 and "is not conserved by the flow of H" in refused.stderr
+
+
+def test_an_H_lost_at_the_kink_of_abs_is_blamed_on_it(tmp_path):
+    """A user trial: p**2/2 + abs(x) lost H to 1.6e-2, and `check`, the end-of-run note and
+    inspect spoke only of the quadrature, k and h, which cannot help across a kink. They now
+    name abs first; a smooth H (the same oscillator through sqrt(x**2 + d**2)) is not told of it."""
+    from click.testing import CliRunner
+
+    import elimfast
+    from elimfast.methods import hbvm
+    from elimfast.problems import problem_from_expressions
+    from elimfast_cli.main import cli
+
+    kinked = problem_from_expressions({"q": ["x"], "p": ["p"]}, "p**2/2 + abs(x)", initial={"x": 1, "p": 0})
+    smooth = problem_from_expressions({"q": ["x"], "p": ["p"]}, "p**2/2 + sqrt(x**2 + 1e-2)", initial={"x": 1, "p": 0})
+    assert kinked.hamiltonian_kinks == ("abs",) and smooth.hamiltonian_kinks == ()
+    note = elimfast.integrate(kinked, hbvm(6, 3), h=0.1, t_end=10.0).energy_warning()
+    assert note.startswith("H error 1.6e-02 (relative) is above round-off. H uses abs: where its argument passes "
+                           "through 0 along the orbit, no quadrature keeps H across that kink"), note
+    lost = elimfast.integrate(smooth, hbvm(3, 3), h=1.0, t_end=10.0).energy_warning()
+    assert lost is not None and "abs" not in lost   # lost to the quadrature, said as before
+    config = tmp_path / "kink.yaml"
+    config.write_text("problem: {hamiltonian: 'p**2/2 + abs(x)', coordinates: {q: [x], p: [p]}, "
+                      "initial: {x: 1.0, p: 0.0}}\nmethod: {name: hbvm, k: 6, s: 3}\nintegration: {h: 0.1, t_end: 10}\n")
+    checked = CliRunner().invoke(cli, ["check", str(config)])
+    assert checked.exit_code == 0 and "; H uses abs: where its argument passes through 0" in checked.stdout
+    out = tmp_path / "kink.h5"
+    ran = CliRunner().invoke(cli, ["run", str(config), "-o", str(out)])
+    assert ran.exit_code == 0 and "note: H error 1.6e-02 (relative) is above round-off. H uses abs" in ran.stderr
+    inspected = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert "is above round-off. H uses abs" in inspected.stdout

@@ -133,7 +133,9 @@ class Problem:
     default (kepler's eccentricity) no longer describe the orbit (reports say so);
     hamiltonian_degree: H is a polynomial in y of at most this total degree, or None (not one,
     or not known): HBVM(k,s) and its relatives integrate it exactly when degree <= 2k/s, so an
-    H error above round-off is then not the quadrature's (integrate.energy_note).
+    H error above round-off is then not the quadrature's (integrate.energy_note);
+    hamiltonian_kinks: the functions with a kink that H (from expressions) calls, e.g. ("abs",)
+    (expressions.KINKED): reports name them where H is lost.
     """
 
     name: str
@@ -155,6 +157,7 @@ class Problem:
     time_scale: Any = field(repr=False, default=None)
     initial_given: bool = False
     hamiltonian_degree: int | None = None
+    hamiltonian_kinks: tuple = ()
 
     def __post_init__(self):
         if len(self.q_names) != len(self.p_names):

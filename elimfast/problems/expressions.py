@@ -314,6 +314,26 @@ def _unchain(node):
     return node, rest
 
 
+# Allowed functions with a kink: abs is smooth wherever its argument keeps its sign (abs(x2 - x1) of
+# ordered particles), which elimfast cannot tell ahead; where it passes through 0 no quadrature
+# follows the kink, and H is lost there whatever k and h (a user trial was told to raise k).
+KINKED = ("abs",)
+
+
+def kinked_functions(tree: ast.Expression) -> tuple[str, ...]:
+    """The functions of KINKED that a validated tree calls, in KINKED's order."""
+    called = {node.func.id for node in ast.walk(tree) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+    return tuple(name for name in KINKED if name in called)
+
+
+def kink_note(kinks) -> str:
+    """What a run's H note and `check` say of H's kinked functions ('' for none)."""
+    if not kinks:
+        return ""
+    return (f"H uses {' and '.join(kinks)}: where its argument passes through 0 along the orbit, no quadrature keeps "
+            "H across that kink, whatever k and h (write a smooth form, e.g. sqrt(x**2 + d**2) for abs(x))")
+
+
 def polynomial_degree(tree: ast.Expression, variables) -> int | None:
     """An upper bound of the total degree of a validated tree as a polynomial in ``variables``
     (names), or None when it is not visibly one (a function or a quotient of them, a power

@@ -58,7 +58,7 @@ import numpy as np
 from .. import cache
 from .base import Problem, invariant_name_clash
 from .expressions import (ExpressionError, ProblemDefinitionError, canonical, check_name, did_you_mean,
-                          evaluate_number, node_count, non_ascii, parse, polynomial_degree, to_sympy)
+                          evaluate_number, kinked_functions, node_count, non_ascii, parse, polynomial_degree, to_sympy)
 
 GENERATOR_VERSION = 4   # 2: hess_H; 3: zero entries by a fill; 4: a few zeros one by one. Part of the cache key
 #                         and of the generated text.
@@ -178,7 +178,7 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
         invariant_names=tuple(iname for iname, _, _ in invariant_trees),
         y0=y0, params=np.array([param_values[p] for p in param_names], dtype=np.float64),
         parameters=param_values, description=description or f"H = {' '.join(hamiltonian.split())}",
-        hamiltonian_degree=polynomial_degree(H_tree, coordinate_names),
+        hamiltonian_degree=polynomial_degree(H_tree, coordinate_names), hamiltonian_kinks=kinked_functions(H_tree),
     )
     if time_scale is not None:
         function = compile_state_functions(problem, {"time_scale": time_scale}, gradient=True, what="time scale",
