@@ -15,11 +15,13 @@ $(BIN)/python:
 WARM = $(BIN)/python -m compileall -q elimfast cli && $(BIN)/elimfast cache warm
 
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
+	@echo "installing elimfast and its dependencies into $(VENV) (pip, quiet; its log: $(VENV)/install.log) ..."
 	$(BIN)/python -m pip install --quiet -e . > $(VENV)/install.log 2>&1 || (cat $(VENV)/install.log; exit 1)
 	$(WARM)
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
+	@echo "installing elimfast with its test extras into $(VENV) (pip, quiet; its log: $(VENV)/install.log) ..."
 	$(BIN)/python -m pip install --quiet -e '.[test]' > $(VENV)/install.log 2>&1 || (cat $(VENV)/install.log; exit 1)
 	$(WARM)
 	touch $(VENV)/.installed $@

@@ -1154,7 +1154,8 @@ def cache_warm(quiet):
 
 
 @cache.command("clear", context_settings=CONTEXT)
-@click.option("--kernels", is_flag=True, help="Also delete Numba's compiled kernels (the next run recompiles, ~1-2 min).")
+@click.option("--kernels", is_flag=True, help="Also delete Numba's compiled kernels (the next run recompiles what it needs, ~1-2 min; "
+                   "`elimfast cache warm` all of them, 2-3 min).")
 @click.option("--stale", is_flag=True,
               help="Only delete the compiled kernels of other elimfast, Numba or kernel versions (every key folder "
                    "but the current one); nothing this elimfast uses.")
