@@ -347,6 +347,7 @@ def test_repair_refuses_a_file_that_is_still_being_written(tmp_path, kepler):
         assert flags != 0
         result = invoke("repair", path)
         assert result.exit_code == 2 and "is being written by" in result.output
+        assert "output file" not in result.output   # repair writes none (a user trial was offered another)
         assert hdf5.consistency_flags(path) == flags      # the live writer's file is left alone
     finally:
         writer.close()

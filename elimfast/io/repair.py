@@ -35,7 +35,7 @@ def repair(path) -> str:
     _regular_file(path, "file")
     if not h5py.is_hdf5(path):
         raise NotAnElimfastFile(f"{path}: not an HDF5 file; nothing to repair")
-    ensure_not_busy(path)
+    ensure_not_busy(path, other_output=False)
     flags = consistency_flags(path)
     short = cut_short(path)
     if not flags and not short:

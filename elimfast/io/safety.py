@@ -300,8 +300,9 @@ def _writer_pid(path: Path) -> tuple[int, str, int]:
         return 0, "", 0
 
 
-def ensure_not_busy(path) -> None:
+def ensure_not_busy(path, other_output: bool = True) -> None:
     """FileBusyError if another live process writes (or holds open) ``path``. Touches nothing.
+    ``other_output``: the messages offer another output file (not to ``repair``, which writes none).
 
     Three checks: the writer lock of this version; HDF5's own lock (held by a writer
     outside SWMR mode, and by readers that opened it normally); and, for files of format
@@ -325,22 +326,22 @@ def ensure_not_busy(path) -> None:
             pid, host, _ = _writer_pid(path)
             who = f"process {pid}" if pid and host == socket.gethostname() else "another process"
             stop = f" (Ctrl-C or kill {pid})" if who != "another process" else ""
-            raise FileBusyError(f"{path}: is being written by {who}; stop it first{stop} or choose another "
-                                "output file")
+            raise FileBusyError(f"{path}: is being written by {who}; stop it first{stop}"
+                                + (" or choose another output file" if other_output else ""))
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             fcntl.flock(fd, fcntl.LOCK_UN)
         except OSError as err:
             if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise FileBusyError(f"{path}: is open in another process (an HDF5 program or elimfast); close it "
-                                    "there first, or choose another output file") from None
+                                    "there first" + (", or choose another output file" if other_output else "")) from None
     finally:
         os.close(fd)
     if consistency_flags(path):
         pid, host, version = _writer_pid(path)
         if version < 2 and pid and host == socket.gethostname() and pid != os.getpid() and _process_alive(pid):
             raise FileBusyError(f"{path}: is still being written by process {pid}; stop it first "
-                                f"(Ctrl-C or kill {pid}), or choose another output file")
+                                f"(Ctrl-C or kill {pid})" + (", or choose another output file" if other_output else ""))
 
 
 def _process_alive(pid: int) -> bool:
