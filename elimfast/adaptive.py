@@ -298,9 +298,10 @@ def _check_event_name(name: str, problem: Problem) -> None:
     if name in INHERITED_COORDINATES:
         raise ParameterError(f"events.{name}", f"'{name}' is a coordinate of the run's file, which xarray passes "
                                                "down to the group of each event; give the event another name")
-    # Result.to_xarray names an event's times and states <name>_t and <name>_y, beside
-    # the step times step_t, step_h and the invariants: an event 'step' replaced step_t
-    taken = {f"{name}_t", f"{name}_y"} & {"step_t", *problem.invariant_names}
+    # Result.to_xarray names an event's times and states <name>_t and <name>_y, on the dimension
+    # <name>_occurrence, beside the step times step_t, step_h and the invariants: an event 'step'
+    # replaced step_t, and an invariant x_occurrence became a stray coordinate for an event x
+    taken = {f"{name}_t", f"{name}_y", f"{name}_occurrence"} & {"step_t", *problem.invariant_names}
     if taken:
         raise ParameterError(f"events.{name}", f"its times or states would be {min(taken)}, the name of "
                                                "other data of the run in xarray; give the event another name")

@@ -295,6 +295,12 @@ def test_an_event_whose_xarray_names_are_taken_is_refused():
     r = elimfast.integrate(problems.kepler(0.9), methods.ehbvm(8, 4), t_end=1.0, rtol=1e-10,
                            events={"steps": {"expression": "q2"}})
     assert r.to_xarray()["step_t"].dims == ("step",)
+    # an invariant x_occurrence became a stray coordinate on t beside the event x's dimension (a user trial)
+    from elimfast.problems import problem_from_expressions
+    oscillator = problem_from_expressions({"q": ["q"], "p": ["p"]}, "p**2/2 + q**2/2", initial={"q": 1, "p": 0},
+                                          invariants={"x_occurrence": "p**2 + q**2"})
+    with pytest.raises(ParameterError, match=r"^events\.x .*x_occurrence, the name of other data of the run"):
+        elimfast.integrate(oscillator, methods.hbvm(4, 2), t_end=1.0, rtol=1e-10, events={"x": "q"})
 
 
 def test_an_event_named_as_a_coordinate_every_group_inherits_is_refused(tmp_path, kepler_file):
