@@ -497,6 +497,11 @@ def unknown_key_text(location: tuple) -> str:
     if not location:
         return "unknown key; remove it"
     parent = tuple(p for p in location[:-1] if isinstance(p, str))
+    if parent == ("method",) and "(" in str(location[-1]):
+        # method: {EHBVM(12,3)}: YAML's braces make the comma split the notation into two keys (a user trial)
+        return ("unknown key: braces make YAML read the method's notation as keys split at its comma; write "
+                "method: EHBVM(12,3) without braces (quoted in a flow mapping: {method: 'EHBVM(12,3)'}), or "
+                "method: {name: ehbvm, k: 12, s: 3}")
     model = SECTIONS.get(parent) or SECTIONS.get(parent[:-1] + ("*",))   # events.<name>: ("events", "*")
     allowed = list(model.model_fields) if model else []
     return f"unknown key; {_suggest(location[-1], allowed, 'allowed here')}" if allowed else "unknown key; remove it"

@@ -898,3 +898,14 @@ def test_integrate_takes_a_method_in_the_papers_notation():
         elimfast.integrate(p, "ehbvm", 0.1, n_steps=5)
     with pytest.raises(ParameterError, match=r"^method 'EHBVM\(12\)': ehbvm\(k, s\) takes 2 whole numbers"):
         elimfast.integrate(p, "EHBVM(12)", 0.1, n_steps=5)
+
+
+def test_a_method_in_braces_is_told_to_drop_them():
+    """A user trial: method: {EHBVM(12,3)} (YAML reads two keys, 'EHBVM(12' and '3)') was told
+    'method.EHBVM(12: unknown key; allowed here: name, r, k, s'."""
+    data = kepler_data()
+    data["method"] = yaml.safe_load("{EHBVM(12,3)}")
+    assert set(data["method"]) == {"EHBVM(12", "3)"}
+    err = config_error(data)
+    assert err.key == "method.EHBVM(12" and "braces make YAML read the method's notation as keys" in str(err)
+    assert "write method: EHBVM(12,3) without braces" in str(err)

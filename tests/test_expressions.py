@@ -115,6 +115,8 @@ MALICIOUS = [
     ("-" * 500 + "q1", "nested too deeply|cannot be parsed"),
     ("+".join(["q1"] * 6000), "too large|too long|nested too deeply|cannot be parsed"),
     ("q1" + " " * (MAX_LENGTH + 1), "too long"),
+    # the time (a user trial's cos(t) in H was told only "unknown name 't'")
+    ("cos(t) * q1**2", "unknown name 't': expressions depend on the state .* not on the time .* extended phase space"),
 ]
 
 

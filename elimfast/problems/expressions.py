@@ -268,6 +268,11 @@ class _Validator:
                 self.fail(node, f"{name!r} is a function: call it as {name}(...)")
             if name in NOT_SMOOTH or name in WRITTEN_OUT:
                 self.fail(node, not_allowed_function(name))
+            if name in ("t", "time"):   # a user trial's cos(t) in H was told only "unknown name 't'"
+                self.fail(node, f"unknown name {name!r}: expressions depend on the state (q, p) and parameters, "
+                                "not on the time (elimfast integrates autonomous Hamiltonians); for an H that "
+                                "depends on t, make t a coordinate with a conjugate momentum E and add E to H "
+                                "(the extended phase space)")
             known = sorted(self.names) + sorted(CONSTANTS)
             hint = did_you_mean(name, known)
             listed = ", ".join(known)
