@@ -760,3 +760,26 @@ def test_a_failure_where_the_orbit_escapes_names_the_step_and_the_growth(tmp_pat
     assert match and abs(float(match.group(3)) - float(match.group(2)) - 0.05) < 1e-12, line
     assert "if the orbit is escaping to infinity, or its momenta blowing up in a fall into a singularity of H, " \
         "no step size gets through" in line, line
+
+
+def test_a_run_watched_by_a_reader_to_its_end_completes(tmp_path):
+    """A user trial: a run whose file an h5py reader (swmr=True, as the README invites) held open
+    when it ended failed with exit 1, 'cannot write ... at step 300001 ... check the disk', and
+    left its status 'running' (inspect: killed): the final attributes' session was refused by
+    HDF5's lock, which the reader held. It now completes, and the reader keeps its snapshot."""
+    path = tmp_path / "watched.h5"
+    run = subprocess.Popen([ELIMFAST, "run", str(ROOT / "configs" / "kepler.yaml"), "-o", str(path), "--quiet", "--set",
+                            "integration.t_end=100000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 600   # a cold Numba cache compiles the kernels first
+    while steps_on_disk(path) < 1000:
+        assert run.poll() is None, run.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    with h5py.File(path, "r", swmr=True) as reader:
+        seen = reader["y"].shape[0]
+        assert run.poll() is None, "the run ended before the reader held its file: make it longer"
+        _, stderr = run.communicate(timeout=600)
+        assert reader["y"].shape[0] == seen
+    assert run.returncode == 0 and stderr == "", stderr
+    with h5py.File(path, "r") as f:
+        assert f.attrs["status"] == "complete" and int(f.attrs["steps_done"]) == 1_000_000

@@ -68,7 +68,7 @@ from .safety import (_DAMAGE_ADVICE, READ_ERRORS, DamagedFileError, FileBusyErro
                      _one_line, _open, _process_alive, _publish, _regular_file, _size, _temporary_path,
                      _writer_lock_held, clear_consistency_flags, consistency_flags, create_parent_directories,
                      damaged_row_ranges, ensure_not_busy, extended_to_recorded_end, no_room, open_unflagged,
-                     refuse_netcdf_copy, rows_text, set_consistency_flags)
+                     refuse_netcdf_copy, reopen_for_writing, rows_text, set_consistency_flags)
 
 
 
@@ -570,7 +570,7 @@ class RunWriter:
         saved_samples, saved_steps = self.saved["n_samples"], self.saved["steps_done"]
         self._file.close()
         try:
-            with h5py.File(self.path, "r+", libver=LIBVER) as f:
+            with reopen_for_writing(self.path, LIBVER) as f:
                 _cut_back(f, saved_samples, saved_steps, self.saved["event_counts"])
                 f.attrs["status"] = status
                 f.attrs["steps_done"] = min(steps_done, saved_steps)
@@ -761,7 +761,7 @@ class RunFile:
             if self.run is not None:   # the sweep file's versions and date, under the run's own attributes
                 self.attrs = {**{key: _plain(value) for key, value in self._file.attrs.items()
                                  if key not in ("format", "sweep")}, **self.attrs}
-        self.state_damage = None   # what a damaged copy of the saved state costs (_read_state), for inspect
+        self.state_damage = None   # what a damaged saved state costs (_read_state), for inspect
         self._saved = self._read_state() if self.run is None else self._sweep_run_counts()
         self.steps_done = self._saved["steps_done"]
         with self._reading("/t"):

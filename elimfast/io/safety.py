@@ -300,6 +300,19 @@ def _writer_pid(path: Path) -> tuple[int, str, int]:
         return 0, "", 0
 
 
+def reopen_for_writing(path, libver) -> h5py.File:
+    """h5py.File(path, "r+") for a writer that holds elimfast's writer lock (so no other writer
+    exists) and has just closed its SWMR session to write what SWMR mode cannot (the final
+    attributes). A reader watching the run (h5py with swmr=True, open_datatree, as the README
+    invites) holds HDF5's shared lock, which refused this open: the run failed at its end, its
+    status left 'running' (a user trial). The reader then keeps its snapshot; the file is written
+    past HDF5's lock, as it is consistent on disk once this session closes."""
+    try:
+        return h5py.File(path, "r+", libver=libver)
+    except BlockingIOError:
+        return h5py.File(path, "r+", libver=libver, locking=False)
+
+
 def ensure_not_busy(path, other_output: bool = True) -> None:
     """FileBusyError if another live process writes (or holds open) ``path``. Touches nothing.
     ``other_output``: the messages offer another output file (not to ``repair``, which writes none).

@@ -30,7 +30,7 @@ from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _replace_
 from .runfile import _now
 from .safety import (OutputError, _abandon, _close_quietly, _FileGuard, no_room, _one_line, _plain,
                      _publish, _temporary_path, clear_consistency_flags, consistency_flags, create_parent_directories,
-                     ensure_not_busy)
+                     ensure_not_busy, reopen_for_writing)
 
 
 def sweep_group_name(label: str) -> str:
@@ -311,7 +311,7 @@ class SweepWriter:
         """Mark the ensemble complete, once every trajectory is stored (``ensemblefile.finish``)."""
         with self._writing():
             self._file.close()   # attributes change only outside SWMR mode: reopen the file normally
-            self._file = h5py.File(self.path, "r+", libver=LIBVER)
+            self._file = reopen_for_writing(self.path, LIBVER)   # past a watching reader's lock
             self._ensemble = self._file[ensemblefile.GROUP]
             ensemblefile.finish(self._ensemble, threads=threads, status_names=status_names, ok_status=ok_status)
             self._file.flush()
