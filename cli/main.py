@@ -779,16 +779,17 @@ def _quadrature_of_H(problem, method) -> str:
     exactly where H is a polynomial of degree <= 2k/s (Problem.hamiltonian_degree), else up to
     the quadrature error of the k nodes."""
     from elimfast.methods import integrates_exactly
-    k, s, degree = method.k, method.s, problem.hamiltonian_degree
+    label, k = method.kind.nodes_keeping_H(method.r, method.k)   # LIM(r,k,s): its r nodes
+    s, degree = method.s, problem.hamiltonian_degree
     if integrates_exactly(degree, k, s):
-        return (f"a polynomial of degree {degree}, which the k = {k} nodes of {method.name} integrate exactly "
-                f"(degree <= 2k/s = {2 * k / s:.3g}): kept to round-off")
-    what = (f"a polynomial of degree {degree} > 2k/s = {2 * k / s:.3g}" if degree is not None
+        return (f"a polynomial of degree {degree}, which the {label} = {k} nodes of {method.name} integrate exactly "
+                f"(degree <= 2{label}/s = {2 * k / s:.3g}): kept to round-off")
+    what = (f"a polynomial of degree {degree} > 2{label}/s = {2 * k / s:.3g}" if degree is not None
             else {"analytic": "not a polynomial", "symbolic": "not a polynomial as written"}.get(
                 problem.hessian_source, "not known to be a polynomial (a python: problem)"))
     from elimfast.problems.expressions import kink_note
     kinks = f"; {kink_note(problem.hamiltonian_kinks)}" if problem.hamiltonian_kinks else ""
-    return (f"{what}: {method.name} keeps it up to the quadrature error of its k = {k} nodes, O(h^{2 * k + 1}) "
+    return (f"{what}: {method.name} keeps it up to the quadrature error of its {label} = {k} nodes, O(h^{2 * k + 1}) "
             f"per step (inspect and the end-of-run line flag a loss above 1e-12){kinks}")
 
 

@@ -152,7 +152,7 @@ def energy_note(run_file, drift=None) -> str | None:
                 tol=tol if isinstance(tol, (int, float)) else None,
                 hand_written="python" in (config_of(run_file).get("problem") or {}),
                 unchecked=(config_of(run_file).get("problem") or {}).get("check") is False,
-                kinks=_kinks(config_of(run_file).get("problem") or {}))
+                kinks=_kinks(config_of(run_file).get("problem") or {}), family=attrs.get("family"))
 
 
 def _kinks(problem_section) -> tuple:

@@ -431,7 +431,7 @@ class Result:
                            adaptive=self.step_control is not None, s=self.method.s,
                            degree=self.problem.hamiltonian_degree, steps=steps,
                            hand_written=self.problem.source_file is not None,
-                           kinks=self.problem.hamiltonian_kinks,
+                           kinks=self.problem.hamiltonian_kinks, family=self.method.family,
                            roundoff={name: roundoff_allowance(steps, initial[name], scales.get(name, 0.0))
                                      for name in names},
                            tol=self.solver.tol if self.solver is not None else None)
@@ -566,7 +566,7 @@ def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
                 s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0,
                 tol: float | None = None, hand_written: bool = False, unchecked: bool = False,
-                kinks: tuple = ()) -> str | None:
+                kinks: tuple = (), family: str | None = None) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -600,7 +600,8 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     switched off, so an imposed invariant may not be one (a user trial imposed q . p on Kepler
     with problem.check: false and was told of quadrature, k and h). ``kinks``: functions with a
     kink that H calls (Problem.hamiltonian_kinks): named first where H is lost (a user trial's
-    p**2/2 + abs(x) lost H to 1.6e-2 and was told to raise k)."""
+    p**2/2 + abs(x) lost H to 1.6e-2 and was told to raise k). ``family``: the method's registry
+    name; LIM(r,k,s) keeps H through its r nodes, not k (Family.nodes_keeping_H)."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
@@ -609,9 +610,11 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
         return (f"{listed_errors} (relative) above round-off: solver.tol = {tol:g} accepts iterates about that far "
                 "from the solution, and H and the imposed invariants are kept only to about that; leave tol out "
                 "(machine epsilon) to keep them to round-off")
-    if methods.integrates_exactly(degree, k, s) and set(above) == {"H"}:
+    kind = methods.FAMILIES.get(str(family).lower()) if family is not None else None
+    h_label, h_nodes = kind.nodes_keeping_H(r, k) if kind is not None else ("k", k)
+    if methods.integrates_exactly(degree, h_nodes, s) and set(above) == {"H"}:
         return (f"H error {above['H']:.1e} (relative) is above round-off, but {method_name} integrates this H (a "
-                f"polynomial of degree {int(degree)} <= 2k/s) exactly: it is round-off, which grows with the number "
+                f"polynomial of degree {int(degree)} <= 2{h_label}/s) exactly: it is round-off, which grows with the number "
                 "of steps and with the size of the state against the differences H depends on (a drifting "
                 "system's positions, say); more nodes or smaller steps do not reduce it")
     def listed(errors):
@@ -624,24 +627,28 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
         return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above 1e-12 but within what rounding "
                 f"can accumulate over {steps:,} steps (up to {bound:.0e} here: {ROUNDOFF_PER_STEP:g} eps "
                 "sqrt(steps) times the size of the terms at t0, a random walk): if it is rounding, more nodes or "
-                "smaller steps do not reduce it; a run with a larger k tells")
+                f"smaller steps do not reduce it; a run with a larger {h_label} tells")
     above = {name: value for name, value in above.items() if value > roundoff.get(name, 0.0)}
     imposed = [name for name in above if name != "H"]
-    same_nodes = r is not None and k is not None and int(r) == int(k)   # EHBVM, GHBVM: r = k
+    # EHBVM, GHBVM: r = k; LIM keeps H through its r nodes too
+    same_nodes = h_label == "r" or (r is not None and k is not None and int(r) == int(k))
     kept = []
-    if "H" in above:
-        kept.append(f"H only up to the quadrature error of its k = {k} nodes")
-    if imposed:
+    if "H" in above and imposed and h_label == "r":   # LIM: one quadrature keeps both
+        kept.append(f"H and the imposed invariants only up to the quadrature error of its r = {r} nodes")
+    elif "H" in above:
+        kept.append(f"H only up to the quadrature error of its {h_label} = {h_nodes} nodes")
+    if imposed and not ("H" in above and h_label == "r"):
         kept.append(f"{'and ' if kept else ''}the imposed invariants only up to "
                     f"{'that' if kept else 'the quadrature error'} of its r = {r} nodes"
                     + (" (the same)" if same_nodes and kept else ""))
-    nodes = " and ".join((["k"] if "H" in above or same_nodes else []) + (["r"] if imposed and not same_nodes else []))
+    nodes = " and ".join(([h_label] if "H" in above or same_nodes else [])
+                         + (["r"] if imposed and not same_nodes else []))
     if str(method_name).upper().startswith("GAUSS("):   # k = s is GAUSS's: more nodes is HBVM(k,s)
         nodes = f"k (HBVM(k,{str(method_name)[6:-1]}) with k > {str(method_name)[6:-1]})"
     where = (f"at h = {h:g}; raise {nodes} or reduce h" if not adaptive
              else f"at the largest steps the step control allows; raise {nodes}, tighten rtol (or epsilon) or "
                   "set h_max")
-    otherwise = ("; if a larger k leaves it unchanged, it is not quadrature but round-off where H's terms grow far "
+    otherwise = (f"; if a larger {nodes if nodes in ('k', 'r') else h_label} leaves it unchanged, it is not quadrature but round-off where H's terms grow far "
                  "beyond their size at t0 (a close encounter)"
                  + (", or a grad_H that is not the gradient of H (elimfast check compares them)" if hand_written
                     else "")

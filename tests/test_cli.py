@@ -424,6 +424,13 @@ def test_check_prints_the_resolved_config_as_yaml():
                                       "quadrature error of its k = 5 nodes, O(h^11) per step"),
     ("kepler.yaml", [], "# H: not a polynomial: EHBVM(12,3) keeps it up to the quadrature error of its k = 12 nodes"),
     ("kepler_python.yaml", [], "# H: not known to be a polynomial (a python: problem): EHBVM(12,3) keeps it"),
+    # LIM imposes H through its r nodes (a user trial: 'k = 6 nodes' for LIM(24,6,3), which keeps H to 3e-14)
+    ("kepler.yaml", ["method=LIM(24,6,3)"], "# H: not a polynomial: LIM(24,6,3) keeps it up to the quadrature "
+                                            "error of its r = 24 nodes"),
+    ("central_quartic.yaml", ["method=LIM(2,4,2)"], "# H: a polynomial of degree 4 > 2r/s = 2: LIM(2,4,2) keeps it "
+                                                    "up to the quadrature error of its r = 2 nodes"),
+    ("kepler.yaml", ["method=GHBVM(12,3)"], "# H: not a polynomial: GHBVM(12,3) keeps it up to the quadrature "
+                                            "error of its k = 12 nodes"),
 ])
 def test_check_says_whether_the_method_keeps_H_exactly(config, overrides, line):
     result = invoke("check", ROOT / "configs" / config, *[item for o in overrides for item in ("--set", o)])

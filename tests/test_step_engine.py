@@ -642,6 +642,21 @@ def test_energy_note_says_what_a_loss_that_a_larger_k_leaves_unchanged_is(tmp_pa
         result.output)
 
 
+def test_energy_note_names_the_r_nodes_through_which_lim_keeps_H():
+    """A user trial: LIM(2,4,2) on a quartic H lost 8.2e-10 at h = 0.4 (2.6e-12 at 0.2, 1.2e-14 at
+    0.1) and was told that the k = 4 nodes integrate this H exactly, so that it was round-off; and
+    LIM(6,12,3) was told of its k = 12 nodes. LIM imposes H through its r nodes."""
+    from elimfast.integrate import energy_note
+    quartic = energy_note("LIM(2,4,2)", 4, 2, 0.4, {"H": 8.2e-10}, False, s=2, degree=4, family="lim")
+    assert "keeps H only up to the quadrature error of its r = 2 nodes at h = 0.4; raise r or reduce h" in quartic
+    both = energy_note("LIM(6,12,3)", 12, 6, 0.1, {"H": 1.6e-8, "lrl_y": 1.1e-7}, False, s=3, family="lim")
+    assert "keeps H and the imposed invariants only up to the quadrature error of its r = 6 nodes at h = 0.1; " \
+           "raise r or reduce h; if a larger r leaves it unchanged" in both
+    # where r is not the family's (GHBVM(k,s) = LIM(k,k,s)) or H is not imposed (ELIM), k is named as before
+    assert "its k = 12 nodes" in energy_note("GHBVM(12,3)", 12, 12, 0.1, {"H": 1e-9}, False, s=3, family="ghbvm")
+    assert "its k = 12 nodes" in energy_note("ELIM(6,12,3)", 12, 6, 0.1, {"H": 1e-9}, False, s=3, family="elim")
+
+
 def test_energy_note_blames_round_off_where_the_quadrature_of_a_polynomial_H_is_exact():
     """configs/fpu_beta.yaml run 100x longer lost H to 3e-11 (its ring drifts: the positions
     grow while H depends on their differences) and the note said to raise k, which cannot help:
