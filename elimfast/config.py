@@ -463,7 +463,13 @@ def _apply_overrides(data, overrides, source):
                 raise ConfigError(f"{source}: --set {item!r}: {'.'.join(parts[:depth + 1])} is not a section, so it "
                                   "has no keys; set it as a whole instead")
             node = child
-        node[parts[-1]] = value
+        if value is None:
+            # --set KEY=null (or KEY=) leaves the key out, in every section: the messages that say
+            # "leave it out" are followed from the command line (a user trial: solver.lim_metric=null
+            # was refused as "an empty value", where integration's keys took it)
+            node.pop(parts[-1], None)
+        else:
+            node[parts[-1]] = value
         path = tuple(parts)
         for earlier in [o for o in overridden if o[:len(path)] == path]:
             del overridden[earlier]

@@ -909,3 +909,19 @@ def test_a_method_in_braces_is_told_to_drop_them():
     err = config_error(data)
     assert err.key == "method.EHBVM(12" and "braces make YAML read the method's notation as keys" in str(err)
     assert "write method: EHBVM(12,3) without braces" in str(err)
+
+
+def test_set_null_leaves_a_key_out_in_every_section():
+    """A user trial: solver.lim_metric: 'scaled' on a non-LIM method says 'leave lim_metric out',
+    but --set solver.lim_metric=null was refused as 'an empty value (null)' (solver's and output's
+    keys), while integration's took it. --set KEY=null now leaves the key out, everywhere."""
+    nbody = yaml.safe_load((CONFIGS / "nbody.yaml").read_text())
+    assert nbody["solver"]["lim_metric"] == "scaled"
+    spec = load_run_from_dict(nbody, source="nbody.yaml", overrides=[
+        "method=EHBVM(12,4)", "conserve=[angular_momentum_z]", "solver.lim_metric=null"])
+    assert spec.solver.lim_metric == "euclidean" and spec.method.name == "EHBVM(12,4)"
+    gauss = load_run_from_dict(kepler_data(), source="k.yaml", overrides=["method.name=gauss", "method.k=null",
+                                                                           "conserve=[]"])
+    assert gauss.method.name == "GAUSS(3)"
+    err = config_error(kepler_data(), overrides=["integration.h=null"])   # a required key: missing, said so
+    assert err.key == "integration.h" and "missing" in str(err) and str(err).endswith("(value from --set integration.h=null)")
