@@ -266,7 +266,8 @@ def resolve_t_eval(times, t0: float, t_end: float, store_every: int = 1) -> np.n
     They are the samples, so a store_every other than 1 (output.every) is refused: it was ignored."""
     if store_every != 1:
         raise ParameterError("store_every", f"does not apply with output times (t_eval, output.times), which "
-                                            f"are the samples; remove one of the two, or make it 1 (got {store_every})")
+                                            f"are the samples; remove one of the two, or make it 1 (got {store_every})",
+                             related=("t_eval",))   # a --set of output.times that made it so is named
     values = np.asarray(times, dtype=np.float64)
     if values.ndim > 1:
         raise ParameterError("t_eval", f"must be a list of times (1-d), got an array of shape {values.shape}")

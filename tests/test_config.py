@@ -925,3 +925,12 @@ def test_set_null_leaves_a_key_out_in_every_section():
     assert gauss.method.name == "GAUSS(3)"
     err = config_error(kepler_data(), overrides=["integration.h=null"])   # a required key: missing, said so
     assert err.key == "integration.h" and "missing" in str(err) and str(err).endswith("(value from --set integration.h=null)")
+
+
+def test_output_every_refused_beside_output_times_names_their_set():
+    """A user trial: --set 'output.times=[...]' on configs/kepler_adaptive.yaml (output.every: 10)
+    was told of the file's output.every line only, not of the --set that made the conflict."""
+    data = yaml.safe_load((CONFIGS / "kepler_adaptive.yaml").read_text())
+    assert data["output"]["every"] == 10
+    err = config_error(data, overrides=["output.times=[1, 2, 3]"])
+    assert err.key == "output.every" and str(err).endswith("make it 1 (got 10) (with --set output.times=[1, 2, 3])")
