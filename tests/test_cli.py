@@ -648,3 +648,21 @@ def test_a_slow_run_reports_seconds_per_step_not_zero_steps_per_second():
     from elimfast_cli.report import _rate
     assert _rate(10, 66.7) == "6.67 s/step"
     assert _rate(200, 0.1) == "2,000 steps/s"
+
+
+def test_a_run_whose_steps_mostly_go_unimposed_hears_it_during_the_run(tmp_path):
+    """A user trial: EHBVM(12,4) imposing the solar system's three angular momenta took every
+    step without imposing them, at a fifth of GHBVM's speed, and heard so only at the end. Once
+    200 steps are taken and most went so, a note says it during the run, once; a run that
+    imposes them says nothing of it."""
+    nbody = ROOT / "configs" / "nbody.yaml"
+    result = invoke("run", nbody, "-o", tmp_path / "e.h5", "--set", "method=EHBVM(12,4)", "--set",
+                    "conserve=[angular_momentum_x, angular_momentum_y, angular_momentum_z]", "--set",
+                    "integration.t_end=4e4", "--set", "solver.lim_metric=null")
+    assert result.exit_code == 0, result.output
+    lines = result.stderr.splitlines()
+    during = [i for i, line in enumerate(lines) if "steps taken so far went without imposing the invariants" in line]
+    end = [i for i, line in enumerate(lines) if line.startswith(f"{tmp_path / 'e.h5'}: complete")]
+    assert len(during) == 1 and during[0] < end[0], result.stderr
+    plain = invoke("run", nbody, "-o", tmp_path / "g.h5", "--set", "integration.t_end=4e4")
+    assert plain.exit_code == 0 and "went without imposing" not in plain.stderr
