@@ -724,3 +724,37 @@ def test_a_netcdf_copy_of_a_run_or_sweep_file_is_named_as_such_not_damaged(keple
         assert result.exit_code == 2 and result.output == f"error: {copy}: {said}\n"
     with elimfast.open_datatree(run_copy) as tree:
         assert tree["steps"]["iterations"].size > 0
+
+
+def test_a_tree_left_open_does_not_freeze_later_trees_of_a_live_run(tmp_path):
+    """A user trial: with one open_datatree of a run still being written left open (as the README's
+    `tree = elimfast.open_datatree(...)`), every later open_datatree of the file in that process gave
+    the same snapshot (steps_done 179,934 three times over 2 s while the run reached 600,000); load
+    saw the new rows. A later tree now sees them too; the first keeps its own snapshot."""
+    import subprocess
+    import sys
+    import time
+
+    from runfiles import steps_on_disk
+    path = tmp_path / "live.h5"
+    run = subprocess.Popen([str(Path(sys.executable).with_name("elimfast")), "run", str(ROOT / "configs" / "kepler.yaml"),
+                            "-o", str(path), "--quiet", "--set", "integration.t_end=200000"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 600   # a cold Numba cache compiles the kernels first
+        while steps_on_disk(path) < 1000:
+            assert run.poll() is None and time.monotonic() < deadline
+            time.sleep(0.01)
+        first = elimfast.open_datatree(path)
+        seen = int(first.attrs["steps_done"])
+        while steps_on_disk(path) < seen + 20000:
+            assert run.poll() is None, "the run ended first: make it longer"
+            time.sleep(0.01)
+        later = elimfast.open_datatree(path)
+        assert int(later.attrs["steps_done"]) >= seen + 20000 and later["steps"].sizes["step"] >= seen + 20000
+        assert int(first.attrs["steps_done"]) == seen == first["steps"].sizes["step"]
+        later.close()
+        first.close()
+    finally:
+        run.kill()
+        run.wait()
