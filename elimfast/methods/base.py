@@ -139,7 +139,7 @@ class Family:
 
     def nodes_keeping_H(self, r, k) -> tuple[str, int]:
         """The quadrature H is kept to, named and counted: LIM imposes H with its invariants
-        (multiplier_counts_H), through their gradients at its r nodes, so r (a user trial: LIM(6,12,3)
+        (multiplier_counts_H), and its loss of H follows r (a user trial: LIM(6,12,3)
         lost H to 4e-9 where HBVM(12,3) keeps 9e-13, and LIM(24,6,3) kept what HBVM(6,3) loses); the
         others keep H through the k nodes."""
         return ("r", r) if self.multiplier_counts_H and "r" in self.parameters else ("k", k)
