@@ -1223,3 +1223,37 @@ def test_runs_a_terminal_event_ended_early_have_no_error_and_say_why(tmp_path):
     assert float(by_label[("count", "pi/120")][column["order"]]) > 5
     resumed = run_to_file(path, out, workers=1, resume=True)   # read back: the same table
     assert resumed.table() == (header, rows)
+
+
+def test_a_pool_whose_shortest_run_is_refused_compiles_nothing_on_a_warm_cache(tmp_path):
+    """A user trial: with -o and 2 workers, a sweep whose shortest run's config was refused (h = 0.7
+    is no whole number of steps) said 'compiling Numba kernels' on a warm cache: nothing had named
+    the problem's Numba functions before forking, so every stored result's functions were rebuilt
+    and compiled in the parent. The parent now runs the next shortest run too, until one loads."""
+    import subprocess
+    import sys
+    sweep = {"base": {"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.9}},
+                      "method": {"name": "hbvm", "k": 6, "s": 3}, "integration": {"h": 0.5, "t_end": "20*pi"}},
+             "grid": [{"name": "h", "key": "integration.h", "values": ["pi/5", 0.7, "pi/10", "pi/40"]}],
+             "error": {"exact": "initial"}}
+    path = write_sweep(tmp_path, sweep)
+    elimfast = str(Path(sys.executable).with_name("elimfast"))
+    for _ in range(2):   # the first may compile the problem's functions on a cold cache; the second must not
+        done = subprocess.run([elimfast, "sweep", str(path), "--workers", "2", "-o", str(tmp_path / "s.h5"),
+                               "--overwrite", "-q"], capture_output=True, text=True)
+    assert done.returncode == 2, done.stderr   # the refused run
+    assert "compiling" not in done.stderr, done.stderr
+
+
+def test_a_reference_a_terminal_event_ended_early_is_said(tmp_path):
+    """A user trial: a reference run stopped by a terminal event left every error '-', exit 0,
+    nothing said. The sweep now says why there are no errors, as for a failed reference."""
+    from elimfast.sweep import run_to_file
+    sweep = {"base": {"problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.6}},
+                      "method": {"name": "hbvm", "k": 6, "s": 3}, "integration": {"h": 0.1, "t_end": 10}},
+             "grid": [{"name": "h", "key": "integration.h", "values": [0.1, 0.05]}],
+             "error": {"reference": {"set": {"integration": {"h": 0.01}, "events": {
+                 "apo": {"expression": "q1*p1+q2*p2", "direction": -1, "terminal": True}}}}}}
+    done = run_to_file(write_sweep(tmp_path, sweep), None, workers=1)
+    assert done.failures() == ["the reference run was ended by a terminal event at t = 3.141592654, before its t_end, "
+                               "so there are no errors: give the reference no terminal event"]
