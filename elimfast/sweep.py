@@ -1489,6 +1489,8 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
 
     if client is not None and scheduler is not None:
         raise SweepError("give either a Dask client or a scheduler address, not both")
+    if resume and path is None:   # (a user trial: the whole sweep ran again, stored nothing, said nothing)
+        raise SweepError("resume=True continues a sweep stored in a file: give its path")
     if scheduler is not None:
         from .distributed import check_scheduler
         check_scheduler(scheduler, workers)   # before any work: dask installed, address well formed

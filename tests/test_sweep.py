@@ -1257,3 +1257,12 @@ def test_a_reference_a_terminal_event_ended_early_is_said(tmp_path):
     done = run_to_file(write_sweep(tmp_path, sweep), None, workers=1)
     assert done.failures() == ["the reference run was ended by a terminal event at t = 3.141592654, before its t_end, "
                                "so there are no errors: give the reference no terminal event"]
+
+
+def test_resume_without_a_file_is_refused_from_python(tmp_path):
+    """A user trial: elimfast.sweep.run(SWEEP, resume=True) with no path ran every run again,
+    stored nothing and said nothing (the command line refuses --resume without -o)."""
+    from elimfast.sweep import run_to_file
+    path = write_sweep(tmp_path, {"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30"]}]})
+    with pytest.raises(SweepError, match="resume=True continues a sweep stored in a file: give its path"):
+        run_to_file(path, None, resume=True)
