@@ -1214,10 +1214,10 @@ def errors_of(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome
     that a terminal event stopped before its t_end has no state at t_end to compare; a user trial
     got 'error 2.5, order 0.00' for runs stopped at the apocentre, compared with y0)."""
     errors = {}
+    if reference is not None and reference.ended_before_t_end:
+        reference = None
     for outcome in outcomes:
         value = math.nan
-        if reference is not None and reference.ended_before_t_end:
-            reference = None
         if outcome.ok and outcome.y_final is not None and not outcome.ended_before_t_end:
             if spec.error_mode == "initial":
                 value = float(np.max(np.abs(outcome.y_final - outcome.y_initial)))
