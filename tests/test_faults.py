@@ -456,14 +456,17 @@ def test_huge_grids_and_ensembles_are_refused_before_anything_is_allocated(tmp_p
         {"name": f"a{i}", "values": [{"label": f"v{j}", "set": {}} for j in range(10)]} for i in range(10)]})
     ensemble = write_yaml(tmp_path / "ensemble.yaml", {"base": base, "ensemble": {"n": "1e8"}})
     wide = write_yaml(tmp_path / "wide.yaml", {"base": base, "ensemble": {"n": 10 ** 12}})
+    out = ["-o", tmp_path / "out.h5"]
     cases = [
-        (grid, "grid: 10,000,000,000 runs (10 x 10 x 10 x 10 x 10 x 10 x 10 x 10 x 10 x 10), more than a sweep"),
-        # 184 bytes a trajectory: states 4 x 4 x 8, H's error 2 x 8, five numbers 5 x 8 (sweep.ensemble_bytes)
-        (ensemble, "ensemble.n: ensemble.n = 100,000,000 trajectories of 4 coordinates would need 18.4 GB of memory"),
-        (wide, "ensemble.n = 1,000,000,000,000 trajectories of 4 coordinates would need 184 TB of memory"),
+        (grid, out, "grid: 10,000,000,000 runs (10 x 10 x 10 x 10 x 10 x 10 x 10 x 10 x 10 x 10), more than a sweep"),
+        # In memory, 184 bytes a trajectory: states 4 x 4 x 8, H's error 2 x 8, five numbers 5 x 8; streamed to
+        # a file, 112: states 2 x 4 x 8, H's error 8, five numbers 5 x 8 (sweep.ensemble_bytes)
+        (ensemble, [], "ensemble.n: ensemble.n = 100,000,000 trajectories of 4 coordinates would need 18.4 GB of memory"),
+        (wide, out, "ensemble.n = 1,000,000,000,000 trajectories of 4 coordinates would need 112 TB of memory"),
+        (wide, [], "ensemble.n = 1,000,000,000,000 trajectories of 4 coordinates would need 184 TB of memory"),
     ]
-    for path, fragment in cases:
-        done = measured("sweep", path, "-o", tmp_path / "out.h5")
+    for path, options, fragment in cases:
+        done = measured("sweep", path, *options)
         if "1e8" in path.read_text() and "would need" not in done.stderr:
             pytest.skip("this machine has more than 37 GB available: 10^8 trajectories would fit")
         assert_one_line(done, 2, fragment)

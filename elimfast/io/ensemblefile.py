@@ -19,8 +19,8 @@ An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
 
 Attributes of /ensemble: problem, method, h, n_steps, conserve, config (the resolved
 YAML) and status: 'running' until every trajectory is stored, then 'complete', with
-threads, failed (how many trajectories failed) and reasons (each trajectory's status as
-a word) written then; ``<quantity>_unit`` where the problem states its units. Every dataset
+threads and failed (how many trajectories failed) written then (each trajectory's status
+as a word: status's flag_meanings); ``<quantity>_unit`` where the problem states its units. Every dataset
 has a ``long_name`` (ROW_LONG_NAMES), t_final its ``units``, and status CF's ``flag_values``
 and ``flag_meanings`` (the words of its codes).
 
@@ -90,10 +90,10 @@ def status_flags(status_names: dict, dtype) -> dict:
 
 def bytes_on_disk(run, states: np.ndarray) -> int:
     """The bytes of /ensemble's per-trajectory datasets, all allocated when the file is
-    created, and of the reasons attribute written at the end (about 24 bytes a trajectory)."""
+    created."""
     n, width = states.shape
     row = sum(dtype.itemsize * int(np.prod(shape)) for shape, dtype in run.row_layout().values())
-    return n * (8 * (width + len(run.invariant_names)) + row + 1 + 24)
+    return n * (8 * (width + len(run.invariant_names)) + row + 1)
 
 
 def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
@@ -184,12 +184,17 @@ def stored_count(group) -> int:
                for first in range(0, stored.shape[0], READ_BLOCK_ROWS))
 
 
-def finish(group, *, threads: int, status_names: dict[int, str], ok_status: int) -> None:
-    """Mark /ensemble complete (every trajectory stored): threads, failed, reasons, status."""
-    status = group["status"][()]
-    values = {"threads": int(threads), "failed": int(np.count_nonzero(status != ok_status)),
-              "reasons": [status_names.get(int(code), str(int(code))) for code in status] or [""],
-              "status": STATUS_COMPLETE}
+def finish(group, *, threads: int, ok_status: int) -> None:
+    """Mark /ensemble complete (every trajectory stored): threads, failed, status.
+
+    Each trajectory's status as a word is the status dataset's flag_meanings (status_flags), not
+    an attribute: the ``reasons`` attribute that listed it, one string per trajectory, was read
+    whole by every opening of the group (60 MB of Python strings per million trajectories;
+    10^8 would have taken gigabytes at finish and at every read)."""
+    failed = 0
+    for first in range(0, group["status"].shape[0], READ_BLOCK_ROWS):
+        failed += int(np.count_nonzero(group["status"][first:first + READ_BLOCK_ROWS] != ok_status))
+    values = {"threads": int(threads), "failed": failed, "status": STATUS_COMPLETE}
     _replace_attributes(group, values)
 
 

@@ -307,13 +307,13 @@ class SweepWriter:
             ensemblefile.mark_stored(self._ensemble, start, stop)
             self._file.flush()
 
-    def finish_ensemble(self, *, threads: int, status_names: dict[int, str], ok_status: int) -> None:
+    def finish_ensemble(self, *, threads: int, ok_status: int) -> None:
         """Mark the ensemble complete, once every trajectory is stored (``ensemblefile.finish``)."""
         with self._writing():
             self._file.close()   # attributes change only outside SWMR mode: reopen the file normally
             self._file = reopen_for_writing(self.path, LIBVER)   # past a watching reader's lock
             self._ensemble = self._file[ensemblefile.GROUP]
-            ensemblefile.finish(self._ensemble, threads=threads, status_names=status_names, ok_status=ok_status)
+            ensemblefile.finish(self._ensemble, threads=threads, ok_status=ok_status)
             self._file.flush()
 
     def forget(self, label: str) -> None:
