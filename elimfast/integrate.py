@@ -47,8 +47,8 @@ LOOSE_TOL = 1e-14                 # above it, a run's loss of H is first the tol
 # invariants: there a step that needs more than 30 is one whose alpha system is
 # ill-conditioned (nearly symmetric about a pericentre), and its solution carries
 # rounding noise of ~1e-12 (Kepler e = 0.9, h = 0.05, EHBVM(24,3) imposing L, 2e4 time
-# units: H error 7.3e-12 with a cap of 100, 8.6e-13 with 30, the steps over the cap split
-# in two, 0.2% of them). Elsewhere slow convergence only means the Jacobian changes
+# units: H error 2.9e-12 with a cap of 100, 8.2e-13 with 30, the steps over the cap split
+# in two, 0.16% of them; rounding draws, docs/solver.md). Elsewhere slow convergence only means the Jacobian changes
 # fast within the step, and splitting would cost what it does not need to: HBVM(24,3)
 # on the same orbit keeps its (not imposed) L error bounded at 2.2e-4 without splits,
 # and lets it drift to 1e-3 in 6000 time units when 30 splits 7 steps.
@@ -704,7 +704,7 @@ def resolve_conserve(problem: Problem, method: Method, conserve: Iterable[str],
 
 # The smallest singular value of the unit gradients of H and the imposed invariants at y0
 # below which they count as linearly dependent (about 5000 eps). Kepler's circular orbit,
-# imposing angular momentum: 7.9e-17; at eccentricity e it is 0.35 e. Measured (EHBVM(12,3),
+# imposing angular momentum: 5.6e-17 (a rounding of zero); at a small eccentricity e about 0.35 e. Measured (EHBVM(12,3),
 # h = 0.1, [0, 1000]): e = 1e-10 completes at 1024 iterations per step, e = 1e-8 at 104,
 # e = 1e-6 at 11 (e = 0.01: 4.7); e = 0 took ~2,100 per step for 2,849 steps and then failed
 # (cond(Gamma) inf). GHBVM fails at its first step from e = 1e-8 down (Gram matrix).
