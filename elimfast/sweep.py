@@ -62,6 +62,7 @@ import math
 import multiprocessing
 import os
 import pickle
+import re
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -1618,8 +1619,44 @@ def _stream_ensemble(spec: SweepSpec, writer, ensemble, states: np.ndarray, clie
         writer.finish_ensemble(threads=threads, ok_status=STATUS_OK)
 
 
+# The command line's flags that run_to_file's messages name, as run's keywords: in Python,
+# "pass --overwrite" sent a user trial looking for a flag. Quoted commands ("elimfast sweep ...
+# --resume") are left as they are.
+_PYTHON_WORDING = ((re.compile(r"--(overwrite|resume)\b"), r"\1=True"), (re.compile(r"--workers (\d+)"), r"workers=\1"),
+                   (re.compile(r"--(workers|scheduler)\b"), r"\1"))
+_QUOTED_COMMAND = re.compile(r"elimfast (?:run|sweep|repair)\b[^;)]*")
+
+
+def python_wording(message: str) -> str:
+    """``message`` with the command line's flags (--overwrite, --resume, --workers, --scheduler)
+    named as run's keywords, outside quoted elimfast commands."""
+    pieces, last = [], 0
+    for quoted in _QUOTED_COMMAND.finditer(message):
+        pieces += [(message[last:quoted.start()], True), (quoted.group(), False)]
+        last = quoted.end()
+    pieces.append((message[last:], True))
+    out = []
+    for text, translate in pieces:
+        if translate:
+            for pattern, replacement in _PYTHON_WORDING:
+                text = pattern.sub(replacement, text)
+        out.append(text)
+    return "".join(out)
+
+
 def run(spec, path=None, *, client=None, **options) -> SweepOutcome:
     """Run a sweep (a SweepSpec or a sweep file's path), storing it in ``path`` if given;
     on the Dask cluster of ``client`` (a ``dask.distributed.Client``) if given, else in
-    local worker processes. The options are those of ``run_to_file``."""
-    return run_to_file(spec, path, client=client, **options)
+    local worker processes. The options are those of ``run_to_file``; its errors name them as
+    keywords (overwrite=True), where the command line's name its flags (--overwrite)."""
+    if client is not None and not (callable(getattr(client, "submit", None))
+                                   and callable(getattr(client, "wait_for_workers", None))):
+        raise TypeError(f"client must be a dask.distributed.Client (or None for local worker processes), got "
+                        f"{type(client).__name__}; for a scheduler's address pass scheduler='tcp://host:8786'")
+    try:
+        return run_to_file(spec, path, client=client, **options)
+    except ElimfastError as error:
+        worded = python_wording(str(error))
+        if worded != str(error):
+            error.args = (worded,)
+        raise

@@ -1266,3 +1266,24 @@ def test_resume_without_a_file_is_refused_from_python(tmp_path):
     path = write_sweep(tmp_path, {"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30"]}]})
     with pytest.raises(SweepError, match="resume=True continues a sweep stored in a file: give its path"):
         run_to_file(path, None, resume=True)
+
+
+def test_python_errors_name_keywords_not_the_command_lines_flags(tmp_path):
+    """A user trial: elimfast.sweep.run's errors said "pass --overwrite" and "--workers must be at
+    least 1", flags a Python caller has not got; client=object() raised a bare AttributeError."""
+    from elimfast import sweep as sweeps
+    path = write_sweep(tmp_path, {"base": BASE, "grid": [{"name": "h", "key": "integration.h", "values": ["pi/30"]}]})
+    out = tmp_path / "out.h5"
+    sweeps.run(path, out, workers=1)
+    with pytest.raises(OutputError) as refused:
+        sweeps.run(path, out, workers=1)
+    assert "pass overwrite=True to replace it or resume=True to continue it" in str(refused.value)
+    with pytest.raises(SweepError, match="^workers must be at least 1$"):
+        sweeps.run(path, None, workers=0)
+    with pytest.raises(TypeError, match="client must be a dask.distributed.Client .* got object"):
+        sweeps.run(path, None, client=object())
+    # The command line's wording is unchanged, and a quoted command keeps its flags in Python too
+    with pytest.raises(OutputError, match="pass --overwrite to replace it or --resume"):
+        sweeps.run_to_file(path, out, workers=1)
+    assert (sweeps.python_wording("complete it with elimfast sweep s.yaml -o o.h5 --resume; or pass --overwrite")
+            == "complete it with elimfast sweep s.yaml -o o.h5 --resume; or pass overwrite=True")
