@@ -1009,9 +1009,9 @@ def sweep(sweep_file, output, workers, table_format, overwrite, resume, schedule
     click.echo(sweeps.format_table(header, rows, table_format), nl=False)
     for line in outcome.failures():
         click.echo(f"error: {line}", err=True)
-    if any(o.config_error for o in outcome.outcomes):
-        # a run whose config is refused (a grid value h = -0.05) is a usage error, not a failed
-        # integration (a user trial's sweep exited 1); the other runs are in the table
+    if any(o.config_error or o.refused for o in outcome.outcomes):
+        # a run whose config is refused (a grid value h = -0.05), or that would not fit in memory, is a
+        # usage error, not a failed integration (a user trial's sweep exited 1); the other runs are in the table
         return EXIT_USAGE
     return EXIT_FAILED if outcome.failures() else EXIT_OK
 

@@ -119,6 +119,7 @@ class RunOutcome:
     invariant_scales: dict[str, float] = field(default_factory=dict)     # the size of each I's terms at t0
     result: Any = None                  # the Result integrate would return (kept when the runs are stored)
     config_error: bool = False          # failed before any step: its config (or problem file) did not load
+    refused: bool = False               # not run: it would not fit in memory (a usage error too, exit 2)
     # What a run file of this run records beside its Result, for the sweep file's run group:
     # the config's end (an adaptive run's n_steps * h is no end) and, for runs of the adaptive
     # kernel, how the steps were chosen (AdaptiveIntegration.file_attributes).
@@ -973,6 +974,7 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
                           f"{_size(needed)} of memory in a sweep, which keeps every step; {_size(available)} are "
                           "available: raise output.every, shorten the run, or run it alone with elimfast run (which "
                           "streams to disk)")
+        outcome.refused = True
         return outcome
     outcome.y_initial = run.y.copy()
     chunks = [run.initial_chunk()]

@@ -1287,3 +1287,17 @@ def test_python_errors_name_keywords_not_the_command_lines_flags(tmp_path):
         sweeps.run_to_file(path, out, workers=1)
     assert (sweeps.python_wording("complete it with elimfast sweep s.yaml -o o.h5 --resume; or pass --overwrite")
             == "complete it with elimfast sweep s.yaml -o o.h5 --resume; or pass overwrite=True")
+
+
+def test_a_run_refused_for_memory_is_a_usage_error(tmp_path, monkeypatch):
+    """A user trial: a sweep whose runs would not fit in memory exited 1, as a failed integration;
+    like a refused config, it is the input's size (exit 2), and the message says what to change."""
+    from click.testing import CliRunner
+    from cli.main import cli
+    from elimfast import sweep as sweeps
+    long_run = {**BASE, "integration": {"h": 0.1, "n_steps": 10 ** 8}}   # ~10^8 samples: ~4 GB
+    path = write_sweep(tmp_path, {"base": long_run, "grid": [{"name": "h", "key": "integration.h", "values": [0.1]}]})
+    monkeypatch.setattr(sweeps, "memory_available", lambda: 2 ** 30)
+    done = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "-q"])
+    assert done.exit_code == 2, done.output
+    assert "of memory in a sweep" in done.stdout and "raise output.every" in done.stdout   # its status cell
