@@ -872,7 +872,13 @@ def _load_point(source: str, label: str, config: dict):
     return load_run_from_dict(copy.deepcopy(config), source=run_source(source, label), base_dir=Path(source).parent)
 
 
-def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[str, int]]:
+def other_sweep_file(written_by: str | None, source) -> bool:
+    """Is ``written_by`` (a sweep file's stored source attribute) another file than ``source``? A
+    resume from another sweep file was called an edit of it (a user trial)."""
+    return bool(written_by) and Path(written_by) != Path(source).resolve()
+
+
+def solver_only_edit(spec: SweepSpec, path) -> Callable[..., dict[str, int]]:
     """The rule by which ``--resume`` continues a grid sweep's file written by an earlier text
     of the sweep file (SweepWriter's accept_edit): every run stored complete must still be a
     run of ``spec`` (by its label), with the same resolved config outside solver.* and
@@ -883,14 +889,16 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
     and key that would change; returns {label: place in the edited grid}."""
     from .streaming import LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_difference, step_solver_change
 
-    def accept(stored: dict[str, str]) -> dict[str, int]:
+    def accept(stored: dict[str, str], written_by: str | None = None) -> dict[str, int]:
         runs = {run.label: run for run in spec.runs}
-        edited = f"{path}: the sweep (its file or a config it names) was edited"
+        other = other_sweep_file(written_by, spec.source)
+        edited = (f"{path}: was written by the sweep {written_by}, and this is {Path(spec.source).resolve()}"
+                  if other else f"{path}: the sweep (its file or a config it names) was edited")
+        elsewhere = "give this sweep another output file" if other else "write the edited sweep to another file"
         for label, config_text in stored.items():
             if label not in runs:
                 raise OutputError(f"{edited}, and the run {label!r}, stored complete, is no longer in it: --resume "
-                                  "keeps every stored run; pass --overwrite to start again, or write the edited sweep "
-                                  "to another file")
+                                  f"keeps every stored run; pass --overwrite to start again, or {elsewhere}")
             try:
                 current = _config_text(_load_point(spec.source, label, runs[label].config).resolved)
             except ElimfastError as error:
@@ -906,7 +914,7 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[[dict[str, str]], dict[s
                        if key.startswith("solver.") else
                        "and --resume may change only solver.* of stored runs (their steps are kept)")
                 raise OutputError(f"{edited}: {key} of the run {label!r}, stored complete, changed, {why}; pass "
-                                  "--overwrite to start again, or write the edited sweep to another file")
+                                  f"--overwrite to start again, or {elsewhere}")
         return {run.label: index for index, run in enumerate(spec.runs)}
 
     return accept
@@ -1559,8 +1567,12 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                                                                     keep_result=keep_results)
                         except ElimfastError:   # cannot be read back (its python: file moved): run it again
                             writer.forget(run.label)
-                edit = (" (the sweep file was edited: the runs stored complete keep the settings they were solved "
-                        "with, the others run with the edited file's)") if writer.edited else ""
+                edit = ""
+                if writer.edited:
+                    what = (f"it was written by the sweep {writer.written_by}"
+                            if other_sweep_file(writer.written_by, spec.source) else "the sweep file was edited")
+                    edit = (f" ({what}: the runs stored complete keep the settings they were solved with, the others "
+                            "run with this file's)")
                 say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}{edit}; "
                     f"running the other {len(spec.runs) - len(done_before)}")
 

@@ -227,9 +227,10 @@ def test_resume_refuses_a_file_of_another_sweep(tmp_path):
     other = grid_sweep(tmp_path, steps=["2*pi/80"], name="other.yaml")
     result = CliRunner().invoke(cli, ["sweep", str(other), "-o", str(out), "--resume"])
     assert result.exit_code == 2
-    assert result.output.strip() == (f"error: {out}: the sweep (its file or a config it names) was edited, and the run 'EHBVM/2*pi/40', stored "
+    assert result.output.strip() == (f"error: {out}: was written by the sweep {tmp_path.resolve() / 'sweep.yaml'}, and "
+                                      f"this is {other.resolve()}, and the run 'EHBVM/2*pi/40', stored "
                                       "complete, is no longer in it: --resume keeps every stored run; pass --overwrite "
-                                      "to start again, or write the edited sweep to another file")
+                                      "to start again, or give this sweep another output file")
     after = contents(out)
     assert sorted(after) == sorted(before) and all(np.array_equal(np.asarray(after[key]), np.asarray(value))
                                                    for key, value in before.items())

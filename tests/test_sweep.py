@@ -610,7 +610,7 @@ def test_resume_runs_the_failed_runs_of_a_sweep_again_with_an_edited_solver_sect
     resumed = sweeps.run_to_file(edited, out, resume=True, workers=1, on_message=messages.append)
     assert [o.status for o in resumed.outcomes] == ["complete", "complete"]
     assert messages == [f"resume: 1 of 2 runs are complete in {out} (the sweep file was edited: the runs stored "
-                        "complete keep the settings they were solved with, the others run with the edited file's); "
+                        "complete keep the settings they were solved with, the others run with this file's); "
                         "running the other 1"]
     assert _same(_group(out, "pi/30"), kept)   # not recomputed: its config still says max_halvings 0
     with h5py.File(out, "r") as f:
@@ -1301,3 +1301,25 @@ def test_a_run_refused_for_memory_is_a_usage_error(tmp_path, monkeypatch):
     done = CliRunner().invoke(cli, ["sweep", str(path), "--workers", "1", "-q"])
     assert done.exit_code == 2, done.output
     assert "of memory in a sweep" in done.stdout and "raise output.every" in done.stdout   # its status cell
+
+
+def test_resume_from_another_sweep_file_says_so(tmp_path):
+    """A user trial: --resume of a file with another sweep file than the one that wrote it was
+    called an edit ("the sweep file was edited"); it now names the file that wrote it."""
+    from elimfast import sweep as sweeps
+    path = write_sweep(tmp_path, {"base": EDIT_BASE, "grid": EDIT_GRID, "error": {"exact": "initial"}})
+    out = tmp_path / "out.h5"
+    sweeps.run_to_file(path, out, workers=1)
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump({"base": {**EDIT_BASE, "conserve": ["lrl_y"]}, "grid": EDIT_GRID}))
+    with pytest.raises(OutputError) as caught:
+        sweeps.run_to_file(other, out, resume=True, workers=1)
+    assert str(caught.value).startswith(f"{out}: was written by the sweep {path.resolve()}, and this is "
+                                        f"{other.resolve()}: conserve of the run 'pi/30', stored complete, changed")
+    other.write_text(yaml.safe_dump({"base": {**EDIT_BASE, "solver": {"max_halvings": 8}}, "grid": EDIT_GRID,
+                                     "error": {"exact": "initial"}}))
+    messages = []
+    sweeps.run_to_file(other, out, resume=True, workers=1, on_message=messages.append)
+    assert messages[0] == (f"resume: 1 of 2 runs are complete in {out} (it was written by the sweep {path.resolve()}: "
+                           "the runs stored complete keep the settings they were solved with, the others run with "
+                           "this file's); running the other 1")

@@ -153,6 +153,7 @@ class SweepWriter:
         self.complete: dict[str, str] = {}   # label -> group name of the runs a resumed file already holds
         self.ensemble_todo: list[tuple[int, int]] | None = None
         self.edited = False                  # a resumed grid sweep whose sweep file was edited (accept_edit)
+        self.written_by = None               # resumed: the sweep file that wrote it (its source attribute)
         self._ensemble = None
         self._kept = "the runs stored before this one are in the file" if ensemble is None else \
             "the trajectories marked stored before it are in the file (--resume runs the rest)"
@@ -239,6 +240,7 @@ class SweepWriter:
                                   "or pass --overwrite to replace it")
             stored_text = str(_plain(self._file.attrs.get("sweep", "")))
             edited = stored_text != sweep_text
+            self.written_by = str(_plain(self._file.attrs.get("source", ""))) or None
             if ensemble is not None and accept_edit is not None:
                 # even an unedited text: its base config is a file of its own, which may have changed
                 stored = self._file[ensemblefile.GROUP].attrs.get("config") if holds_ensemble else None
@@ -260,7 +262,8 @@ class SweepWriter:
                 # Before anything is removed: a refused edit leaves the file as it was. An unedited
                 # text too: a config it names is a file of its own, which may have changed, and the
                 # kept runs and the new ones would then come from different configs unsaid.
-                run_index = accept_edit({label: config for label, (_, config) in complete.items()})
+                run_index = accept_edit({label: config for label, (_, config) in complete.items()},
+                                        written_by=self.written_by)
                 if edited:
                     _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
                     for label, (name, _) in complete.items():   # the kept runs' places in the edited grid
