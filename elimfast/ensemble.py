@@ -127,9 +127,31 @@ class EnsembleResult:
             return (f"{self.method.name}: trajectory {index}: a problem function raised an exception (e.g. a "
                     f"division by zero at a singularity) after step {step - 1} (t = {exact_time(t_start)}); run "
                     f"elimfast.integrate from this trajectory's y0 to see it")
-        message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index])
         name = f"{self.method.name}: "
+        if code == codes.STATUS_NONFINITE and step == 1:
+            undefined = _undefined_at(self.problem, self.y0[index])
+            if undefined is not None:
+                # as integrate refuses such a y0 (resolve_initial_state); the kernel only sees the NaN
+                # of its first step, which it blamed on h after 4 halvings (a user trial)
+                return (f"{name}trajectory {index}: {undefined} at its initial state {self.y0[index].tolist()}: it "
+                        "is not defined there; choose initial states away from the problem's singularities")
+        message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index])
         return name + f"trajectory {index}: " + message[len(name):]
+
+
+def _undefined_at(problem: Problem, y: np.ndarray) -> str | None:
+    """'H = nan' (or 'the invariant 'L' = inf') when H or an invariant is not finite at y, else None:
+    checked only for the trajectories that failed at their first step (a call per row from Python
+    would cost seconds per million rows)."""
+    try:
+        with np.errstate(all="ignore"):
+            values = problem.invariant_values(y)
+    except ArithmeticError:
+        return "H is not defined (a problem function divided by zero)"
+    for name, value in values.items():
+        if not np.isfinite(value):
+            return f"H = {value}" if name == "H" else f"the invariant {name!r} = {value}"
+    return None
 
 
 def _thread_count(n_threads) -> int:

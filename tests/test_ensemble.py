@@ -150,6 +150,10 @@ def test_division_by_zero_marks_one_trajectory_non_finite(kepler):
     # no step done, no error to report (it read 0, 'kept exactly', beside the failure)
     for name, errors in ensemble.invariant_errors.items():
         assert np.isnan(errors[1]) and np.isfinite(errors[[0, 2]]).all(), name
+    # ... and its message says why, as integrate's refusal does (it blamed h after 4 halvings)
+    assert ensemble.failure_message(1) == ("GAUSS(2): trajectory 1: H = -inf at its initial state [0.0, 0.0, 1.0, 0.0]: "
+                                           "it is not defined there; choose initial states away from the problem's "
+                                           "singularities")
     for i in (0, 2):
         alone = elimfast.integrate(kepler, gauss(2), 0.1, n_steps=30, y0=states[i])
         np.testing.assert_array_equal(ensemble.y_final[i], alone.y_final)
