@@ -807,7 +807,10 @@ class _Builder:
                                                    f"{compact_number(times.start)}; give stop >= start")
                 count = int(np.floor((times.stop - times.start) / times.step * (1 + 1e-12))) + 1
                 if not 1 <= count <= MAX_OUTPUT_TIMES:
-                    raise ParameterError("t_eval", f"gives {count} times; at most {MAX_OUTPUT_TIMES}")
+                    # (the count's slack for rounding, 1e-12 relative, is a whole time at 10^12: said as a
+                    # round figure, not a count one off)
+                    raise ParameterError("t_eval", f"gives {(times.stop - times.start) / times.step + 1:,.4g} times; at "
+                                                   f"most {MAX_OUTPUT_TIMES:,}: give a larger step")
                 if count == 1 and times.stop != times.start:
                     # (it gave start alone, silently, as n = 1 did)
                     raise ParameterError("t_eval", f"step {compact_number(times.step)} is longer than stop - start = "

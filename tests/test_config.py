@@ -474,8 +474,11 @@ def test_every_schema_error_of_a_file_names_a_line(tmp_path):
     ({"start": 0, "stop": 10, "n": 1}, "output.times", r"n = 1 gives start alone .* times: \[10(\.0)?\]$"),
     ({"start": 0, "stop": 100, "step": 200}, "output.times", r"step 200(\.0)? is longer than stop - start = 100(\.0)?: "
                                                            "it gives start alone"),
+    # a user trial: "gives 1000000000002 times", one more than start to stop gives
+    ({"start": 0, "stop": 1000, "step": 1e-9}, "output.times", r"gives 1e\+12 times; at most 10,000,000: give a "
+                                                              "larger step"),
 ], ids=["missing start", "misspelt step", "list item not a number", "list item nan", "stop before start", "n = 1",
-        "step > span"])
+        "step > span", "too many"])
 def test_output_times_errors_name_the_key_as_written_in_the_config(tmp_path, times, key, match):
     """A mapping of output.times was reported as output.times.TimesSection.start, the name
     of pydantic's model in the key path, and a misspelt key in it as 'unknown key; remove it';
