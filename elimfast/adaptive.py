@@ -643,7 +643,8 @@ class AdaptiveIntegration:
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t,
                                step, self.diagnostics, adaptive=self.control is not None, run_file=run_file,
                                y=self.y, y0=self.y0, advise=not collapsed,
-                               independence=gradients_independence(self.problem, self.conserve_idx, self.y)) + notes
+                               independence=gradients_independence(self.problem, self.conserve_idx, self.y),
+                               problem=self.problem) + notes
 
     @property
     def t(self) -> float:

@@ -1152,7 +1152,8 @@ class Integration:
         (run_file: the run is in a run file, which --resume continues)."""
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t, self.signed_h,
                                self.diagnostics, run_file=run_file, y=self.y, y0=self.y0,
-                               independence=gradients_independence(self.problem, self.conserve_idx, self.y))
+                               independence=gradients_independence(self.problem, self.conserve_idx, self.y),
+                               problem=self.problem)
 
 
 # A failing step whose state has grown this much beyond the initial one says so: the orbit is
@@ -1171,9 +1172,38 @@ def raise_max_iter(solver: SolverSettings) -> str:
             f"{DEFAULT_MAX_ITER})")
 
 
+def gradient_not_finite(problem: Problem, y, t: float, h: float) -> str | None:
+    """For a step that went NaN or infinite: probe grad H along the step's way (forward Euler
+    from its start, y + tau h f(y), tau = 0, 1/16, ..., 1). A gradient that is not finite where H
+    is finite is the problem's gradient's doing, not the step's (a user trial: a python: file's
+    grad_H returning NaN was advised 'reduce h'). Returns the clause that says so, else None."""
+    m = problem.degrees_of_freedom
+    y = np.asarray(y, dtype=np.float64)
+    try:
+        with np.errstate(all="ignore"):
+            gradient = problem.gradient(y)
+            flow = np.concatenate([gradient[m:], -gradient[:m]])
+            for tau in np.linspace(0.0, 1.0, 17):
+                point = y + (tau * h) * flow if tau > 0 else y
+                if not np.all(np.isfinite(point)):
+                    return None
+                value, gradient = problem.hamiltonian(point), problem.gradient(point)
+                if not np.all(np.isfinite(gradient)):
+                    if not math.isfinite(value):
+                        return None   # a singularity of H itself (a collision): the general advice
+                    bad = int(np.flatnonzero(~np.isfinite(gradient))[0])
+                    return (f"grad H is not finite there while H is: dH/d{problem.coordinate_names[bad]} = "
+                            f"{gradient[bad]} at y = {point.tolist()} (about t = {t + tau * h:.6g}), where H = "
+                            f"{value:.6g}; check the problem's gradient there (a mistake in grad_H, or a "
+                            "singularity H does not show)")
+    except ArithmeticError:   # a python: file's function raised (Numba's default error model)
+        return None
+    return None
+
+
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
                     diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None,
-                    advise: bool = True, independence: float | None = None) -> str:
+                    advise: bool = True, independence: float | None = None, problem: Problem | None = None) -> str:
     """The one-line report of a step that failed at every level of splitting (docs/solver.md);
     adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h;
     run_file: the run is in a run file, which `elimfast run --resume` continues with other
@@ -1181,7 +1211,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     where it failed and the initial one (a state grown beyond GROWN_STATE times is named);
     advise: False leaves the advice out, where the caller knows that no setting helps;
     independence: gradients_independence at y (None: not known), which tells a Gamma nearly singular
-    because the invariants are degenerate there from one that is only badly scaled."""
+    because the invariants are degenerate there from one that is only badly scaled; problem: the
+    run's, whose gradient a non-finite step probes (gradient_not_finite)."""
     from .kernels import solver as solver_rules   # the stopping rule's band (loaded: a run got here)
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
@@ -1257,6 +1288,10 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
                       f"size gets through (a system drifting as a whole grows too, without either); otherwise {advice}")
     if status == codes.STATUS_NOT_CONVERGED and solver.max_halvings < MAX_MAX_HALVINGS and not adaptive and run_file:
         advice += "; a failed run can be continued with --resume after changing solver settings"
+    if status == codes.STATUS_NONFINITE and problem is not None and y is not None:
+        cause = gradient_not_finite(problem, y, t, h)
+        if cause is not None:
+            advice = cause
     return f"{method.name}: {what} {where}; {', '.join(seen)}" + (f"; {advice}" if advise else "")
 
 

@@ -594,6 +594,26 @@ def test_a_run_whose_H_is_not_defined_on_part_of_its_orbit_says_so(cache_root, t
     assert "invariants   no figures: after 100 steps, the invariants are NaN or infinite in some or all" in report
 
 
+def test_a_gradient_that_goes_nan_where_H_is_finite_is_named_not_the_step(cache_root, tmp_path):
+    """A user trial: a python: file whose grad_H returned NaN on part of the orbit was told
+    'reduce h; check the initial state and the problem's singularities'. The failure now probes grad H
+    along the failed step and names the component, the state and H there."""
+    write_problem(tmp_path, "import math\nY0 = [1.0, 0.0]\n\ndef H(y, params):\n"
+                            "    return 0.5 * y[1] ** 2 + 0.5 * y[0] ** 2\n\n"
+                            "def grad_H(y, params, out):\n    out[0] = y[0]\n"
+                            "    out[1] = y[1] if y[0] > 0.5 else math.nan\n")
+    config = tmp_path / "run.yaml"
+    config.write_text("problem: {python: problem.py, check: false}\nmethod: {name: hbvm, k: 6, s: 3}\n"
+                      "integration: {h: 0.1, t_end: 10}\n")
+    result = CliRunner().invoke(cli, ["run", str(config), "-o", str(tmp_path / "run.h5")])
+    assert result.exit_code == 1, result.output
+    assert re.search(r"the solution became NaN or infinite at step 11 .*; grad H is not finite there while H is: "
+                     r"dH/dp1 = nan at y = \[0\.4\d+, -0\.8\d+\] \(about t = 1\.\d+\), where H = 0\.50\d+; check the "
+                     r"problem's gradient there \(a mistake in grad_H, or a singularity H does not show\)",
+                     result.stderr), result.stderr
+    assert "reduce h" not in result.stderr
+
+
 def test_a_non_invariant_imposed_with_the_check_off_is_named_in_the_note(tmp_path):
     """A user trial imposed q . p on Kepler with problem.check: false: the run ended with a note of
     quadrature error, k and h only. The note names the check that was off."""
