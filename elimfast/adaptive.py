@@ -644,7 +644,7 @@ class AdaptiveIntegration:
                                step, self.diagnostics, adaptive=self.control is not None, run_file=run_file,
                                y=self.y, y0=self.y0, advise=not collapsed,
                                independence=gradients_independence(self.problem, self.conserve_idx, self.y),
-                               problem=self.problem) + notes
+                               problem=self.problem, imposed=len(self.conserve_idx)) + notes
 
     @property
     def t(self) -> float:

@@ -643,7 +643,8 @@ class _Builder:
             k_left_out = "k" in kind.parameters and "k" not in method_parameters and "s" in method_parameters
             if adaptive and k_left_out:
                 # docs/adaptive.md: k = 2s keeps H at round-off with the small steps of an adaptive run
-                method_parameters["k"] = 2 * method_parameters["s"]
+                # (of an s that is one: s = -2 was reported as 'method.k: must be >= 1, got -4', a user trial)
+                method_parameters["k"] = 2 * max(method_parameters["s"], 1)
                 if "r" in kind.parameters and "r" not in method_parameters:
                     method_parameters["r"] = method_parameters["k"]
             if not adaptive and integration.h is None:

@@ -135,7 +135,8 @@ class EnsembleResult:
                 # of its first step, which it blamed on h after 4 halvings (a user trial)
                 return (f"{name}trajectory {index}: {undefined} at its initial state {self.y0[index].tolist()}: it "
                         "is not defined there; choose initial states away from the problem's singularities")
-        message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index])
+        message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index],
+                                  imposed=len(self.conserve))
         return name + f"trajectory {index}: " + message[len(name):]
 
 

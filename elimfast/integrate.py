@@ -1153,7 +1153,7 @@ class Integration:
         return failure_message(self.method, self.solver, self.status, self.steps_done + 1, self.t, self.signed_h,
                                self.diagnostics, run_file=run_file, y=self.y, y0=self.y0,
                                independence=gradients_independence(self.problem, self.conserve_idx, self.y),
-                               problem=self.problem)
+                               problem=self.problem, imposed=len(self.conserve_idx))
 
 
 # A failing step whose state has grown this much beyond the initial one says so: the orbit is
@@ -1203,7 +1203,8 @@ def gradient_not_finite(problem: Problem, y, t: float, h: float) -> str | None:
 
 def failure_message(method: Method, solver: SolverSettings, status: int, step: int, t: float, h: float,
                     diagnostics, adaptive: bool = False, run_file: bool = False, y=None, y0=None,
-                    advise: bool = True, independence: float | None = None, problem: Problem | None = None) -> str:
+                    advise: bool = True, independence: float | None = None, problem: Problem | None = None,
+                    imposed: int | None = None) -> str:
     """The one-line report of a step that failed at every level of splitting (docs/solver.md);
     adaptive: the run chose its steps (docs/adaptive.md), so the advice is not about h;
     run_file: the run is in a run file, which `elimfast run --resume` continues with other
@@ -1212,7 +1213,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     advise: False leaves the advice out, where the caller knows that no setting helps;
     independence: gradients_independence at y (None: not known), which tells a Gamma nearly singular
     because the invariants are degenerate there from one that is only badly scaled; problem: the
-    run's, whose gradient a non-finite step probes (gradient_not_finite)."""
+    run's, whose gradient a non-finite step probes (gradient_not_finite); imposed: how many invariants
+    the run imposes (None: not known; 0 makes ELIM and LIM an HBVM, with no Gamma to blame)."""
     from .kernels import solver as solver_rules   # the stopping rule's band (loaded: a run got here)
     what = _FAILURE_TEXT[status]
     if status == codes.STATUS_NOT_CONVERGED:
@@ -1234,7 +1236,8 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
     if status == codes.STATUS_SINGULAR and d[codes.DIAG_INCREMENT] == math.inf:
         seen = ["before any increment"]   # the solve's d before its first one: the first map failed
         # ... or, where no invariant can be imposed (GAUSS, HBVM), the Newton matrix did not factorise
-        newton_matrix = method.kind.imposes == IMPOSES_NONE and solver.method == "newton"
+        # (a user trial: EHBVM imposing nothing was told that Assumption 1 fails for its invariants)
+        newton_matrix = (method.kind.imposes == IMPOSES_NONE or imposed == 0) and solver.method == "newton"
         if newton_matrix:
             what = "the simplified Newton matrix I - h X (x) J Hess(H) is singular"
     if status == codes.STATUS_TIME_SCALE:   # the adaptive kernel leaves sigma(y) in the increment's slot

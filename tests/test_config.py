@@ -243,6 +243,9 @@ BAD = [
     # a user trial made an adaptive config without k fixed-step: "is missing; ... needs k, s" said not why
     ("k missing, fixed steps", _set(("method", "k"), DELETE), "method.k",
      r"is missing; ehbvm\(k, s\) needs k: k = 2s is the default of adaptive runs only .* \(e\.g\. k: 6\)"),
+    # a user trial: s = -2 of an adaptive run without k was reported as "method.k: must be >= 1, got -4"
+    ("adaptive s negative", lambda d: {**d, "method": {"name": "ehbvm", "s": -2},
+                                       "integration": {"rtol": 1e-10, "t_end": 1}}, "method.s", "must be >= 1, got -2"),
     ("method k too large", _set(("method", "k"), 65), "method.k", "must be <= 64"),
     # a user trial: GAUSS(64) was refused as "--n must be <= 64 ..., got 65" (the predictor's s + 1 nodes)
     ("method s too large", lambda d: {**d, "method": {"name": "gauss", "s": 64}, "conserve": []}, "method.s",

@@ -195,6 +195,18 @@ def test_a_wrong_sign_or_factor_in_the_hessian_fails(entry, factor):
     assert info.value.report.relative_error == pytest.approx(abs(factor - 1.0), rel=1e-5)
 
 
+def test_a_builtin_failing_the_check_near_a_singularity_is_not_told_to_fix_its_gradient():
+    """A user trial: three bodies, two 1e-17 apart, were told to 'fix grad_H so that it is the derivative
+    of H (a wrong sign or factor?)' of the built-in nbody, which a user cannot and need not fix."""
+    close = problems.nbody(masses=[1, 1, 1], positions=[[0, 0, 0], [1, 0, 0], [1, 1e-17, 0]],
+                           velocities=[[0, 0, 0], [0, 1, 0], [0, 0, 0]], G=1.0)
+    with pytest.raises(DerivativeCheckError) as info:
+        require_derivatives(close)
+    assert ("its grad_H is tested, so the state is near a singularity of H, where H changes faster than differences "
+            "can follow (bodies nearly coincident" in str(info.value))
+    assert "wrong sign" not in str(info.value)
+
+
 @pytest.mark.parametrize("row", range(3))
 def test_a_wrong_sign_in_an_invariants_gradient_fails_naming_the_invariant(row):
     kepler = problems.kepler()

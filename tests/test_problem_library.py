@@ -366,6 +366,18 @@ def test_nbody_default_is_the_hlw_outer_solar_system_moved_to_the_barycentre():
     assert problem.hamiltonian(problem.y0) == pytest.approx(kinetic - potential, rel=1e-13)
 
 
+def test_nbody_ragged_lists_are_refused_naming_the_body():
+    """A user trial: positions [[1, 3, 0], [-2, -1, 0], [1, -1]] showed NumPy's 'setting an array element
+    with a sequence. The requested array has an inhomogeneous shape ...'."""
+    from elimfast.errors import ParameterError
+    with pytest.raises(ParameterError, match=r"^positions must be a list of \[x, y, z\] triples of numbers, one per "
+                                             r"body \(body 2: \[1, -1\]\)$"):
+        elimfast.problems.nbody(masses=[1, 1, 1], positions=[[1, 3, 0], [-2, -1, 0], [1, -1]],
+                                velocities=[[0, 0, 0]] * 3)
+    with pytest.raises(ParameterError, match=r"^masses must be a list of at least 2 numbers, got \[1, \[2\]\]$"):
+        elimfast.problems.nbody(masses=[1, [2]])
+
+
 def test_nbody_barycentric_start_has_zero_momentum_and_centre_of_mass_at_the_origin():
     problem = problems.nbody()
     p = problem.y0[18:].reshape(6, 3)

@@ -444,6 +444,23 @@ def test_the_fixed_point_solves_a_pulse_at_one_end_of_a_long_chain():
     assert result.relative_invariant_errors()["H"] < 1e-14
 
 
+def test_a_close_pair_out_of_the_plane_of_a_third_body_is_solved_by_newton():
+    """A user trial: a pair 1e-3 apart along z, moving at 30 along x, beside a third body in the x-y
+    plane (G = 1, unit masses). Its out-of-plane momenta are zero at t0 with |h f| tiny, so the Newton
+    matrix equilibrated by the state (and by the second try's floor) had scales 1e9 apart and never
+    factorised, at any halving: 'the simplified Newton matrix ... is singular' at step 1, where the
+    fixed point runs. M itself is well conditioned: a third try scales positions and momenta as blocks."""
+    pair = elimfast.problems.nbody(masses=[1.0, 1.0, 1.0], positions=[[0, 0, 0], [0, 0, 1e-3], [1, -1, 0]],
+                                   velocities=[[0, 0, 0], [30, 0, 0], [0, 0, 0]], G=1.0)
+    newton = elimfast.integrate(pair, hbvm(8, 4), t_end=1e-3, step_control="time_scale", epsilon=0.05)
+    fixed = elimfast.integrate(pair, hbvm(8, 4), t_end=1e-3, step_control="time_scale", epsilon=0.05,
+                               solver="fixed_point")
+    assert newton.status == "complete" and np.mean(newton.iterations) < np.mean(fixed.iterations)
+    # H at the rounding of its terms (kinetic 450 and potential 1000 against H = -701), as the fixed point's
+    assert newton.relative_invariant_errors()["H"] < 3 * max(fixed.relative_invariant_errors()["H"], 1e-14)
+    np.testing.assert_allclose(newton.y_final, fixed.y_final, rtol=0, atol=1e-9 * np.max(np.abs(fixed.y_final)))
+
+
 def test_a_singular_newton_matrix_of_a_method_that_imposes_nothing_is_named_as_such():
     """GAUSS and HBVM impose no invariant: a solve singular before any increment is the Newton matrix's,
     and its message said 'Assumption 1 of the paper fails for these invariants'."""
@@ -461,6 +478,11 @@ def test_a_singular_newton_matrix_of_a_method_that_imposes_nothing_is_named_as_s
     imposing = driver.failure_message(ehbvm(6, 3), SolverSettings(method="newton"), codes.STATUS_SINGULAR, 3, 0.5,
                                       0.01, diagnostics)
     assert "Assumption 1" in imposing
+    # a user trial: EHBVM imposing nothing (an HBVM) was told that Assumption 1 fails for its invariants
+    for nothing in (ehbvm(6, 3), elimfast.methods.ghbvm(6, 3)):
+        message = driver.failure_message(nothing, SolverSettings(method="newton"), codes.STATUS_SINGULAR, 3, 0.5,
+                                         0.01, diagnostics, imposed=0)
+        assert "the simplified Newton matrix" in message and "Assumption 1" not in message, message
     # a user trial: a cap of max_iter = 1 made every step fail, and the advice was to reduce h
     with pytest.raises(elimfast.errors.ConvergenceError, match=r"\(max_iter = 1\) .*; raise solver.max_iter \(= 1 now; "
                                                                r"the default is 30 or 100\), or reduce h"):

@@ -377,8 +377,17 @@ def _mismatch_message(problem: Problem, report: DerivativeReport, y: np.ndarray,
     where = ("the initial state" if report.point == 0
              else f"seeded check point {report.point} near the initial state (y = [{values}])")
     in_file = f" in {problem.source_file}" if problem.source_file else ""
-    return (f"{report.label} of problem {problem.name!r} does not match central differences of {report.of} at "
-            f"{where}: {report.entry} = {report.analytic:.6e} from {report.function}, {report.differences:.6e} "
-            f"from the differences, relative error {report.relative_error:.1e} ({report.ratio:.1e} times what "
-            f"the differences allow); fix {report.function}{in_file} so that it is the derivative of {report.of} "
+    found = (f"{report.label} of problem {problem.name!r} does not match central differences of {report.of} at "
+             f"{where}: {report.entry} = {report.analytic:.6e} from {report.function}, {report.differences:.6e} "
+             f"from the differences, relative error {report.relative_error:.1e} ({report.ratio:.1e} times what "
+             f"the differences allow)")
+    if problem.hessian_source in ("analytic", "symbolic"):
+        # A built-in's derivatives are written by hand and tested, an expression problem's are sympy's:
+        # differences that miss them mean that H changes faster than they can follow, near a
+        # singularity (a user trial: bodies 1e-17 apart were told to fix nbody's grad_H)
+        return (f"{found}: its {report.function} is {'tested' if problem.hessian_source == 'analytic' else 'exact'}"
+                f", so the state is near a singularity of H, where H changes faster than differences can follow "
+                f"(bodies nearly coincident, a coordinate near a pole); move the initial state away from it, or "
+                f"{skip}")
+    return (f"{found}; fix {report.function}{in_file} so that it is the derivative of {report.of} "
             f"(a wrong sign or factor?), or {skip}")

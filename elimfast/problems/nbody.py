@@ -229,7 +229,14 @@ INVARIANT_NAMES = ("linear_momentum_x", "linear_momentum_y", "linear_momentum_z"
 
 
 def _bodies_array(value, name, n_bodies=None):
-    array = np.array(value, dtype=np.float64)
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        # a ragged list ([[1, 3, 0], [1, -1]]) or a non-number: NumPy's own text reached the user (a user trial)
+        rows = value if isinstance(value, (list, tuple)) else [value]
+        bad = next((i for i, row in enumerate(rows) if not (isinstance(row, (list, tuple)) and len(row) == 3)), None)
+        which = f" (body {bad}: {rows[bad]!r})" if bad is not None else ""
+        raise ParameterError(name, f"must be a list of [x, y, z] triples of numbers, one per body{which}") from None
     if array.ndim != 2 or array.shape[1] != 3:
         raise ParameterError(name, f"must be a list of [x, y, z] triples, one per body, got shape {array.shape}")
     if n_bodies is not None and array.shape[0] != n_bodies:
@@ -266,7 +273,10 @@ def nbody(masses=None, positions=None, velocities=None, G: float = SOLAR_SYSTEM_
         raise ParameterError("G", f"must be a positive finite number, got {G}")
     if frame not in FRAMES:
         raise ParameterError("frame", f"must be 'barycentric' or 'given', got {frame!r}")
-    masses = np.array(SOLAR_SYSTEM_MASSES if masses is None else masses, dtype=np.float64)
+    try:
+        masses = np.array(SOLAR_SYSTEM_MASSES if masses is None else masses, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError("masses", f"must be a list of at least 2 numbers, got {masses!r}") from None
     if masses.ndim != 1 or masses.size < 2:
         raise ParameterError("masses", f"must be a list of at least 2 numbers, got {masses.tolist()!r}")
     if not np.all(np.isfinite(masses) & (masses > 0.0)):
