@@ -72,6 +72,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ConvergenceError, ElimfastError, closest, exact_time
+from .io.layout import problem_file_attributes, problem_file_changed
 from .io.safety import OutputError, _size   # _size: the one size formatter of the disk and memory messages
 
 
@@ -889,7 +890,8 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[..., dict[str, int]]:
     and key that would change; returns {label: place in the edited grid}."""
     from .streaming import LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_difference, step_solver_change
 
-    def accept(stored: dict[str, str], written_by: str | None = None) -> dict[str, int]:
+    def accept(stored: dict[str, str], written_by: str | None = None,
+               digests: dict[str, str] | None = None) -> dict[str, int]:
         runs = {run.label: run for run in spec.runs}
         other = other_sweep_file(written_by, spec.source)
         edited = (f"{path}: was written by the sweep {written_by}, and this is {Path(spec.source).resolve()}"
@@ -900,9 +902,16 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[..., dict[str, int]]:
                 raise OutputError(f"{edited}, and the run {label!r}, stored complete, is no longer in it: --resume "
                                   f"keeps every stored run; pass --overwrite to start again, or {elsewhere}")
             try:
-                current = _config_text(_load_point(spec.source, label, runs[label].config).resolved)
+                point = _load_point(spec.source, label, runs[label].config)
             except ElimfastError as error:
                 raise OutputError(f"{edited}, and the stored run {label!r} no longer loads: {error}") from None
+            current = _config_text(point.resolved)
+            changed = problem_file_changed((digests or {}).get(label), point.problem)
+            if changed:
+                raise OutputError(f"{path}: {changed}, the file of the run {label!r}, stored complete: the stored runs "
+                                  "and the new ones would come from two versions of the problem; undo the change, or "
+                                  "pass --overwrite to run every run with the new file, or choose another output "
+                                  "file")
             # A key the sweep writes is named before one that only follows from it (a user trial: an
             # edit of eccentricity was named problem.initial.p2, one of rtol integration.atol), as
             # run --resume names the keys its user changed first.
@@ -974,7 +983,10 @@ def _execute(label: str, coordinates: dict, config: dict, source: str, store_arr
     outcome.n_steps = spec.n_steps
     run = Integration.from_spec(spec)
     outcome.t_end = spec.t_end
-    outcome.file_attributes = run.file_attributes() if run.adaptive_kernel else {}
+    # (with the python: problem file's digest, read here where the run's functions were loaded: a
+    # --resume compares it, solver_only_edit)
+    outcome.file_attributes = {**(run.file_attributes() if run.adaptive_kernel else {}),
+                               **problem_file_attributes(spec.problem)}
     needed = 2 * run_bytes(run)    # the chunks, then their concatenation
     available = memory_available()
     if available is not None and needed > MEMORY_FRACTION * available:

@@ -311,6 +311,27 @@ def test_resume_refuses_an_ensemble_file_of_another_config_or_without_the_done_r
                              "trajectories, so --resume cannot tell what is done; pass --overwrite to run it again\n")
 
 
+def test_resume_refuses_an_ensemble_whose_python_problem_file_changed(tmp_path, small_blocks, monkeypatch):
+    """A user trial: an ensemble of a python: problem killed part-way, the file's H and grad_H changed,
+    --resume: trajectories 0-55 came from the old file, 56 on from the new, exit 0."""
+    problem = tmp_path / "osc.py"
+    source = ("Y0 = [1.0, 0.0]\n\ndef H(y, params):\n    return 0.5 * y[1] ** 2 + 0.5 * W * y[0] ** 2\n\n"
+              "def grad_H(y, params, out):\n    out[0] = W * y[0]\n    out[1] = y[1]\n")
+    problem.write_text("W = 1.0\n" + source)
+    path = ensemble_sweep(tmp_path, base={"problem": {"python": "osc.py"}, "method": {"name": "hbvm", "k": 6, "s": 3},
+                                          "integration": {"h": 0.1, "t_end": 10}})
+    out = stopped_after_blocks(path, tmp_path / "half.h5", 1, monkeypatch, workers=1)
+    with h5py.File(out, "r") as f:
+        assert len(str(f["ensemble"].attrs["problem_file_sha256"])) == 64
+    problem.write_text("W = 2.0\n" + source)
+    with pytest.raises(OutputError, match=r"half\.h5: the problem file .*osc\.py has changed since it was stored "
+                                          r"\(sha256 \w{16} then, \w{16} now\): its stored trajectories and the "
+                                          r"others would come from two versions of the problem"):
+        sweeps.run_to_file(path, out, resume=True, workers=1)
+    problem.write_text("W = 1.0\n" + source)                      # undone: resumes
+    assert sweeps.run_to_file(path, out, resume=True, workers=1).failures() == []
+
+
 def test_resume_of_an_ensemble_takes_an_edit_of_comments_or_description_and_names_the_key_of_a_real_one(
         tmp_path, small_blocks, monkeypatch):
     """A user trial: a comment added to the top of an ensemble's sweep file, or a changed

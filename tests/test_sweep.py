@@ -1323,3 +1323,27 @@ def test_resume_from_another_sweep_file_says_so(tmp_path):
     assert messages[0] == (f"resume: 1 of 2 runs are complete in {out} (it was written by the sweep {path.resolve()}: "
                            "the runs stored complete keep the settings they were solved with, the others run with "
                            "this file's); running the other 1")
+
+
+def test_resume_refuses_a_python_problem_file_changed_since_its_runs_were_stored(tmp_path):
+    """A user trial: a sweep of a python: problem killed after 2 of 6 runs, the file's H and grad_H
+    changed, then --resume: the 4 other runs ran with the new file and the table mixed the two
+    versions, every run 'complete', exit 0 (a run file's --resume notes the change). Each stored run
+    now records the file's sha256, and --resume refuses a changed file."""
+    from elimfast import sweep as sweeps
+    problem = tmp_path / "osc.py"
+    source = ("Y0 = [1.0, 0.0]\n\ndef H(y, params):\n    return 0.5 * y[1] ** 2 + 0.5 * W * y[0] ** 2\n\n"
+              "def grad_H(y, params, out):\n    out[0] = W * y[0]\n    out[1] = y[1]\n")
+    problem.write_text("W = 1.0\n" + source)
+    path = write_sweep(tmp_path, {"base": {"problem": {"python": "osc.py"}, "method": {"name": "hbvm", "k": 6, "s": 3},
+                                           "integration": {"h": 0.1, "t_end": 1}},
+                                  "grid": [{"name": "h", "key": "integration.h", "values": [0.1, 0.05]}]})
+    out = tmp_path / "out.h5"
+    sweeps.run_to_file(path, out, workers=1)
+    with h5py.File(out, "r") as f:
+        assert all(len(str(f["runs"][name].attrs["problem_file_sha256"])) == 64 for name in f["runs"])
+    sweeps.run_to_file(path, out, resume=True, workers=1)          # unchanged: resumes
+    problem.write_text("W = 2.0\n" + source)
+    with pytest.raises(OutputError, match=r"the problem file .*osc\.py has changed since it was stored \(sha256 "
+                                          r"\w{16} then, \w{16} now\), the file of the run '0\.(1|05)', stored complete"):
+        sweeps.run_to_file(path, out, resume=True, workers=1)

@@ -40,8 +40,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .layout import (LONG_NAMES, _replace_attributes, _set_attributes, _small_dataset, _string_dataset, attach,
-                     dimension, label, unit_attributes, write_method)
+from .layout import (LONG_NAMES, PROBLEM_FILE_DIGEST, _replace_attributes, _set_attributes, _small_dataset,
+                     _string_dataset, attach, dimension, label, problem_file_attributes, problem_file_changed,
+                     unit_attributes, write_method)
 from .safety import OutputError, _damaged, _open, _plain, _writer_lock_held
 
 GROUP = "ensemble"
@@ -106,6 +107,7 @@ def create(parent, run, states: np.ndarray, config_text: str) -> h5py.Group:
         "problem": run.problem.name, "method": run.method.name, "h": run.h, "n_steps": run.n_steps,
         "conserve": list(run.conserve), "config": config_text, "status": STATUS_RUNNING})
     _set_attributes(group, unit_attributes(run.problem))
+    _set_attributes(group, problem_file_attributes(run.problem))   # python: problems: --resume compares it
     time_unit = dict(getattr(run.problem, "units", {}) or {}).get("time")
     n = states.shape[0]
     component = _string_dataset(group, "component", run.problem.coordinate_names)
@@ -207,6 +209,11 @@ def check_resumable(path: Path, group, run, states: np.ndarray, config_text: str
     if str(_plain(group.attrs.get("config", ""))) != config_text:
         raise OutputError(f"{path}: its ensemble was run with another config (the base config changed since); "
                           "pass --overwrite to start again, or choose another output file")
+    changed = problem_file_changed(group.attrs.get(PROBLEM_FILE_DIGEST), run.problem)
+    if changed:
+        raise OutputError(f"{path}: {changed}: its stored trajectories and the others would come from two versions "
+                          "of the problem; undo the change, or pass --overwrite to run every trajectory with the new "
+                          "file, or choose another output file")
     y0 = group["y0"]
     if y0.shape != states.shape:
         raise OutputError(f"{path}: holds an ensemble of {y0.shape[0]:,} trajectories, this sweep has "

@@ -215,6 +215,26 @@ def problem_file_attributes(problem) -> dict:
         return {}
 
 
+def problem_file_changed(stored_digest, problem) -> str | None:
+    """What changed, when ``stored_digest`` (a stored PROBLEM_FILE_DIGEST) is not the digest of
+    ``problem``'s python: file now ('the problem file F has changed since ...'), else None (the same
+    file, no record, or not a python: problem). A sweep's or an ensemble's --resume refuses it: its
+    stored runs and the new ones would come from two versions of the problem (a user trial: the table
+    mixed them, exit 0); a run file's --resume records it and goes on (one run, two segments)."""
+    if stored_digest is None:
+        return None
+    now = problem_file_attributes(problem).get(PROBLEM_FILE_DIGEST)
+    stored = str(_plain_text(stored_digest))
+    if now is None or now == stored:
+        return None
+    return (f"the problem file {problem.source_file} has changed since it was stored (sha256 {stored[:16]} then, "
+            f"{now[:16]} now)")
+
+
+def _plain_text(value):
+    return value.decode() if isinstance(value, bytes) else value
+
+
 def version_attributes() -> dict:
     import numba
 

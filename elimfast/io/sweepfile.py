@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import DiskFullError, ElimfastError
 from . import ensemblefile
-from .layout import (FORMAT_VERSION, LIBVER, SPACE_BASE, SPACE_FACTOR, _replace_attributes,
+from .layout import (FORMAT_VERSION, LIBVER, PROBLEM_FILE_DIGEST, SPACE_BASE, SPACE_FACTOR, _replace_attributes,
                      _set_attributes, append_rows, RUNS_GROUP, SWEEP_FORMAT, create_run_group, run_attributes,
                      flag_attribute, read_flag, stats_attributes, version_attributes)
 from .runfile import _now
@@ -249,12 +249,14 @@ class SweepWriter:
                 raise OutputError(f"{self.path}: was written by a different sweep file (the stored sweep text "
                                   "differs); pass --overwrite to start again, or choose another output file")
             self._runs = self._file[RUNS_GROUP]
-            complete = {}
+            complete, digests = {}, {}
             for name in self._runs:
                 run = self._runs[name].attrs
                 label = str(_plain(run.get("label", "")))
                 if label and read_flag(run, "stored") and str(_plain(run.get("status"))) == "complete":
                     complete[label] = (name, str(_plain(run.get("config", ""))))
+                    if PROBLEM_FILE_DIGEST in run:
+                        digests[label] = str(_plain(run[PROBLEM_FILE_DIGEST]))
             if edited and ensemble is not None:   # an edit accepted above: the file takes the new text
                 _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
                 self.edited = True
@@ -263,7 +265,7 @@ class SweepWriter:
                 # text too: a config it names is a file of its own, which may have changed, and the
                 # kept runs and the new ones would then come from different configs unsaid.
                 run_index = accept_edit({label: config for label, (_, config) in complete.items()},
-                                        written_by=self.written_by)
+                                        written_by=self.written_by, digests=digests)
                 if edited:
                     _replace_attributes(self._file, {"sweep": sweep_text, **attributes})
                     for label, (name, _) in complete.items():   # the kept runs' places in the edited grid
