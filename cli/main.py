@@ -295,6 +295,8 @@ def run(config, output, overrides, overwrite, resume, quiet):
             raise click.UsageError(f"no output file: give -o OUT.h5 or set output.path in {config}")
         path = Path(path).expanduser()
         _refuse_writing_over(path, config, "config file")   # output.path may name it too
+        if spec.problem.source_file:   # (a user trial: -o PROBLEM.py --overwrite replaced the problem file)
+            _refuse_writing_over(path, spec.problem.source_file, "problem file")
         check_output_path(path, overwrite=overwrite, resume=resume)
         if resume and output is None and path.is_file():
             _refuse_resuming_a_sweep(path)

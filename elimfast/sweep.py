@@ -167,6 +167,24 @@ class SweepSpec:
     ensemble: dict | None = None        # {"n", "seed", "spread"} or {"states"}; the base is the run
     base: dict | None = None
     axis_keys: dict[str, str] = field(default_factory=dict)   # plain axes: name -> the dotted key it sets
+    base_file: str | None = None        # the base config's file, when base: names one
+
+    def input_files(self) -> list[Path]:
+        """The files the sweep reads: the sweep file, its base config's file, and every python:
+        problem file its runs (and reference) name. -o must name none of them (a user trial: -o BASE.yaml
+        --overwrite replaced the base config by HDF5, -o PROBLEM.py the problem file)."""
+        folder = Path(self.source).parent
+        files = [Path(self.source)] + ([Path(self.base_file)] if self.base_file else [])
+        configs = [run.config for run in self.runs] + [self.base or {}, self.reference or {}]
+        for config in configs:
+            problem = config.get("problem") if isinstance(config, dict) else None
+            if isinstance(problem, dict) and isinstance(problem.get("python"), str):
+                files.append(folder / problem["python"])
+        unique = []
+        for file in files:
+            if file not in unique:
+                unique.append(file)
+        return unique
 
 
 # --- reading the sweep file ----------------------------------------------------------
@@ -333,8 +351,10 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                 _fail(source, key, "an ensemble sweep runs one config from many initial states: "
                                    "remove this key, or run the grid as a separate sweep")
     base = data.get("base")
+    base_file = None
     if isinstance(base, str):
         base_path = (path.parent / base)
+        base_file = str(base_path)
         if not base_path.exists():   # a user trial was told only "nosuch.yaml: no such file"
             _fail(source, "base", f"{base_path}: no such file; give the path of a run config, relative to "
                                   f"the sweep file's folder ({path.parent})")
@@ -497,7 +517,8 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
             raise SweepError(_reference_failure(source, failure, reference_set)) from None
     ensemble = _check_ensemble(source, data["ensemble"]) if data.get("ensemble") is not None else None
     return SweepSpec(source=source, runs=runs, axes=axis_names, error_mode=error_mode,
-                     reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys)
+                     reference=reference, order_axis=order_axis, ensemble=ensemble, base=base, axis_keys=axis_keys,
+                     base_file=base_file)
 
 
 def _apply_set(base: dict, overrides: dict) -> dict:
@@ -1529,6 +1550,14 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
         from .io.safety import check_output_path
         path = check_output_path(Path(path).expanduser(), overwrite=overwrite and not resume, resume=resume)
     spec = sweep if isinstance(sweep, SweepSpec) else load_sweep(sweep)
+    if path is not None:
+        target = Path(path).expanduser().resolve()
+        for read in spec.input_files():
+            if read.exists() and read.resolve() == target:
+                what = ("sweep file" if read == Path(spec.source) else "base config" if str(read) == spec.base_file
+                        else "problem file")
+                raise OutputError(f"{path}: is the sweep's {what} itself, which writing would replace; give another "
+                                  "output file, e.g. out/sweep.h5")
     say = on_message or (lambda line: None)
     writer = None
 

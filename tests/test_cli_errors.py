@@ -102,6 +102,13 @@ def make_case(name, tmp: Path):
                                    "is the config file itself, which writing would replace"),
         "output.path onto the config": (["run", write(tmp, "self.yaml", GOOD + f"output: {{path: {tmp}/self.yaml}}\n"),
                                          "--overwrite"], "is the config file itself"),
+        # a user trial: -o PROBLEM.py --overwrite replaced the python: problem file by HDF5
+        # (a copy of configs/kepler_problem.py: a failing test must not replace the repository's)
+        "output onto the problem file": (["run", write(tmp, "py.yaml", "problem: {python: kp.py}\n"
+                                                                       "method: {name: hbvm, k: 6, s: 3}\n"
+                                                                       "integration: {h: 0.1, n_steps: 5}\n"),
+                                          "-o", write(tmp, "kp.py", (ROOT / "configs" / "kepler_problem.py").read_text()),
+                                          "--overwrite"], "is the problem file itself"),
         "output onto the sweep file": (["sweep", write(tmp, "sw2.yaml", "base: g.yaml\ngrid: []\n"), "-o",
                                         tmp / "sw2.yaml", "--overwrite"], "is the sweep file itself"),
         "sweep --overwrite without -o": (["sweep", KEPLER.replace("kepler.yaml", "paper/table1.yaml"), "--overwrite"],
@@ -117,7 +124,8 @@ CASES = ["missing file", "bad yaml", "unknown key", "unknown key by --set", "bad
          "tableau without k", "tableau of lim", "tableau k < s", "tableau bad eta", "tableau without r and k",
          "empty output path", "duplicate section", "duplicate key in a flow mapping", "misspelt section",
          "misspelt event key", "run a sweep file", "check a sweep file", "sweep a run config",
-         "output onto the config", "output.path onto the config", "output onto the sweep file",
+         "output onto the config", "output.path onto the config", "output onto the problem file",
+         "output onto the sweep file",
          "sweep --overwrite without -o", "tableau nan eta", "python file as config"]
 
 

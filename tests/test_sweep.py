@@ -1347,3 +1347,24 @@ def test_resume_refuses_a_python_problem_file_changed_since_its_runs_were_stored
     with pytest.raises(OutputError, match=r"the problem file .*osc\.py has changed since it was stored \(sha256 "
                                           r"\w{16} then, \w{16} now\), the file of the run '0\.(1|05)', stored complete"):
         sweeps.run_to_file(path, out, resume=True, workers=1)
+
+
+def test_output_may_not_be_a_file_the_sweep_reads(tmp_path):
+    """A user trial: `sweep SWEEP -o BASE.yaml --overwrite` replaced the sweep's base config by HDF5,
+    and `-o PROBLEM.py` its python: problem file (the sweep file itself was refused already)."""
+    from click.testing import CliRunner
+    from cli.main import cli
+    from elimfast import sweep as sweeps
+    (tmp_path / "osc.py").write_text("Y0 = [1.0, 0.0]\n\ndef H(y, params):\n    return 0.5 * y[1] ** 2 + 0.5 * y[0] ** 2\n"
+                                     "\ndef grad_H(y, params, out):\n    out[0] = y[0]\n    out[1] = y[1]\n")
+    (tmp_path / "base.yaml").write_text(yaml.safe_dump({"problem": {"python": "osc.py"},
+                                                        "method": {"name": "hbvm", "k": 6, "s": 3},
+                                                        "integration": {"h": 0.1, "t_end": 1}}))
+    path = write_sweep(tmp_path, {"base": "base.yaml", "grid": [{"name": "h", "key": "integration.h", "values": [0.1]}]})
+    before = {name: (tmp_path / name).read_bytes() for name in ("osc.py", "base.yaml", "sweep.yaml")}
+    for name, what in (("base.yaml", "base config"), ("osc.py", "problem file"), ("sweep.yaml", "sweep file")):
+        with pytest.raises(OutputError, match=rf"is the sweep's {what} itself, which writing would replace"):
+            sweeps.run_to_file(path, tmp_path / name, overwrite=True, workers=1)
+        done = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(tmp_path / name), "--overwrite", "-q"])
+        assert done.exit_code == 2 and "itself, which writing would replace" in done.stderr, done.output
+    assert {name: (tmp_path / name).read_bytes() for name in before} == before
