@@ -135,8 +135,10 @@ class EnsembleResult:
                 # of its first step, which it blamed on h after 4 halvings (a user trial)
                 return (f"{name}trajectory {index}: {undefined} at its initial state {self.y0[index].tolist()}: it "
                         "is not defined there; choose initial states away from the problem's singularities")
+        # y, y0: a state grown far beyond its start is named (an escaping Henon-Heiles orbit, |p| ~ 8e6, was
+        # told to allow more step halvings, a user trial)
         message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index],
-                                  imposed=len(self.conserve))
+                                  imposed=len(self.conserve), y=self.y_final[index], y0=self.y0[index])
         return name + f"trajectory {index}: " + message[len(name):]
 
 

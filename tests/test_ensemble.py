@@ -245,3 +245,14 @@ def test_bad_arguments_say_what_to_change(kepler, kwargs, match):
     arguments.update(kwargs)
     with pytest.raises((ValueError, TypeError), match=match):
         integrate_ensemble(kepler, **arguments)
+
+
+def test_an_escaping_trajectory_is_said_to_have_grown_as_integrate_says_it():
+    """A user trial: a Henon-Heiles trajectory above the escape energy failed with |p| ~ 8e6 and was told
+    to 'reduce h, or allow more step halvings', where integrate names the grown state."""
+    henon = problems.henon_heiles()
+    states = np.array([[0.0, 0.1, 0.39, 0.0], [0.0, 0.0, 0.7, 0.2]])
+    ensemble = integrate_ensemble(henon, hbvm(6, 3), 0.1, states, t_end=200.0)
+    assert ensemble.reasons[0] == "ok" and ensemble.reasons[1] != "ok"
+    assert "the state has grown to" in ensemble.failure_message(1)
+    assert_failure_matches_integrate(ensemble, 1, henon, hbvm(6, 3), 0.1, states[1])
