@@ -173,10 +173,15 @@ def run_notes(run_file) -> list[str]:
     """What the end-of-run line adds: split steps, an H error above round-off, an unused h."""
     notes = []
     substeps = run_file.substep_stats()
+    drift = run_file.invariant_drift()
     if substeps["split"]:
+        # ("kept" only where the invariants are defined: a trial's H was NaN in a third of the samples, and
+        # this note, beside the one saying so, said every invariant was kept)
+        kept = ("; every invariant is kept there too" if not any(math.isnan(value) for value in drift.values())
+                else "")
         notes.append(f"{substeps['split']:,} step(s) were split into substeps (at most {substeps['max']}): the solver "
                      "could not converge them whole, or could only with alpha carrying rounding into the step "
-                     "(docs/solver.md#when-a-step-fails-retry-then-split); every invariant is kept there too")
+                     f"(docs/solver.md#when-a-step-fails-retry-then-split){kept}")
     if substeps.get("unimposed"):
         notes.append(unimposed_text(substeps["unimposed"], run_file.steps_done, run_file.adaptive,
                                     _literal_sum(run_file)))
@@ -184,7 +189,6 @@ def run_notes(run_file) -> list[str]:
     if spikes:
         from elimfast.integrate import alpha_spike_note
         notes.append(alpha_spike_note(spikes, run_file.steps_done))
-    drift = run_file.invariant_drift()
     warning = energy_note(run_file, drift)
     if warning:
         notes.append(warning)

@@ -601,6 +601,18 @@ def test_a_run_whose_H_is_not_defined_on_part_of_its_orbit_says_so(cache_root, t
     assert result.exit_code == 0, result.output
     assert ("note: H is NaN or infinite in some samples: the problem's function gave it there, where the state is "
             "finite") in result.stderr
+    assert "every invariant is kept there too" not in result.stderr
+    # a user trial: H = p^2/2 + log(q - 0.5), whose finite gradient carried a step across q = 0.5 (split
+    # steps there): the split-step note said "every invariant is kept there too" beside H's NaN
+    write_problem(tmp_path, "import math\nY0 = [1.0, 0.0]\n\ndef H(y, params):\n"
+                            "    return 0.5 * y[1] ** 2 + math.log(y[0] - 0.5)\n\ndef grad_H(y, params, out):\n"
+                            "    out[0] = 1.0 / (y[0] - 0.5)\n    out[1] = y[1]\n")
+    config.write_text("problem: {python: problem.py}\nmethod: {name: hbvm, k: 4, s: 2}\n"
+                      "integration: {h: 0.1, t_end: 100}\n")
+    crossed = CliRunner().invoke(cli, ["run", str(config), "-o", str(tmp_path / "crossed.h5")])
+    assert crossed.exit_code == 0 and "step(s) were split into substeps" in crossed.stderr, crossed.output
+    assert "H is NaN or infinite in some samples" in crossed.stderr
+    assert "every invariant is kept there too" not in crossed.stderr
     report = CliRunner().invoke(cli, ["inspect", str(out)]).stdout
     assert "no step done" not in report
     assert "invariants   no figures: after 100 steps, the invariants are NaN or infinite in some or all" in report
