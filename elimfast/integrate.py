@@ -1399,9 +1399,20 @@ def _run_to_end(run, chunks: list, chunk_steps: int, partial_result) -> None:
     saying so. (A user trial: integrate raised the bare ValueError, the steps lost.)"""
     while not run.finished:
         before_state = run.state()
-        before = run.steps_done
+        before, n_chunks = run.steps_done, len(chunks)
         try:
             chunks.append(run.advance(chunk_steps))
+        except KeyboardInterrupt as stop:
+            # Ctrl-C: the steps done so far are the interrupt's .result, as a failure's are the
+            # ConvergenceError's (a user trial: they were lost). The interrupt may land between the
+            # kernel's return and the append: the run then goes back to the state of its chunks.
+            if len(chunks) == n_chunks and run.steps_done != before:
+                run.restore(before_state)
+            result = partial_result()
+            result.status = f"interrupted at step {run.steps_done + 1} (t = {exact_time(run.t)})"
+            stop.result = result
+            stop.add_note(f"elimfast: interrupted; its .result holds the {run.steps_done} steps before it")
+            raise
         except Exception as err:   # noqa: BLE001 -- a problem function raised inside the kernel
             n_done, t_raised = steps_before_raise(run), run.t
             run.restore(before_state)

@@ -448,3 +448,35 @@ def test_conserve_none_imposes_nothing_and_a_non_list_is_one_line():
     np.testing.assert_array_equal(fixed.y, elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=3).y)
     with pytest.raises(ParameterError, match=r"^conserve must be a list of invariant names, got 3$"):
         elimfast.integrate(problem, ehbvm(8, 4), h=0.1, n_steps=3, conserve=3)
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_ctrl_c_in_python_keeps_the_steps_done_as_the_interrupts_result(monkeypatch, adaptive):
+    """A user trial: Ctrl-C in elimfast.integrate lost every step done (a ConvergenceError carries
+    them as .result, an interrupt carried nothing). The interrupt now carries them, consistent with
+    the state of its chunks whether it lands inside a kernel call or after one."""
+    import importlib
+    from elimfast.problems import kepler
+    from elimfast.methods import ehbvm
+    module = importlib.import_module("elimfast.adaptive" if adaptive else "elimfast.integrate")
+    cls = module.AdaptiveIntegration if adaptive else module.Integration
+    advance, calls = cls.advance, []
+
+    def interrupted(self, steps):
+        calls.append(steps)
+        if len(calls) == 3:
+            advance(self, steps)            # the kernel's steps are taken, then the interrupt lands
+            raise KeyboardInterrupt
+        return advance(self, steps)
+    monkeypatch.setattr(cls, "advance", interrupted)
+    options = dict(t_end=200.0, rtol=1e-10) if adaptive else dict(h=0.1, n_steps=2000)
+    with pytest.raises(KeyboardInterrupt) as caught:
+        elimfast.integrate(kepler(0.6), ehbvm(8, 4), conserve=["angular_momentum"], chunk_steps=100, **options)
+    partial = caught.value.result
+    assert partial.steps_done == 200 and partial.status.startswith("interrupted at step 201")
+    monkeypatch.setattr(cls, "advance", advance)
+    options = dict(t_end=200.0, rtol=1e-10) if adaptive else dict(h=0.1, n_steps=200)
+    whole = elimfast.integrate(kepler(0.6), ehbvm(8, 4), conserve=["angular_momentum"], chunk_steps=100, **options)
+    np.testing.assert_array_equal(partial.y, whole.y[:partial.y.shape[0]])
+    if not adaptive:
+        np.testing.assert_array_equal(partial.y_final, whole.y_final)
