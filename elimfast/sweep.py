@@ -1279,11 +1279,29 @@ def errors_of(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcome
     return errors
 
 
-def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, float]) -> dict[str, float]:
+# An order taken from an error at rounding's size measures rounding, not the method (a user trial's
+# HBVM(8,4) column read -1.60 and 0.43 unflagged): the table says so. Rounding's size: this many eps
+# of the state per square root of the steps (a random walk's). Kepler e = 0.6 over one period,
+# HBVM(8,4) at 50..800 steps: errors 1.1e-7 .. 1.8e-12 give orders 7.9-8.0, unflagged; 7.9e-15 at
+# 400 steps (7.82) and 1.9e-14 at 800 (-1.26) are flagged.
+ROUNDOFF_EPS = 10.0
+
+
+def at_roundoff(outcome: RunOutcome, error: float) -> bool:
+    """Is ``error`` (a run's error) within rounding of its state: ROUNDOFF_EPS eps sqrt(steps) max |y0|?"""
+    if outcome.y_initial is None:
+        return False
+    size = float(np.max(np.abs(outcome.y_initial)))
+    return error <= ROUNDOFF_EPS * 2.0 ** -52 * math.sqrt(max(outcome.steps_done, 1)) * size
+
+
+def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, float],
+              roundoff: set | None = None) -> dict[str, float]:
     """Observed order log(e1/e2)/log(x1/x2) between successive points of order_axis, x the
     axis's value in each run (order_axis_value: h for an h axis, epsilon for an epsilon axis).
     It was always taken in the runs' h, which an epsilon axis leaves unset: a user trial's
-    order column was empty where the errors fell 64x per halving of epsilon."""
+    order column was empty where the errors fell 64x per halving of epsilon. ``roundoff``, if
+    given, gets the labels whose order was taken from an error at rounding's size (at_roundoff)."""
     orders = {o.label: math.nan for o in outcomes}
     if spec.order_axis is None:
         return orders
@@ -1302,7 +1320,9 @@ def orders_of(spec: SweepSpec, outcomes: list[RunOutcome], errors: dict[str, flo
                 continue
             if usable is not None and usable[1] != x1:
                 orders[current.label] = math.log(usable[0] / e1) / math.log(usable[1] / x1)
-            usable = (e1, x1)
+                if roundoff is not None and (usable[2] or at_roundoff(current, e1)):
+                    roundoff.add(current.label)
+            usable = (e1, x1, at_roundoff(current, e1))
     return orders
 
 
@@ -1350,7 +1370,8 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
     integrate.relative_reference).
     """
     errors = errors_of(spec, outcomes, reference)
-    orders = orders_of(spec, outcomes, errors)
+    roundoff: set[str] = set()
+    orders = orders_of(spec, outcomes, errors, roundoff)
     csv = fmt == "csv"
     invariant_names = []
     for outcome in outcomes:
@@ -1390,7 +1411,8 @@ def table_rows(spec: SweepSpec, outcomes: list[RunOutcome], reference: RunOutcom
         if spec.order_axis:
             order = orders[outcome.label]
             row.append(figure(math.nan) if not outcome.ok else "" if math.isnan(order)
-                       else repr(order) if csv else f"{order:.2f}")
+                       else repr(order) if csv else f"{order:.2f}" + (" (round-off)" if outcome.label in roundoff
+                                                                      else ""))
         row.append(str(outcome.steps_done) if outcome.steps_done else "")
         row.append(str(outcome.iterations_total) if outcome.steps_done else "")
         row.append(str(outcome.grad_H_evaluations) if outcome.steps_done else "")

@@ -1368,3 +1368,22 @@ def test_output_may_not_be_a_file_the_sweep_reads(tmp_path):
         done = CliRunner().invoke(cli, ["sweep", str(path), "-o", str(tmp_path / name), "--overwrite", "-q"])
         assert done.exit_code == 2 and "itself, which writing would replace" in done.stderr, done.output
     assert {name: (tmp_path / name).read_bytes() for name in before} == before
+
+
+def test_orders_taken_from_errors_at_rounding_are_flagged(tmp_path):
+    """A user trial: orders computed from errors at round-off (HBVM(8,4): -1.60, 0.43) were printed
+    as plainly as the method's. HBVM(8,4) on one period of Kepler: order 8 down to 200 steps a period,
+    then rounding."""
+    sweep = {"base": {**BASE, "method": {"name": "hbvm", "k": 8, "s": 4}, "conserve": [],
+                      "integration": {"h": 0.1, "t_end": "2*pi"}},
+             "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/100", "2*pi/200", "2*pi/800"]}],
+             "error": {"exact": "initial"}, "order_axis": "h"}
+    spec = load_sweep(write_sweep(tmp_path, sweep))
+    outcomes, reference = run_sweep(spec, workers=1)
+    header, rows = table_rows(spec, outcomes, reference, "markdown")
+    order = header.index("order")
+    assert [row[order] for row in rows][:2] == ["", f"{orders_of(spec, outcomes, errors_of(spec, outcomes, None))['2*pi/200']:.2f}"]
+    assert 7.5 < float(rows[1][order]) < 8.5
+    assert rows[2][order].endswith(" (round-off)")
+    header, rows = table_rows(spec, outcomes, reference, "csv")   # a number in CSV
+    float(rows[2][header.index("order")])
