@@ -92,11 +92,30 @@ class _Interrupted(BaseException):
     blank line on stderr before ours."""
 
 
+# The signals _interrupt was called for. Raised inside a ctypes callback of Numba's compiler, the
+# _Interrupted is swallowed ("Exception ignored on calling ctypes callback function") and the compile
+# fails later with an error of its own ("RuntimeError: no compiled object yet"), reported as an internal
+# error, exit 1 (a user trial, 1 Ctrl-C in 7 while a problem compiled): after a signal, any error is
+# the interruption's.
+_SIGNALLED: list[int] = []
+
+
 def _interrupt(signum, frame):
     """Ctrl-C, SIGTERM or SIGHUP before a run's own handling (streaming.StopOnSignals) takes over:
     one line and exit 130 (a user trial, signalling `run --resume` at start-up: SIGTERM ended it
     silently with 143, Ctrl-C printed a blank line and 'interrupted')."""
+    _SIGNALLED.append(signum)
     raise _Interrupted
+
+
+def _unraisable(hook):
+    """sys.unraisablehook that drops an _Interrupted raised where Python cannot propagate it (a
+    ctypes callback): its interruption is reported once, at exit (_SIGNALLED)."""
+    def quiet(unraisable):
+        if unraisable.exc_type is _Interrupted:
+            return
+        hook(unraisable)
+    return quiet
 
 
 @contextlib.contextmanager
@@ -131,6 +150,7 @@ class ElimfastGroup(click.Group):
             import signal
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 signal.signal(sig, _interrupt)
+            sys.unraisablehook = _unraisable(sys.unraisablehook)
         try:
             try:
                 code = super().main(args, prog_name or "elimfast", complete_var, standalone_mode=False, **extra)
@@ -156,6 +176,8 @@ class ElimfastGroup(click.Group):
             except Exception as err:
                 if debug:
                     raise
+                if _SIGNALLED:
+                    fail(_INTERRUPTED[-1], EXIT_INTERRUPTED)
                 fail(*error_line(err))
         except _Exit as done:
             code = done.code

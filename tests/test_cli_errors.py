@@ -190,6 +190,29 @@ def test_an_internal_error_is_one_line_with_a_hint(tmp_path, monkeypatch):
     assert isinstance(debug.exception, RuntimeError)     # the traceback is there for developers
 
 
+def test_an_error_after_a_signal_is_the_interruption(tmp_path, monkeypatch):
+    """A user trial: Ctrl-C while a problem's functions compiled was swallowed inside a ctypes callback
+    of Numba's compiler ('Exception ignored on calling ctypes callback function'), and the compile then
+    failed with 'internal error: RuntimeError: no compiled object yet ...', exit 1 (1 try in 7). After a
+    signal any error is the interruption's: one line, exit 130; an unraisable _Interrupted is dropped."""
+    import elimfast.streaming
+    from elimfast_cli import main as cli_main
+
+    def compile_failed(*args, **kwargs):
+        cli_main._SIGNALLED.append(2)      # the handler ran; its exception went nowhere
+        raise RuntimeError("no compiled object yet for <Library 'grad_H'>")
+    monkeypatch.setattr(cli_main, "_SIGNALLED", [])
+    monkeypatch.setattr(elimfast.streaming, "run_to_file", compile_failed)
+    result = CliRunner().invoke(cli, ["run", write(tmp_path, "g.yaml", GOOD), "-o", str(tmp_path / "x.h5")])
+    assert result.exit_code == 130, result.output
+    assert "internal error" not in result.stderr and result.stderr.startswith("error: interrupted")
+    seen = []
+    hook = cli_main._unraisable(seen.append)
+    hook(type("U", (), {"exc_type": cli_main._Interrupted})())
+    hook(type("U", (), {"exc_type": ValueError})())
+    assert [u.exc_type for u in seen] == [ValueError]
+
+
 def test_run_refuses_to_resume_a_sweep_file_or_to_write_into_one(tmp_path, monkeypatch):
     """A user trial: `run ... -o SWEEP.h5 --resume` advised naming a run as SWEEP.h5:/runs/<label>,
     and `run ... -o SWEEP.h5:/runs/<label> --resume` then made a folder 'SWEEP.h5:' and started a
