@@ -360,6 +360,18 @@ def _refuse_writing_over(output, source, what: str) -> None:
                                "another output file, e.g. -o out/run.h5")
 
 
+def _earlier_end(stored: dict, overrides) -> tuple[float, float] | None:
+    """(the t_end a --set asks for, the stored run's) when the first is the earlier, else None."""
+    from elimfast.problems.expressions import evaluate_number
+    ends = [item.split("=", 1)[1] for item in overrides if _set_key(item) == "integration.t_end"]
+    old = (stored.get("integration") or {}).get("t_end") if isinstance(stored, dict) else None
+    try:
+        new, old = float(evaluate_number(ends[-1])), float(evaluate_number(old))
+    except Exception:   # noqa: BLE001 -- no t_end given, or not a number: the resume's own rule decides
+        return None
+    return (new, old) if new < old else None
+
+
 def _stored_spec(path, overrides, config):
     """The spec with which --resume continues the run stored in ``path``: its stored config with
     the differences of CONFIG and --set from it on top, each as the --set of that key, so that
@@ -387,7 +399,19 @@ def _stored_spec(path, overrides, config):
     set_overrides = _merge_sets(stored_sets, overrides)
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
-    given = parse_yaml(_resolved_yaml(_load(config, set_overrides)), str(config))
+    try:
+        loaded = _load(config, set_overrides)
+    except ConfigError as err:
+        earlier = _earlier_end(data, set_overrides)
+        if earlier is not None and str(err.key or "").startswith("output.times"):
+            # The stored output times past the earlier end were refused as a new run's ("must lie within
+            # the run"), before the resume's own rule could say why (a user trial)
+            from elimfast.io.safety import OutputError
+            raise OutputError(f"{path}: integration.t_end = {earlier[0]:.10g} is before the end of the stored run, "
+                              f"{earlier[1]:.10g}: --resume continues a run to a later t_end, never an earlier one; "
+                              "start a new run (-o NEW.h5) for a shorter one") from None
+        raise
+    given = parse_yaml(_resolved_yaml(loaded), str(config))
     written = parse_yaml(read_text_file(Path(config), str(config), what="config file"), str(config))
     set_keys = _given_keys(overrides)
     changes, from_config, rank, where = [], [], {}, {}

@@ -609,3 +609,17 @@ def test_an_event_nan_before_a_kill_is_named_after_the_resume(tmp_path):
     first = resumed.events_not_finite["nan"]
     index = int(np.searchsorted(resumed.t, first))
     assert first < killed_at and resumed.t[index] == first and resumed.y[index, 0] < -0.5   # a stored sample's time
+
+
+def test_resume_to_an_earlier_end_with_output_times_says_why(tmp_path):
+    """A user trial: --resume --set integration.t_end=<earlier> of a run with output.times was refused
+    as 'output.times: must lie within the run', a new run's rule, not the resume's: 'never an earlier one'."""
+    config = {**CONFIG, "integration": {"rtol": 1e-10, "t_end": "4*pi"},
+              "output": {"times": {"start": 0, "stop": "4*pi", "step": "pi/2"}}}
+    path, out = write_config(tmp_path, config), tmp_path / "run.h5"
+    assert CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "-q"]).exit_code == 0
+    done = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set", "integration.t_end=2*pi"])
+    assert done.exit_code == 2
+    assert done.stderr == (f"error: {out}: integration.t_end = 6.283185307 is before the end of the stored run, "
+                           "12.56637061: --resume continues a run to a later t_end, never an earlier one; start a new "
+                           "run (-o NEW.h5) for a shorter one\n")
