@@ -406,10 +406,8 @@ def _stored_spec(path, overrides, config):
         if earlier is not None and str(err.key or "").startswith("output.times"):
             # The stored output times past the earlier end were refused as a new run's ("must lie within
             # the run"), before the resume's own rule could say why (a user trial)
-            from elimfast.io.safety import OutputError
-            raise OutputError(f"{path}: integration.t_end = {earlier[0]:.10g} is before the end of the stored run, "
-                              f"{earlier[1]:.10g}: --resume continues a run to a later t_end, never an earlier one; "
-                              "start a new run (-o NEW.h5) for a shorter one") from None
+            from elimfast.streaming import earlier_end_refusal
+            raise earlier_end_refusal(path, *earlier) from None
         raise
     given = parse_yaml(_resolved_yaml(loaded), str(config))
     written = parse_yaml(read_text_file(Path(config), str(config), what="config file"), str(config))

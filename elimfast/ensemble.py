@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from .errors import ParameterError, exact_time
-from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message
+from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message, undefined_at
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
 from .kernels import codes
@@ -129,7 +129,9 @@ class EnsembleResult:
                     f"elimfast.integrate from this trajectory's y0 to see it")
         name = f"{self.method.name}: "
         if code == codes.STATUS_NONFINITE and step == 1:
-            undefined = _undefined_at(self.problem, self.y0[index])
+            # (only for trajectories failed at their first step: a call per row from Python would cost
+            # seconds per million rows)
+            undefined = undefined_at(self.problem, self.y0[index])
             if undefined is not None:
                 # as integrate refuses such a y0 (resolve_initial_state); the kernel only sees the NaN
                 # of its first step, which it blamed on h after 4 halvings (a user trial)
@@ -140,21 +142,6 @@ class EnsembleResult:
         message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index],
                                   imposed=len(self.conserve), y=self.y_final[index], y0=self.y0[index])
         return name + f"trajectory {index}: " + message[len(name):]
-
-
-def _undefined_at(problem: Problem, y: np.ndarray) -> str | None:
-    """'H = nan' (or 'the invariant 'L' = inf') when H or an invariant is not finite at y, else None:
-    checked only for the trajectories that failed at their first step (a call per row from Python
-    would cost seconds per million rows)."""
-    try:
-        with np.errstate(all="ignore"):
-            values = problem.invariant_values(y)
-    except ArithmeticError:
-        return "H is not defined (a problem function divided by zero)"
-    for name, value in values.items():
-        if not np.isfinite(value):
-            return f"H = {value}" if name == "H" else f"the invariant {name!r} = {value}"
-    return None
 
 
 def _thread_count(n_threads) -> int:

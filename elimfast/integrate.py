@@ -874,6 +874,16 @@ def resolve_initial_state(problem: Problem, y0=None) -> np.ndarray:
     if y.shape != (n,) or not np.all(np.isfinite(y)):
         raise ParameterError("y0", f"must be {n} finite numbers ({', '.join(problem.coordinate_names)}), "
                                    f"got {y!r}")
+    undefined = undefined_at(problem, y)
+    if undefined is not None:
+        raise ParameterError("y0", f"gives {undefined} at the initial state {y.tolist()}: it is not "
+                                   "defined there; choose an initial state away from its singularities")
+    return y
+
+
+def undefined_at(problem: Problem, y) -> str | None:
+    """'H = nan' (or "the invariant 'L' = inf") when H or an invariant is not finite at y, else None:
+    resolve_initial_state's refusal, and an ensemble trajectory's failure at its first step."""
     try:
         with np.errstate(all="ignore"):
             values = problem.invariant_values(y)
@@ -881,10 +891,8 @@ def resolve_initial_state(problem: Problem, y0=None) -> np.ndarray:
         values = {"H": math.nan}
     for name, value in values.items():
         if not math.isfinite(value):
-            what = "H" if name == "H" else f"the invariant {name!r}"
-            raise ParameterError("y0", f"gives {what} = {value} at the initial state {y.tolist()}: it is not "
-                                       "defined there; choose an initial state away from its singularities")
-    return y
+            return f"H = {value}" if name == "H" else f"the invariant {name!r} = {value}"
+    return None
 
 
 def available_memory() -> int | None:

@@ -754,6 +754,14 @@ def integration_t_eval(integration) -> np.ndarray:
     return np.asarray(getattr(integration, "t_eval", np.zeros(0)))
 
 
+def earlier_end_refusal(path, new_end: float, old_end: float) -> OutputError:
+    """The refusal of a --resume to a t_end before the stored run's end (run_extension's, and the
+    CLI's where a new run's rule on output.times would otherwise speak first)."""
+    return OutputError(f"{path}: integration.t_end = {new_end:.10g} is before the end of the stored run, "
+                       f"{old_end:.10g}: --resume continues a run to a later t_end, never an earlier one; start "
+                       "a new run (-o NEW.h5) for a shorter one")
+
+
 def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, t_end=None) -> dict | None:
     """A --resume that continues the run stored in ``path`` to a later end: None when the end
     is the stored one, else the root attributes the continued run has (RunWriter.resume's
@@ -788,9 +796,7 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
                               "other times")
         return None
     if change < 0:
-        raise OutputError(f"{path}: integration.t_end = {new_end:.10g} is before the end of the stored run, "
-                          f"{old_end:.10g}: --resume continues a run to a later t_end, never an earlier one; start "
-                          "a new run (-o NEW.h5) for a shorter one")
+        raise earlier_end_refusal(path, new_end, old_end)
     t_event = terminal_event_end(integration, status, clock, old_end)
     if t_event is not None:
         raise OutputError(f"{path}: the run was ended by a terminal event at t = {exact_time(t_event)}; a later "

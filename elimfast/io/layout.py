@@ -224,15 +224,11 @@ def problem_file_changed(stored_digest, problem) -> str | None:
     if stored_digest is None:
         return None
     now = problem_file_attributes(problem).get(PROBLEM_FILE_DIGEST)
-    stored = str(_plain_text(stored_digest))
+    stored = str(_plain(stored_digest))
     if now is None or now == stored:
         return None
     return (f"the problem file {problem.source_file} has changed since it was stored (sha256 {stored[:16]} then, "
             f"{now[:16]} now)")
-
-
-def _plain_text(value):
-    return value.decode() if isinstance(value, bytes) else value
 
 
 def version_attributes() -> dict:
