@@ -818,6 +818,11 @@ class _Builder:
                                                    f"{compact_number(times.stop - times.start)}: it gives start alone; "
                                                    "give a smaller step, or the times as a list")
                 values = times.start + times.step * np.arange(count)
+                # start + (count - 1) step meant as stop rounds off it: {start: 0, stop: 0.7, step: 0.1}
+                # sampled at 0.7000000000000001, past the stop asked for (a user trial). The last time is
+                # stop where it is within rounding of it (the count's own slack above).
+                if abs(values[-1] - times.stop) <= 1e-12 * (times.stop - times.start):
+                    values[-1] = times.stop
         return resolve_t_eval(values, t0, t_end, every)
 
     @staticmethod

@@ -623,3 +623,20 @@ def test_resume_to_an_earlier_end_with_output_times_says_why(tmp_path):
     assert done.stderr == (f"error: {out}: integration.t_end = 6.283185307 is before the end of the stored run, "
                            "12.56637061: --resume continues a run to a later t_end, never an earlier one; start a new "
                            "run (-o NEW.h5) for a shorter one\n")
+
+
+@pytest.mark.parametrize("start, stop, step", [(0, 0.7, 0.1), (0.1, 0.7, 0.1), (0, 0.3, 0.1), (0, 1.1, 0.1),
+                                               (0, "20000*pi", "pi/4")])
+def test_an_output_grid_ends_on_its_stop_not_a_rounding_past_it(start, stop, step):
+    """output.times {start, stop, step} whose stop is on the grid samples at stop itself:
+    {0, 0.7, 0.1} sampled at 0.7000000000000001 (0.1 * 7 rounds up), past the stop asked for
+    (a user trial). The other times are start + i step, as before."""
+    config = {**CONFIG, "integration": {"rtol": 1e-10, "t_end": stop},
+              "output": {"times": {"start": start, "stop": stop, "step": step}}}
+    spec = load_run_from_dict(config)
+    stop_value, start_value = spec.resolved["output"]["times"]["stop"], float(start)
+    step_value = spec.resolved["output"]["times"]["step"]
+    assert spec.t_eval[-1] == stop_value
+    expected = start_value + step_value * np.arange(spec.t_eval.size)
+    np.testing.assert_array_equal(spec.t_eval[:-1], expected[:-1])
+    assert abs(expected[-1] - stop_value) < 1e-12 * stop_value
