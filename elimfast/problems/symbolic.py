@@ -99,7 +99,7 @@ def problem_from_expressions(coordinates: Mapping[str, Sequence[str]], hamiltoni
     initial: {coordinate: value} for every coordinate (values may use the parameters);
     time_scale: an expression for the local time scale sigma(y) of the motion (the
     time-reversible step control of docs/adaptive.md), e.g. "(q1**2 + q2**2)**0.75".
-    check: test that each invariant is conserved by the flow of H near the initial state
+    check: test that each invariant is conserved by the flow of H at seeded points around the initial state
     (problems/check.py, as a config's problem.check does), InvariantCheckError if not: imposing
     one that is not makes no method keep it (the gradients come from the expressions, so they
     need no check).

@@ -132,7 +132,7 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
     parameters: {name: value} overriding PARAMETERS; initial: {coordinate: value} overriding
     Y0 entries (every coordinate when the file has no Y0). Values may be numeric strings
     ('pi/3'); initial values may use the parameter names. check: test the file's gradients
-    against central differences and its invariants against the flow of H near the initial state
+    against central differences and its invariants against the flow of H at seeded points around the initial state
     (problems/check.py, as a config's problem.check does): DerivativeCheckError or
     InvariantCheckError if one is wrong.
     """
