@@ -85,7 +85,13 @@ PYTHON_BYTES_PER_NODE = 120       # a config value as Python objects (dict slot,
 
 
 class SweepError(ElimfastError):
-    """A sweep file that cannot be run; str() is one line naming the file and the key."""
+    """A sweep file that cannot be run; str() is one line naming the file and the key (and the
+    key's line in the sweep file, where the error is one of load_sweep's): ``source`` and
+    ``key`` keep the two apart for that."""
+
+    def __init__(self, message: str, *, source: str | None = None, key: str | None = None):
+        super().__init__(message)
+        self.source, self.key = source, key
 
 
 @dataclass
@@ -190,7 +196,36 @@ class SweepSpec:
 # --- reading the sweep file ----------------------------------------------------------
 
 def _fail(source, key, message):
-    raise SweepError(f"{source}: {key}: {message}")
+    raise SweepError(f"{source}: {key}: {message}", source=source, key=key)
+
+
+def _key_path(key: str) -> tuple:
+    """A sweep error's key as a key path of parse_yaml_with_lines: 'grid[0].values[2]' ->
+    ('grid', 0, 'values', 2); '(top level)' -> ()."""
+    if key.startswith("("):
+        return ()
+    path = []
+    for name, index in re.findall(r"([^.\[\]]+)|\[(\d+)\]", key):
+        path.append(int(index) if index else name)
+    return tuple(path)
+
+
+def _with_line(err: SweepError, path: Path) -> SweepError:
+    """err with the line of its key in the sweep file (the nearest key above it that the file
+    writes: a run config's errors give theirs, and a sweep file's gave none, a user trial)."""
+    from .config import ConfigError, parse_yaml_with_lines, read_text_file
+    try:
+        _, lines = parse_yaml_with_lines(read_text_file(path, str(path), what="sweep file"), str(path))
+    except (ConfigError, OSError):
+        return err
+    key_path = _key_path(err.key)
+    while key_path and key_path not in lines:
+        key_path = key_path[:-1]
+    prefix = f"{err.source}: "
+    message = str(err)
+    if not key_path or not message.startswith(prefix):
+        return err
+    return SweepError(f"{err.source}:{lines[key_path]}: {message[len(prefix):]}", source=err.source, key=err.key)
 
 
 def _deep_merge(target: dict, overrides: dict) -> dict:
@@ -332,8 +367,17 @@ def _check_same_problem(source: str, runs: list[SweepRun], reference: dict) -> N
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
     """Read and expand a sweep file (see the module docstring). Runs are validated later,
     each by the config loader, so that one bad point fails alone with its reason; the
-    reference run, which every error needs, is loaded here (SweepError)."""
-    path = Path(path)
+    reference run, which every error needs, is loaded here, and so are the numbers of plain
+    axes (SweepError, with the line of the key at fault)."""
+    try:
+        return _load_sweep(Path(path))
+    except SweepError as err:
+        if err.key is None or err.source != str(Path(path)):
+            raise
+        raise _with_line(err, Path(path)) from None
+
+
+def _load_sweep(path: Path) -> SweepSpec:
     source = str(path)
     data = _read_yaml(path, "sweep file")
     if not isinstance(data, dict):
@@ -402,6 +446,7 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
                                                         f"({axis['key']}), whose values are that key's: remove "
                                                         "'key' to make it an axis of variants")
             _check_axis_key(source, f"{key}.key", base, axis["key"], values[0])
+            _check_axis_numbers(source, key, base, axis["key"], values)
             parts = axis["key"].split(".")
             for other, other_key in axis_keys.items():
                 shared = min(len(parts), len(other_key.split(".")))
@@ -597,7 +642,8 @@ def _written_out(source: str, where: str, config: dict) -> dict:
     (config.write_out_shorthands: method: EHBVM(12,3), problem: kepler), so that they merge
     with the rest as the long forms do."""
     from .config import _join, write_out_shorthands
-    return write_out_shorthands(config, lambda path, text: SweepError(f"{source}: {where}{_join(path)}: {text}"))
+    return write_out_shorthands(config, lambda path, text: SweepError(f"{source}: {where}{_join(path)}: {text}",
+                                                                      source=source, key=f"{where}{_join(path)}"))
 
 
 def _refuse_unused_parameters(source: str, base: dict, runs) -> None:
@@ -662,6 +708,29 @@ def _check_axis_key(source, key: str, base: dict, dotted: str, value) -> None:
             location = config_location(error["loc"])
             if error["type"] == "extra_forbidden" and dotted.split(".")[:len(location)] == list(map(str, location)):
                 _fail(source, key, f"{dotted}: {unknown_key_text(location)}")
+
+
+def _check_axis_numbers(source, key: str, base: dict, dotted: str, values: list) -> None:
+    """A plain axis of numbers whose value is a string that is no number ('abc' among h values)
+    is refused here: that run alone failed, after the others had run (a user trial). Numbers
+    are the axis's when the base holds one at the key or another value is one. Keys under
+    problem are left to the runs (an initial value may name a parameter)."""
+    from .problems.expressions import ExpressionError, evaluate_number
+    if dotted.split(".")[0] == "problem":
+        return
+    node = base
+    for part in dotted.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    numeric = [v for v in [node, *values] if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    if not numeric:
+        return
+    for j, value in enumerate(values):
+        if isinstance(value, str):
+            try:
+                evaluate_number(value, what="value")
+            except ExpressionError as err:
+                _fail(source, f"{key}.values[{j}]", f"{err}, where the axis's other values of {dotted} are numbers; "
+                                                    "write a number or arithmetic on numbers, pi and e, e.g. pi/30")
 
 
 def _real_number(value) -> float | None:

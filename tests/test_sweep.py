@@ -1,5 +1,6 @@
 """Sweeps (elimfast.sweep) and the paper's reproduction (elimfast.paper)."""
 import math
+import re
 from pathlib import Path
 
 import h5py
@@ -258,7 +259,7 @@ def test_a_reference_error_refuses_runs_of_another_problem_or_interval(tmp_path,
     with pytest.raises(SweepError) as caught:
         load_sweep(path)
     message = str(caught.value)
-    assert message.startswith(f"{path}: error.reference: run ") and f" differs from the reference run in {key}," \
+    assert re.match(rf"{re.escape(str(path))}:\d+: error\.reference: run ", message) and f" differs from the reference run in {key}," \
         in message, message
     # runs of the base's problem and interval, whatever their h, method or steps, are fine
     same = write_sweep(tmp_path, {"base": {**BASE, "integration": {"h": "pi/30", "n_steps": 60}},
@@ -1143,7 +1144,7 @@ def test_a_sweep_takes_the_short_forms_of_a_run_config(tmp_path):
     assert all(run.config["problem"] == {"builtin": "kepler"} for run in spec.runs)
     # what YAML reads from an unquoted {name: EHBVM(12,3)}: the split leaves the key '3)'
     bad = write_sweep(tmp_path, {"base": {**BASE, "method": {"name": "EHBVM(12", "3)": None}}}, "bad.yaml")
-    with pytest.raises(SweepError, match=r"bad.yaml: base.method.name: 'EHBVM\(12' is cut off"):
+    with pytest.raises(SweepError, match=r"bad.yaml:\d+: base.method.name: 'EHBVM\(12' is cut off"):
         load_sweep(bad)
     # ... and from set: {method: ELIM(4,8,3), conserve: []}: the pieces land beside method (the
     # message said only "'ELIM(4' is unbalanced")
@@ -1151,7 +1152,7 @@ def test_a_sweep_takes_the_short_forms_of_a_run_config(tmp_path):
     variant.write_text("base: {problem: kepler, method: \"EHBVM(12,3)\", integration: {h: 0.1, t_end: 1}}\n"
                        "grid:\n  - name: m\n    values:\n"
                        "      - {label: a, set: {method: ELIM(4,8,3), conserve: [angular_momentum]}}\n")
-    with pytest.raises(SweepError, match=r"variant.yaml: grid\[0\].values\[0\].set.method: 'ELIM\(4' is cut off: "
+    with pytest.raises(SweepError, match=r"variant.yaml:5: grid\[0\].values\[0\].set.method: 'ELIM\(4' is cut off: "
                                          r"inside \{...\} YAML splits .* quote it \(method: "):
         load_sweep(variant)
 
@@ -1177,8 +1178,8 @@ def test_a_missing_base_file_is_named_at_the_sweep_files_key(tmp_path):
     path = write_sweep(tmp_path, {"base": "nosuch.yaml", "grid": [{"key": "integration.h", "values": [0.1]}]})
     with pytest.raises(SweepError) as info:
         load_sweep(path)
-    assert str(info.value).startswith(f"{path}: base: {tmp_path / 'nosuch.yaml'}: no such file; give the path of a "
-                                      "run config, relative to the sweep file's folder"), str(info.value)
+    assert str(info.value).startswith(f"{path}:1: base: {tmp_path / 'nosuch.yaml'}: no such file; give the path of "
+                                      "a run config, relative to the sweep file's folder"), str(info.value)
 
 
 def test_a_run_whose_config_is_refused_makes_the_sweep_a_usage_error(tmp_path):
@@ -1387,3 +1388,27 @@ def test_orders_taken_from_errors_at_rounding_are_flagged(tmp_path):
     assert rows[2][order].endswith(" (round-off)")
     header, rows = table_rows(spec, outcomes, reference, "csv")   # a number in CSV
     float(rows[2][header.index("order")])
+
+
+def test_sweep_file_errors_give_the_line_and_a_word_among_numbers_is_refused_before_any_run(tmp_path):
+    """A user trial: a sweep file's errors named the key but not its line (a run config's name
+    both), and an h axis [0.1, 0.05, abc, 0.02] ran three runs before the fourth failed on 'abc'.
+    Now the line is given, and a value of a numbers axis that is no number is refused at once."""
+    path = tmp_path / "sweep.yaml"
+    path.write_text("base:\n  problem: {builtin: kepler}\n  method: {name: hbvm, k: 4, s: 2}\n"
+                    "  integration: {h: 0.1, t_end: 2*pi}\n"
+                    "grid:\n  - name: h\n    key: integration.h\n    values: [0.1, 0.05, abc, pi/100]\n"
+                    "error: {exact: initial}\n")
+    with pytest.raises(SweepError) as info:
+        load_sweep(path)
+    assert str(info.value) == (f"{path}:8: grid[0].values[2]: value 'abc': unknown name 'abc' (known: e, pi), where "
+                               "the axis's other values of integration.h are numbers; write a number or arithmetic on "
+                               "numbers, pi and e, e.g. pi/30")
+    path.write_text(path.read_text().replace("abc", "0.02").replace("error: {exact: initial}", "error: {exact: zero}"))
+    with pytest.raises(SweepError, match=rf"^{re.escape(str(path))}:9: error.exact: the only exact solution"):
+        load_sweep(path)
+    # words are left alone on an axis of words, and under problem (a parameter's name may be one)
+    path.write_text(path.read_text().replace("{exact: zero}", "{exact: initial}")
+                    .replace("key: integration.h\n    values: [0.1, 0.05, 0.02, pi/100]",
+                             "key: method.name\n    values: [hbvm, ehbvm]"))
+    assert [run.config["method"]["name"] for run in load_sweep(path).runs] == ["hbvm", "ehbvm"]
