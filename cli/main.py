@@ -338,7 +338,7 @@ def run(config, output, overrides, overwrite, resume, quiet):
     _INTERRUPTED.pop()   # the run has handled its own signals; what follows is the report
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
-    return _report_run(outcome, config, path, quiet)
+    return _report_run(outcome, config, path, quiet, problem=spec.problem)
 
 
 def _refuse_resuming_a_sweep(path) -> None:
@@ -526,7 +526,7 @@ def _given_keys(overrides) -> set[str]:
     return keys
 
 
-def _report_run(outcome, config, path, quiet) -> int:
+def _report_run(outcome, config, path, quiet, problem=None) -> int:
     from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX
     from elimfast.streaming import interrupted_line
 
@@ -544,7 +544,7 @@ def _report_run(outcome, config, path, quiet) -> int:
 
             from .report import run_notes
             with RunFile(path) as run_file:
-                for line in run_notes(run_file):
+                for line in run_notes(run_file, problem):
                     click.echo(f"note: {line}", err=True)
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:

@@ -134,9 +134,11 @@ def _rate(steps, seconds) -> str:
     return f"{rate:,.0f} steps/s" if rate >= 1 else f"{seconds / steps:.3g} s/step"
 
 
-def energy_note(run_file, drift=None) -> str | None:
+def energy_note(run_file, drift=None, problem=None) -> str | None:
     """Spec 8, "Quadrature of H": the note (elimfast.integrate.energy_note) when H or an imposed
-    invariant lost more than round-off (relative 1e-12) in a run file (``drift``: as relative_drift's)."""
+    invariant lost more than round-off (relative 1e-12) in a run file (``drift``: as relative_drift's).
+    ``problem``: the run's, where the caller has it (the run command), to see how far H's terms
+    grew over the samples (integrate.terms_peak); inspect reads the file alone."""
     from elimfast.integrate import energy_note as note
     from elimfast.integrate import roundoff_allowance
 
@@ -152,7 +154,15 @@ def energy_note(run_file, drift=None) -> str | None:
                 tol=tol if isinstance(tol, (int, float)) else None,
                 hand_written="python" in (config_of(run_file).get("problem") or {}),
                 unchecked=(config_of(run_file).get("problem") or {}).get("check") is False,
-                kinks=_kinks(config_of(run_file).get("problem") or {}), family=attrs.get("family"))
+                kinks=_kinks(config_of(run_file).get("problem") or {}), family=attrs.get("family"),
+                peak=None if problem is None else lambda: _terms_peak(run_file, problem, scales.get("H", 0.0)))
+
+
+def _terms_peak(run_file, problem, reference: float):
+    """integrate.terms_peak of a run file's samples, read with the stride it would take."""
+    from elimfast.integrate import PEAK_SAMPLES, terms_peak
+    stride = max(1, -(-run_file.n_samples // PEAK_SAMPLES))
+    return terms_peak(problem, run_file.y(stride), run_file.t(stride), reference)
 
 
 def _kinks(problem_section) -> tuple:
@@ -169,8 +179,9 @@ def _kinks(problem_section) -> tuple:
         return ()
 
 
-def run_notes(run_file) -> list[str]:
-    """What the end-of-run line adds: split steps, an H error above round-off, an unused h."""
+def run_notes(run_file, problem=None) -> list[str]:
+    """What the end-of-run line adds: split steps, an H error above round-off, an unused h
+    (``problem``: the run's, for energy_note)."""
     notes = []
     substeps = run_file.substep_stats()
     drift = run_file.invariant_drift()
@@ -189,7 +200,7 @@ def run_notes(run_file) -> list[str]:
     if spikes:
         from elimfast.integrate import alpha_spike_note
         notes.append(alpha_spike_note(spikes, run_file.steps_done))
-    warning = energy_note(run_file, drift)
+    warning = energy_note(run_file, drift, problem)
     if warning:
         notes.append(warning)
     no_samples = no_samples_text(run_file)   # reads the saved state: once

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Iterable, Mapping
+from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
@@ -434,7 +434,8 @@ class Result:
                            kinks=self.problem.hamiltonian_kinks, family=self.method.family,
                            roundoff={name: roundoff_allowance(steps, initial[name], scales.get(name, 0.0))
                                      for name in names},
-                           tol=self.solver.tol if self.solver is not None else None)
+                           tol=self.solver.tol if self.solver is not None else None,
+                           peak=lambda: terms_peak(self.problem, self.y, self.t, scales.get("H", 0.0)))
 
     def __repr__(self) -> str:
         errors = ", ".join(f"{name} {value:.2e}" for name, value in self.invariant_errors().items())
@@ -563,10 +564,33 @@ def roundoff_allowance(steps: int, initial: float, scale: float) -> float:
     return ROUNDOFF_PER_STEP * np.finfo(float).eps * math.sqrt(steps) * scale / relative_reference(initial, scale)[0]
 
 
+GROWN_TERMS = 100.0      # H's terms this many times their size at t0: rounding there may be the loss
+PEAK_SAMPLES = 100_000   # states terms_peak looks at, at most (strided beyond)
+
+
+def terms_peak(problem: Problem, states, times, reference: float) -> tuple[float, float] | None:
+    """(the largest size of H's terms over ``states`` against ``reference``, their size at t0,
+    and the time of that largest; Problem.invariant_scales), None without states or a
+    positive reference. At most PEAK_SAMPLES states are looked at (every one up to that, evenly strided
+    beyond, so a short close encounter between samples may be missed: the note then
+    keeps its quadrature advice first)."""
+    states, times = np.asarray(states), np.asarray(times)
+    if states.ndim != 2 or states.shape[0] == 0:
+        return None
+    stride = max(1, -(-states.shape[0] // PEAK_SAMPLES))
+    with np.errstate(all="ignore"):
+        sizes = np.array([problem.invariant_scales(state).get("H", np.nan) for state in states[::stride]])
+    if not (reference > 0.0) or not np.any(np.isfinite(sizes)):
+        return None
+    largest = int(np.nanargmax(sizes))
+    return float(sizes[largest] / reference), float(times[::stride][largest])
+
+
 def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adaptive: bool,
                 s=None, degree=None, roundoff: Mapping[str, float] | None = None, steps: int = 0,
                 tol: float | None = None, hand_written: bool = False, unchecked: bool = False,
-                kinks: tuple = (), family: str | None = None) -> str | None:
+                kinks: tuple = (), family: str | None = None,
+                peak: Callable[[], tuple[float, float] | None] | None = None) -> str | None:
     """Spec 8, "Quadrature of H": HBVM(k,s) and its relatives keep H only up to the O(h^(2k+1))
     quadrature error of their k nodes when H is not a polynomial of degree <= 2k/s, and ELIM
     and LIM keep an imposed invariant up to that of their r nodes (docs/methods.md). A one-line
@@ -601,7 +625,14 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     with problem.check: false and was told of quadrature, k and h). ``kinks``: functions with a
     kink that H calls (Problem.hamiltonian_kinks): named first where H is lost (a user trial's
     p**2/2 + abs(x) lost H to 1.6e-2 and was told to raise k). ``family``: the method's registry
-    name; LIM(r,k,s) keeps H through its r nodes, not k (Family.nodes_keeping_H)."""
+    name; LIM(r,k,s) keeps H through its r nodes, not k (Family.nodes_keeping_H).
+
+    ``peak``: called only where H's loss would get the quadrature advice, returns terms_peak of
+    the run's samples. Where H's terms grew GROWN_TERMS times or more and one step's rounding of
+    terms that size explains the loss (ROUNDOFF_PER_STEP eps of them), the note leads with
+    that, and the quadrature advice follows as the other reading (a user trial: the Pythagorean
+    three-body problem, terms 2e7 times their size at t0 at a close encounter, lost H to 4e-10
+    with k = 8, 2e-10 with 12 and 2.5e-10 with 16, and was told first to raise k)."""
     above = {name: value for name, value in relative.items() if value > H_WARNING_RELATIVE}
     if not above:
         return None
@@ -654,6 +685,17 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
                     else "")
                  + (", or an imposed quantity that the flow of H does not conserve (problem.check is off: "
                     "elimfast check tests it)" if unchecked and imposed else ""))
+    grown = peak() if peak is not None and "H" in above and not kinks and roundoff.get("H", 0.0) > 0.0 else None
+    # what one step's rounding loses where the terms are that large: ROUNDOFF_PER_STEP eps of them (the
+    # allowance without its sqrt(steps), which would credit every step with the encounter's size)
+    at_peak = roundoff.get("H", 0.0) / math.sqrt(max(steps, 1)) * (grown[0] if grown is not None else 0.0)
+    if grown is not None and grown[0] >= GROWN_TERMS and above["H"] <= at_peak:
+        others = otherwise.split(" (a close encounter)", 1)[1]   # the file's gradient, an unchecked invariant
+        return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off. H's terms grew to "
+                f"{grown[0]:.0e} times their size at t0 (largest at t = {grown[1]:.6g}: a close encounter?), where "
+                f"one step's rounding alone can lose up to {at_peak:.0e} of H, whatever k and h; if a larger "
+                f"{nodes if nodes in ('k', 'r') else h_label} leaves it unchanged, it is that. Else {method_name} "
+                f"keeps {', '.join(kept)} {where}{others}")
     if kinks and "H" in above:   # named first: a kink is lost whatever k and h
         from .problems.expressions import kink_note
         return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above round-off. {kink_note(kinks)}; "

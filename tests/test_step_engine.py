@@ -910,3 +910,51 @@ def test_the_kernels_run_by_the_interpreter_take_the_compiled_steps(tmp_path):
     compiled = elimfast.integrate(kepler(0.6), ehbvm(12, 3), 0.1, n_steps=4, conserve=(L1, AY))
     assert np.max(np.abs(np.array(interpreted["y"]) - compiled.y_final)) <= 1e-14
     assert abs(sum(interpreted["iterations"]) - int(np.sum(compiled.iterations))) <= 2
+
+
+def test_energy_note_leads_with_rounding_where_H_s_terms_grew_far_beyond_their_size_at_t0(tmp_path):
+    """A user trial: the Pythagorean three-body problem, whose H's terms grew 2e7 times at a close
+    encounter, lost H to 3.7e-10 with k = 8, 1.8e-10 with 12 and 2.5e-10 with 16, and the note led
+    with 'raise k'. Where the terms grew GROWN_TERMS times or more and one step's rounding of terms
+    that size explains the loss, the note leads with that, and the quadrature advice follows. Kepler
+    e = 0.999 from apocentre (terms 6000 times larger at pericentre) at rtol 1e-8 loses 2.5e-10 to
+    quadrature, more than rounding there: its note keeps the quadrature advice first."""
+    from elimfast.integrate import GROWN_TERMS, energy_note, terms_peak
+
+    calls = []
+
+    def peak(value):
+        def called():
+            calls.append(value)
+            return value
+        return called
+
+    grown = energy_note("EHBVM(8,4)", 8, 8, None, {"H": 3.7e-10}, True, s=4, roundoff={"H": 2.4e-13}, steps=3241,
+                        peak=peak((2e7, 15.83)))
+    assert grown.startswith("H error 3.7e-10 (relative) is above round-off. H's terms grew to 2e+07 times their size "
+                            "at t0 (largest at t = 15.83: a close encounter?), where one step's rounding alone can "
+                            "lose up to 8e-08 of H, whatever k and h; if a larger k leaves it unchanged, it is that. "
+                            "Else EHBVM(8,4) keeps H only up to the quadrature error of its k = 8 nodes"), grown
+    assert "(a close encounter)" not in grown
+    for ratio, error in ((GROWN_TERMS / 2, 3.7e-10), (2e7, 1e-7)):   # grown too little, or lost too much for it
+        note = energy_note("EHBVM(8,4)", 8, 8, None, {"H": error}, True, s=4, roundoff={"H": 2.4e-13}, steps=3241,
+                           peak=peak((ratio, 15.83)))
+        assert note.index("raise k") < note.index("close encounter") and "H's terms grew" not in note, note
+    calls.clear()   # not looked at where the loss is within rounding at t0's size, or nothing is lost
+    energy_note("EHBVM(8,4)", 8, 8, None, {"H": 1e-13}, True, s=4, roundoff={"H": 2.4e-13}, steps=3241,
+                peak=peak((2e7, 1.0)))
+    energy_note("EHBVM(8,4)", 8, 8, None, {"H": 2e-13}, True, s=4, roundoff={"H": 1e-13}, steps=3241, peak=None)
+    assert calls == []
+
+    e = 0.999
+    problem = kepler(e)
+    apocentre = np.array([-(1 + e), 0.0, 0.0, -math.sqrt((1 - e) / (1 + e))])
+    pericentre = np.array([1 - e, 0.0, 0.0, math.sqrt((1 + e) / (1 - e))])
+    reference = problem.invariant_scales(apocentre)["H"]
+    ratio, when = terms_peak(problem, [apocentre, pericentre, apocentre], [0.0, math.pi, 2 * math.pi], reference)
+    assert when == math.pi and ratio == pytest.approx(problem.invariant_scales(pericentre)["H"] / reference)
+    assert ratio > GROWN_TERMS
+    quadrature = elimfast.integrate(problem, hbvm(8, 4), t_end=2 * math.pi, rtol=1e-8, y0=apocentre)
+    assert quadrature.relative_invariant_errors()["H"] > 1e-10
+    warning = quadrature.energy_warning()
+    assert warning.index("raise k") < warning.index("close encounter") and "H's terms grew" not in warning, warning
