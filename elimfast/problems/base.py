@@ -109,6 +109,12 @@ def _vector(y) -> np.ndarray:
     return np.array(y, dtype=np.float64, order="C")
 
 
+def _terms_size(gradient, y, m: int):
+    """|grad_q I|_1 |q|_inf + |grad_p I|_1 |p|_inf along the last axis (Problem.invariant_scales)."""
+    q_size, p_size = np.max(np.abs(y[..., :m]), axis=-1), np.max(np.abs(y[..., m:]), axis=-1)
+    return np.sum(np.abs(gradient[..., :m]), axis=-1) * q_size + np.sum(np.abs(gradient[..., m:]), axis=-1) * p_size
+
+
 @dataclass(frozen=True, eq=False)
 class Problem:
     """y' = J grad H(y), y = (q, p), with named invariants L_i (grad L_i^T J grad H = 0).
@@ -254,16 +260,20 @@ class Problem:
         """
         y = _vector(y)
         m = self.degrees_of_freedom
-        q_size, p_size = float(np.max(np.abs(y[:m]))), float(np.max(np.abs(y[m:])))
-
-        def size(gradient):
-            return float(np.sum(np.abs(gradient[:m])) * q_size + np.sum(np.abs(gradient[m:])) * p_size)
-
-        scales = {"H": size(self.gradient(y))}
+        scales = {"H": float(_terms_size(self.gradient(y), y, m))}
         if self.invariant_names:
             for name, row in zip(self.invariant_names, self.invariant_gradients(y)):
-                scales[name] = size(row)
+                scales[name] = float(_terms_size(row, y, m))
         return scales
+
+    def H_term_sizes(self, states) -> np.ndarray:
+        """invariant_scales' 'H' at each row of ``states`` (n_states, 2m), at one grad_H call
+        a row (integrate.terms_peak looks at a run's samples with it)."""
+        states = np.ascontiguousarray(states, dtype=np.float64)
+        gradients = np.empty_like(states)
+        for row in range(states.shape[0]):
+            self.grad_H(states[row], self.params, gradients[row])
+        return _terms_size(gradients, states, self.degrees_of_freedom)
 
     @cached_property
     def linear_invariant_names(self) -> tuple[str, ...]:
