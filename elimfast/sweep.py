@@ -1209,11 +1209,30 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
+def reference_key(spec: SweepSpec) -> str:
+    """Which reference run a sweep has: its config, as canonical text. A resumed file's stored
+    reference (SweepWriter.add_reference) serves only a sweep with the same key."""
+    import json
+    return json.dumps(spec.reference, sort_keys=True, default=str)
+
+
+def _stored_reference(spec: SweepSpec, stored: dict | None) -> RunOutcome | None:
+    """The reference run a resumed sweep file holds, as an outcome, when it is this sweep's and
+    complete; else None (it runs again)."""
+    if spec.reference is None or not stored or stored.get("key") != reference_key(spec) \
+            or stored.get("status") != "complete":
+        return None
+    t_end = float(stored.get("t_end", math.nan))
+    return RunOutcome(label=REFERENCE_LABEL, coordinates={}, status="complete",
+                      y_final=np.asarray(stored.get("y_final"), dtype=np.float64),
+                      t_final=float(stored.get("t_final", math.nan)), t_end=t_end if math.isfinite(t_end) else None)
+
+
 def sweep_jobs(spec: SweepSpec, skip=frozenset()) -> list[tuple[str, dict, dict]]:
     """(label, coordinates, config) of every run to do: the grid's points not in ``skip``
     (runs a resumed file holds), then the reference run, if any."""
     jobs = [(run.label, run.coordinates, run.config) for run in spec.runs if run.label not in skip]
-    if spec.reference is not None:
+    if spec.reference is not None and REFERENCE_LABEL not in skip:   # (skipped: a resumed file holds it)
         jobs.append((REFERENCE_LABEL, {}, spec.reference))
     return jobs
 
@@ -1707,11 +1726,18 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                             "run with this file's)")
                 say(f"resume: {len(done_before)} of {len(spec.runs)} runs are complete in {path}{edit}; "
                     f"running the other {len(spec.runs) - len(done_before)}")
+            stored_reference = _stored_reference(spec, writer.stored_reference if writer is not None else None)
+            if stored_reference is not None:
+                say(f"resume: the reference run is stored in {path}: not run again")
+            skip = set(done_before) | ({REFERENCE_LABEL} if stored_reference is not None else set())
 
             run_index = {run.label: index for index, run in enumerate(spec.runs)}
 
             def stored(outcome, done, total):
-                if writer is not None and outcome.label != REFERENCE_LABEL:
+                if writer is not None and outcome.label == REFERENCE_LABEL:
+                    writer.add_reference(key=reference_key(spec), status=outcome.status, y_final=outcome.y_final,
+                                         t_final=outcome.t_final, t_end=outcome.t_end)
+                elif writer is not None:
                     writer.add_run(outcome.label, outcome.result, status=outcome.status,
                                    config_text=_config_text(outcome.resolved), coordinates=outcome.coordinates,
                                    wall_time_s=outcome.wall_time, t_end=outcome.t_end,
@@ -1725,10 +1751,11 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
             if client is not None:
                 from .distributed import run_sweep_on
                 outcomes, reference = run_sweep_on(client, spec, on_done=stored, store_arrays=store_arrays,
-                                                   skip=set(done_before), on_message=say)
+                                                   skip=skip, on_message=say)
             else:
                 outcomes, reference = run_sweep(spec, workers=workers, on_done=stored, store_arrays=store_arrays,
-                                                skip=set(done_before))
+                                                skip=skip)
+            reference = reference if reference is not None else stored_reference
             ran = {outcome.label: outcome for outcome in outcomes}
             outcomes = [done_before.get(run.label) or ran[run.label] for run in spec.runs]
             return SweepOutcome(spec=spec, path=path, outcomes=outcomes, reference=reference)

@@ -1412,3 +1412,39 @@ def test_sweep_file_errors_give_the_line_and_a_word_among_numbers_is_refused_bef
                     .replace("key: integration.h\n    values: [0.1, 0.05, 0.02, pi/100]",
                              "key: method.name\n    values: [hbvm, ehbvm]"))
     assert [run.config["method"]["name"] for run in load_sweep(path).runs] == ["hbvm", "ehbvm"]
+
+
+def test_a_resumed_sweep_reads_its_reference_run_back_instead_of_running_it_again(tmp_path, monkeypatch):
+    """A user trial: every --resume ran the reference run again (23 s there), as it was not stored.
+    Its summary is stored now (root attributes reference_*, the key last), and a resume of the same
+    sweep reads it back: the table is the uninterrupted one's. A sweep whose reference differs (its
+    key) or whose stored reference failed runs it again."""
+    from elimfast import sweep as sweeps
+    from elimfast.io.sweepfile import REFERENCE_KEY
+
+    path = write_sweep(tmp_path, {"base": BASE, "grid": [{"name": "h", "key": "integration.h",
+                                                          "values": ["pi/20", "pi/30"]}],
+                                  "error": {"reference": {"set": {"integration": {"h": "pi/120"}}}}})
+    out = tmp_path / "sw.h5"
+    fresh = sweeps.run_to_file(path, out, workers=1)
+    with h5py.File(out, "r") as f:
+        assert f.attrs[REFERENCE_KEY] == sweeps.reference_key(load_sweep(path))
+        np.testing.assert_array_equal(f.attrs["reference_y_final"], fresh.reference.y_final)
+    ran, said = [], []
+    real_execute = sweeps._execute
+    monkeypatch.setattr(sweeps, "_execute", lambda label, *args: ran.append(label) or real_execute(label, *args))
+    with h5py.File(out, "a") as f:   # the second run as if killed: it runs again, the reference does not
+        del f["runs"][sorted(f["runs"])[-1]]
+    resumed = sweeps.run_to_file(path, out, workers=1, resume=True, on_message=said.append)
+    assert sweeps.REFERENCE_LABEL not in ran and len(ran) == 1
+    assert any("the reference run is stored" in line for line in said)
+    assert resumed.table() == fresh.table()
+    np.testing.assert_array_equal(resumed.reference.y_final, fresh.reference.y_final)
+
+    stored = {"key": sweeps.reference_key(load_sweep(path)), "status": "complete", "t_final": 2 * math.pi,
+              "t_end": 2 * math.pi, "y_final": fresh.reference.y_final}
+    spec = load_sweep(path)
+    assert sweeps._stored_reference(spec, stored) is not None
+    assert sweeps._stored_reference(spec, {**stored, "key": "{}"}) is None
+    assert sweeps._stored_reference(spec, {**stored, "status": "failed: x"}) is None
+    assert sweeps._stored_reference(spec, None) is None

@@ -128,6 +128,10 @@ def grid_sweep_runs(path) -> tuple[dict, list[tuple[str, bool, str]]] | None:
         return None
 
 
+REFERENCE_FIELDS = ("key", "status", "t_final", "t_end", "y_final")   # SweepWriter.add_reference
+REFERENCE_KEY = "reference_key"
+
+
 class SweepWriter:
     """One HDF5 file for a whole sweep: /runs/<label>/ per run, in the layout of a run file.
 
@@ -154,6 +158,7 @@ class SweepWriter:
         self.ensemble_todo: list[tuple[int, int]] | None = None
         self.edited = False                  # a resumed grid sweep whose sweep file was edited (accept_edit)
         self.written_by = None               # resumed: the sweep file that wrote it (its source attribute)
+        self.stored_reference: dict | None = None   # resumed: the reference run's summary (add_reference)
         self._ensemble = None
         self._kept = "the runs stored before this one are in the file" if ensemble is None else \
             "the trajectories marked stored before it are in the file (--resume runs the rest)"
@@ -275,6 +280,10 @@ class SweepWriter:
                 if name not in {group for group, _ in complete.values()}:
                     del self._runs[name]
             self.complete = {label: name for label, (name, _) in complete.items()}
+            if REFERENCE_KEY in self._file.attrs:
+                attrs = self._file.attrs
+                self.stored_reference = {name: _plain(attrs[f"reference_{name}"]) for name in REFERENCE_FIELDS
+                                         if f"reference_{name}" in attrs}
             if ensemble is not None:
                 self._resume_ensemble(ensemble)
             self._file.flush()
@@ -342,6 +351,22 @@ class SweepWriter:
         except DiskFullError as err:
             raise DiskFullError(f"{self.path}: {no_room(err).sentence}; the runs stored before this one are in the "
                                 "file") from None
+
+    def add_reference(self, *, key: str, status: str, y_final, t_final: float, t_end: float | None) -> None:
+        """Store the summary of a grid sweep's reference run (its errors' y_final) as root attributes
+        reference_<field>, so that --resume need not run it again (a user trial's resume ran its
+        reference again, 23 s): ``key`` says which reference it is (elimfast.sweep.reference_key);
+        stored_reference gives them back on resume."""
+        values = {"key": key, "status": status, "t_final": float(t_final),
+                  "t_end": float("nan") if t_end is None else float(t_end),
+                  "y_final": np.asarray([] if y_final is None else y_final, dtype=np.float64)}
+        with self._writing():
+            # the key last: a kill between the writes leaves no key, and the reference runs again
+            _replace_attributes(self._file, {f"reference_{name}": values[name] for name in REFERENCE_FIELDS
+                                             if name != "key"})
+            self._file.flush()
+            _replace_attributes(self._file, {REFERENCE_KEY: key})
+            self._file.flush()
 
     def add_run(self, label: str, result=None, *, status: str, config_text: str, coordinates: dict,
                 wall_time_s: float = 0.0, group_name: str | None = None, t_end: float | None = None,
