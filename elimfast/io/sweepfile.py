@@ -2,7 +2,10 @@
 
 Format ``elimfast-sweep``: root attributes as a run file's versions and date, plus
 ``sweep`` (the sweep file's text), ``source``, ``axes`` and ``runs_planned`` (the number
-of runs of the grid; absent in files of earlier elimfast versions). Each run's group is written
+of runs of the grid; absent in files of earlier elimfast versions), and for a sweep with a
+reference run its summary, ``reference_key`` (its config), ``reference_status``,
+``reference_t_final``, ``reference_t_end`` and ``reference_y_final`` (--resume reads it back
+instead of running it again). Each run's group is written
 by ``layout.create_run_group``, the function that writes a run file's root, so it holds
 t, component, y, invariants/<name>, steps/..., method/... on the same dimension scales,
 and a run file's attributes (config, problem, method, h, n_steps, steps_done, status,
