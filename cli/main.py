@@ -159,7 +159,15 @@ class ElimfastGroup(click.Group):
                 fail(f"{one_line(err.format_message()).rstrip('.')} (see '{command} --help')", EXIT_USAGE)
             except click.ClickException as err:
                 fail(one_line(err.format_message()), EXIT_USAGE)
-            except (click.Abort, KeyboardInterrupt, _Interrupted):
+            except (click.Abort, KeyboardInterrupt, _Interrupted) as err:
+                cause = err.__cause__ if isinstance(err, click.Abort) else None
+                if isinstance(cause, EOFError) and not _SIGNALLED:
+                    # click turns an EOFError into Abort, as for Ctrl-D at a prompt; elimfast reads no
+                    # input, so it is an error of ours, not an interruption (a user trial: an empty cache
+                    # file's EOFError was 'interrupted while starting', exit 130, on every run)
+                    if debug:
+                        raise cause from None
+                    fail(*error_line(cause))
                 fail(_INTERRUPTED[-1], EXIT_INTERRUPTED)
             except BrokenPipeError:
                 # The reader went away (elimfast inspect ... | head): not an error of ours.

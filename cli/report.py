@@ -36,7 +36,9 @@ def _samples_end(run_file) -> str:
     first, last, end = float(times[0]), float(times[-1]), float(clock[0])
     if not abs(end - first) > abs(last - first) + 1e-12 * max(abs(end), 1.0):   # also backward in time
         return ""
-    return f" (t <= {last:.10g}; the run ended at t = {end:.10g}, after the last sample)"
+    # (a file still being written: its last saved state, not an end; a user trial read "ended")
+    where = "is at" if str(run_file.attrs.get("status", "")) == "running" else "ended at"
+    return f" (t <= {last:.10g}; the run {where} t = {end:.10g}, after the last sample)"
 
 
 def _fmt_time(seconds: float) -> str:
@@ -149,13 +151,20 @@ def energy_note(run_file, drift=None, problem=None) -> str | None:
     roundoff = {name: roundoff_allowance(steps, initial.get(name, math.nan), scales.get(name, 0.0))
                 for name in relative}
     tol = (config_of(run_file).get("solver") or {}).get("tol")
-    return note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive,
+    edits = [str(entry).split(":")[0] for entry in np.atleast_1d(attrs.get("problem_file_history") or [])]
+    text = note(attrs.get("method"), attrs.get("k"), attrs.get("r"), attrs.get("h"), relative, run_file.adaptive,
                 s=attrs.get("s"), degree=attrs.get("hamiltonian_degree"), roundoff=roundoff, steps=steps,
                 tol=tol if isinstance(tol, (int, float)) else None,
                 hand_written="python" in (config_of(run_file).get("problem") or {}),
                 unchecked=(config_of(run_file).get("problem") or {}).get("check") is False,
                 kinks=_kinks(config_of(run_file).get("problem") or {}), family=attrs.get("family"),
                 peak=None if problem is None else lambda: _terms_peak(run_file, problem, scales.get("H", 0.0)))
+    if text and edits:
+        # H and the invariants are measured against t0's, of the first version of the file (a user trial
+        # edited its pair potential and resumed: the note spoke of quadrature and k only)
+        text = (f"the python: problem file was edited during the run ({', '.join(edits)}; --resume with the new one), "
+                f"so its steps solve more than one H, which alone moves H and the invariants; if that is not it: {text}")
+    return text
 
 
 def _terms_peak(run_file, problem, reference: float):
@@ -415,7 +424,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
     # GAUSS(s) = HBVM(s,s) keeps H only where its s nodes integrate it (a quadratic H): say so
     # rather than claim it kept an H it lost to 3e-6
     kept_H = ("  (H: GAUSS keeps only a quadratic H; HBVM(k,s) with k > s keeps others)"
-              if str(run_file.attrs.get("family", "")) == "gauss" else "  (H: kept by every HBVM/ELIM/LIM)")
+              if str(run_file.attrs.get("family", "")) == "gauss"
+              else "  (H: kept by HBVM/ELIM/LIM up to the quadrature error of their nodes)")
     for name, value in drift.items():
         tag = "  (imposed)" if name in conserve else (kept_H if name == "H" else "")
         first = initial.get(name, math.nan)

@@ -22,6 +22,7 @@ from .problems import Problem
 
 CONTROLLERS = {"error": codes.CONTROL_ERROR, "time_scale": codes.CONTROL_TIME_SCALE}
 DEFAULT_EPSILON = 0.05
+MIN_EPSILON = 1e-6   # time-scale steps: below it, ~10^6 steps per time scale buy no accuracy
 MAX_RTOL = 1e-2
 MIN_RTOL = 1e-16
 EVENT_DIRECTIONS = (-1, 0, 1)
@@ -151,6 +152,12 @@ class StepControl:
             if epsilon > 1.0:
                 raise ParameterError("epsilon", f"must be at most 1 (a fraction of the local time scale per step), "
                                                 f"got {epsilon:g}; 0.05 is a good start")
+            if epsilon < MIN_EPSILON:
+                # (a user trial: epsilon = 1e-9 ran 400 steps and failed, ELIM's Gamma too short for such steps;
+                # an error 1e-24 per step needs epsilon ~1e-3 at order 8)
+                raise ParameterError("epsilon", f"must be at least {MIN_EPSILON:g}: a run takes about 1/epsilon steps "
+                                                f"per time scale, and below that no accuracy needs more; got "
+                                                f"{epsilon:g}; 0.05 is a good start")
             object.__setattr__(self, "epsilon", epsilon)
         for name in ("h", "h_max"):
             if getattr(self, name) is not None:
@@ -245,9 +252,10 @@ class StepControl:
 MAX_OUTPUT_TIMES = 10_000_000   # samples at requested times (t_eval, output.times)
 
 
-def resolve_span(t0: float, t_end, n_steps=None) -> float:
-    """An adaptive run's t_end: given, finite and after t0 (n_steps does not apply)."""
-    from .integrate import resolve_t0
+def resolve_span(t0: float, t_end, n_steps=None, h_max=None) -> float:
+    """An adaptive run's t_end: given, finite and after t0 (n_steps does not apply), and no more
+    than MAX_STEPS steps of h_max, when given, after it."""
+    from .integrate import MAX_STEPS, compact_number, resolve_t0
     t0 = resolve_t0(t0)
     if n_steps is not None:   # named itself: a user trial was told 't_end is needed' beside its t_end
         raise ParameterError("n_steps", "does not apply to adaptive steps: the controller decides how many it "
@@ -258,6 +266,13 @@ def resolve_span(t0: float, t_end, n_steps=None) -> float:
     t_end = float(t_end)
     if not (math.isfinite(t_end) and t_end > t0):
         raise ParameterError("t_end", f"must be a finite time after t0 = {t0:g}, got {t_end!r}")
+    if h_max is not None and not (t_end - t0) / h_max <= MAX_STEPS:
+        # a fixed h was bounded so, h_max not (a user trial: h_max = 1e-9 over t = 100 wrote 217 MB in 20 s,
+        # on its way to 2 TB)
+        raise ParameterError("h_max", f"gives (t_end - t0)/h_max = {(t_end - t0) / h_max:.3g} steps at least, more "
+                                      f"than {compact_number(MAX_STEPS)}: that many steps take hours to days even at "
+                                      "a microsecond each, and their per-step records alone 40 GB; raise h_max or "
+                                      "shorten the run", related=("t_end", "t0"))
     return t_end
 
 

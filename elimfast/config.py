@@ -660,7 +660,7 @@ class _Builder:
                 step_control = self.step_control(integration).for_method(method, len(config.conserve))
                 from .adaptive import resolve_span
                 t0 = integration.t0
-                t_end = resolve_span(t0, integration.t_end, integration.n_steps)
+                t_end = resolve_span(t0, integration.t_end, integration.n_steps, step_control.h_max)
                 h, n_steps = step_control.h, None
             else:
                 step_control = None

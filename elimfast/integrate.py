@@ -659,7 +659,7 @@ def energy_note(method_name: str, k, r, h, relative: Mapping[str, float], adapti
     if all(value <= roundoff.get(name, 0.0) for name, value in above.items()):
         bound = max(roundoff[name] for name in above)
         return (f"{listed(above)} (relative) {'are' if len(above) > 1 else 'is'} above 1e-12 but within what rounding "
-                f"can accumulate over {steps:,} steps (up to {bound:.0e} here: {ROUNDOFF_PER_STEP:g} eps "
+                f"can accumulate over {steps:,} (sub)steps (up to {bound:.0e} here: {ROUNDOFF_PER_STEP:g} eps "
                 "sqrt(steps) times the size of the terms at t0, a random walk): if it is rounding, more nodes or "
                 f"smaller steps do not reduce it; a run with a larger {h_label} tells")
     above = {name: value for name, value in above.items() if value > roundoff.get(name, 0.0)}
@@ -1315,7 +1315,20 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         # the gradients independent here, smaller steps are the cure, not other invariants.
         seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
         nearly_singular = False
-    if nearly_singular:
+    if (status == codes.STATUS_SINGULAR and not lim and imposed != 0 and independence is not None
+            and independence >= DEGENERATE_AT_FAILURE and d[codes.DIAG_INCREMENT] <= solver_rules.BAND_CAP):
+        # Converged, but Gamma too degenerate for alpha, where the invariants' gradients are independent:
+        # a (sub)step too short for Gamma, whose entries (Legendre coefficients of size ~h^j) fall below
+        # the rounding of the sums that form them; halving made it worse (a user trial: Kepler e = 0.9
+        # imposing L and A_y at h = 1e-5, after 4 halvings, was told that Assumption 1 fails and to
+        # impose other invariants; GHBVM completes; docs/solver.md#a-substep-without-imposing)
+        seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
+        shorter = "loosen rtol or raise epsilon" if adaptive else (
+            "take a larger h" + (", or fewer halvings (solver.max_halvings)" if depth > 0 else ""))
+        advice = (f"a step of {d[codes.DIAG_STEP]:.3g} is too short for ELIM's Gamma here: its entries, of size about "
+                  "h^j, fall below their own rounding, and halving makes it worse "
+                  f"(docs/solver.md#a-substep-without-imposing); {shorter}, or {_TAKE_GHBVM})")
+    elif nearly_singular:
         # Still nearly singular after halving, and the invariants degenerate here (or not known):
         # not a step symmetric about a pericentre (docs/solver.md), whose halves are well-conditioned.
         advice = _NEARLY_SINGULAR_ADVICE
@@ -1400,6 +1413,9 @@ def integrate(problem: Problem, method: Method, h: float | None = None, t_end: f
     own exception is re-raised as it is, with the steps before it as its ``.result``.
     """
     method = methods.as_method(method)
+    # (a user trial: chunk_steps = 0 appended empty chunks until the machine's 24 GB were gone; -5 gave
+    # NumPy's 'negative dimensions are not allowed')
+    chunk_steps = _whole_number("chunk_steps", chunk_steps, 1, MAX_STEPS)
     adaptive = rtol is not None or atol is not None or step_control is not None or epsilon is not None
     if not adaptive and (verify is not None or h_max is not None):
         # as the config refuses integration.verify and h_max without rtol: they were silently ignored
@@ -1570,7 +1586,7 @@ def _integrate_with_adaptive_kernel(problem, method, h, t_end, n_steps, conserve
     store_every = resolve_store_every(store_every)
     if control is not None:
         control = control.for_method(method, len(names))
-        t_end = resolve_span(t0, t_end, n_steps)
+        t_end = resolve_span(t0, t_end, n_steps, control.h_max)
     else:
         h, n_steps = resolve_steps(h, t_end=t_end, n_steps=n_steps, t0=t0)
         t_end = t0 + n_steps * h

@@ -707,7 +707,7 @@ def test_energy_note_says_round_off_where_the_error_is_what_rounding_accumulates
     assert roundoff_allowance(0, -0.5, 29.0) == 0.0 and roundoff_allowance(10, -0.5, float("nan")) == 0.0
     note = energy_note("EHBVM(24,3)", 24, 24, 0.05, {"H": 1.3e-12, "angular_momentum": 1e-14}, False, s=3,
                        roundoff={"H": allowance, "angular_momentum": 1e-11}, steps=400_000)
-    assert "within what rounding can accumulate over 400,000 steps (up to 8e-11" in note and "raise" not in note, note
+    assert "within what rounding can accumulate over 400,000 (sub)steps (up to 8e-11" in note and "raise" not in note, note
     assert "if it is rounding, more nodes or smaller steps do not reduce it; a run with a larger k tells" in note
     quadrature = energy_note("EHBVM(24,3)", 24, 24, 0.05, {"H": 1.4e-8}, False, s=3, roundoff={"H": allowance},
                              steps=400_000)

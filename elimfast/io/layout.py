@@ -300,13 +300,28 @@ def _set_attributes(obj, values: dict) -> None:
         attribute.write(data, mtype=h5py.h5t.py_create(data.dtype))
 
 
-def _small_dataset(group, name: str, value):
-    """A small contiguous dataset (tables, /state) written at once; returns its low-level id."""
+def _small_dataset(group, name: str, value, checksum: bool = True):
+    """A dataset written at once (tables, /state, an ensemble's y0); returns its low-level id.
+    Checksummed like the growing ones (fletcher32, which needs chunks: chunks of at most
+    SMALL_CHUNK_BYTES); a scalar or an empty array is contiguous, as HDF5 requires. A user
+    trial flipped a bit of /method/b (0.1167 read 1.868) and inspect said every checksum held.
+    ``checksum=False``: contiguous (the named /state datasets, which mirror the CRC-checked
+    /state/record: a checksum there would make a damaged mirror stop a resume that the record
+    serves)."""
     data = np.array(value, order="C")   # (ascontiguousarray would make a scalar 1-d)
     space = h5py.h5s.create(h5py.h5s.SCALAR) if data.ndim == 0 else h5py.h5s.create_simple(data.shape)
-    dataset_id = h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(data.dtype), space)
+    dcpl = None
+    if checksum and data.ndim > 0 and data.size > 0:
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        row_bytes = data.itemsize * int(np.prod(data.shape[1:], dtype=np.int64))
+        dcpl.set_chunk((max(1, min(data.shape[0], SMALL_CHUNK_BYTES // max(row_bytes, 1))),) + data.shape[1:])
+        dcpl.set_fletcher32()
+    dataset_id = h5py.h5d.create(group.id, name.encode(), h5py.h5t.py_create(data.dtype), space, dcpl=dcpl)
     dataset_id.write(h5py.h5s.ALL, h5py.h5s.ALL, data)
     return dataset_id
+
+
+SMALL_CHUNK_BYTES = 1 << 20   # _small_dataset's chunks (HDF5 allows up to 4 GB; an ensemble's y0 may be larger)
 
 
 # --- dimension scales (netCDF-4 / xarray) ------------------------------------------------------

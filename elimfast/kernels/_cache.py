@@ -13,6 +13,10 @@ never load old code; it compiles into a new folder. The package's own functions 
 writable), the generated problem modules to ``<cache>/kernels/<key>/``; with
 NUMBA_CACHE_DIR set, both go to ``$NUMBA_CACHE_DIR/elimfast-kernels/<key>/``.
 
+Every index and data file there carries a sha256 of its content (ChecksummedCacheFile): a
+damaged, truncated or empty one is a cache miss, compiled again, never machine code loaded
+as it is.
+
 Loading them from there skips what only a compilation needs (start-up, issue 12): Numba's
 registries of typing and lowering rules (_load_overload) and, for the two run kernels, the
 parse of their linking bitcode (_LazyLinkingLibrary).
@@ -22,6 +26,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import pickle
 from pathlib import Path
 
 from numba.core import caching
@@ -241,11 +246,93 @@ def _load_linking_lazily(cache, sig, target_context):
     return result
 
 
+# --- checksummed cache files -----------------------------------------------------------------
+
+_SEAL = b"elimfast-sha256:"   # then the 32 bytes of the sha256 of what precedes it
+
+
+def _sealed(data: bytes) -> bytes:
+    """data with its checksum appended (pickle.loads ignores bytes after the pickle: Numba's
+    own reader still reads such a file)."""
+    return data + _SEAL + hashlib.sha256(data).digest()
+
+
+def _unsealed(data: bytes) -> bytes | None:
+    """The data of a _sealed file, None when the seal is missing or does not match."""
+    size = len(_SEAL) + 32
+    if len(data) < size or data[-size:-32] != _SEAL:
+        return None
+    body = data[:-size]
+    return body if hashlib.sha256(body).digest() == data[-32:] else None
+
+
+class ChecksummedCacheFile(caching.IndexDataCacheFile):
+    """Numba's index and data files of elimfast's keyed folders, each written with a sha256 of
+    its content and read only when it matches; a damaged, truncated or empty file is a cache
+    miss (the function compiles again and its files are rewritten).
+
+    Numba loads its cache files as they are: a user trial flipped one bit of the cached
+    grad_H of Kepler (a multiply became an add) and the run completed with H off by 2.6,
+    exit 0; one byte changed in the time loop's machine code gave a run 7e-15 off the
+    clean one, unnoticed; an empty data file raised EOFError, which the command line took
+    for Ctrl-C, and a truncated one UnpicklingError, an internal error, on every run."""
+
+    def _dump(self, obj):
+        return _sealed(super()._dump(obj))   # the index's (stamp, overloads) and every data file
+
+    def _load_index(self):
+        try:
+            with open(self._index_path, "rb") as f:
+                version = pickle.load(f)
+                data = f.read()
+        except FileNotFoundError:
+            return {}
+        except (OSError, EOFError, pickle.UnpicklingError, ValueError, TypeError, AttributeError, IndexError):
+            return {}   # damaged beyond its first pickle: a miss
+        if version != self._version:
+            return {}
+        body = _unsealed(data)
+        try:
+            stamp, overloads = pickle.loads(body) if body is not None else (None, {})
+        except Exception:   # noqa: BLE001 -- a sealed file that still does not unpickle: a miss
+            return {}
+        return overloads if stamp == self._source_stamp and isinstance(overloads, dict) else {}
+
+    def _load_data(self, name):
+        path = self._data_path(name)
+        with open(path, "rb") as f:
+            data = f.read()
+        body = _unsealed(data)
+        if body is None:   # Numba's load() takes an OSError for a missing file: a miss
+            raise OSError(f"{path}: damaged or truncated compiled-code cache file (its checksum does not match)")
+        return pickle.loads(body)
+
+
+_NUMBA_CACHE_INIT = caching.Cache.__init__
+
+
+def _cache_init(self, py_func):
+    """Numba's ``Cache.__init__``, with the ChecksummedCacheFile for functions under the keyed
+    locator (any other function's files are Numba's own)."""
+    _NUMBA_CACHE_INIT(self, py_func)
+    cache_file = getattr(self, "_cache_file", None)
+    if isinstance(getattr(self._impl, "locator", None), KeyedCacheLocator) \
+            and type(cache_file) is caching.IndexDataCacheFile:
+        cache_file.__class__ = ChecksummedCacheFile
+
+
+# The Numba internals the checksums replace; with another layout, Numba's own files are used.
+_CHECKSUMS_WORK = all(hasattr(caching.IndexDataCacheFile, name) for name in (
+    "_dump", "_load_index", "_load_data", "_data_path", "_save_data", "_save_index"))
+
+
 def install() -> None:
-    """Put the keyed locator first in Numba's list and load elimfast's functions from the
-    cache with _load_overload; once per process."""
+    """Put the keyed locator first in Numba's list, load elimfast's functions from the cache
+    with _load_overload, and checksum their cache files (ChecksummedCacheFile); once per process."""
     locators = caching.CacheImpl._locator_classes
     if KeyedCacheLocator not in locators:
         locators.insert(0, KeyedCacheLocator)
     if hasattr(caching.Cache, "_load_overload") and hasattr(caching.Cache, "_guard_against_spurious_io_errors"):
         caching.Cache.load_overload = _load_overload
+    if _CHECKSUMS_WORK and caching.Cache.__init__ is _NUMBA_CACHE_INIT:
+        caching.Cache.__init__ = _cache_init

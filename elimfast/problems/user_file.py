@@ -301,9 +301,25 @@ def _load_module(path: Path, text: str):
             message = str(err).splitlines()[0] if str(err) else ""
         raise UserProblemError(f"python problem file {path}: running it raised {type(err).__name__}{where}: "
                                f"{message}; fix the file", key="python") from None
+    _cache_helpers(module)
     _MODULES[str(copy)] = module
     cache.kernel_folder_used(in_package=False)   # its functions compile into elimfast's cache (cache.py)
     return module
+
+
+def _cache_helpers(module) -> None:
+    """Cache the file's own @njit helpers with its functions: a helper compiled without cache=True
+    compiled again in every process, and with it every function that calls it (a user trial's
+    Lennard-Jones file with @numba.njit pair potentials said 'compiling the problem's own
+    functions (once: ...)' on every run, 2.5 s each). Only dispatchers defined in the file itself
+    (in elimfast's cached copy of it, whose cache folder is keyed); imported ones are left alone."""
+    from numba.core.caching import NullCache
+    from numba.core.registry import CPUDispatcher
+
+    for value in list(vars(module).values()):
+        if isinstance(value, CPUDispatcher) and isinstance(getattr(value, "_cache", None), NullCache) \
+                and getattr(value.py_func, "__module__", None) == module.__name__:
+            value.enable_caching()
 
 
 def _coordinates(label, q_names, p_names, default_y0, initial, param_values):
