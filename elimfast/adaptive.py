@@ -265,7 +265,7 @@ def resolve_span(t0: float, t_end, n_steps=None, h_max=None) -> float:
                                       "steps is what the controller decides)")
     t_end = float(t_end)
     if not (math.isfinite(t_end) and t_end > t0):
-        raise ParameterError("t_end", f"must be a finite time after t0 = {t0:g}, got {t_end!r}")
+        raise ParameterError("t_end", f"must be a finite time after t0 = {t0:g}, got {t_end!r}", related=("t0",))
     if h_max is not None and not (t_end - t0) / h_max <= MAX_STEPS:
         # a fixed h was bounded so, h_max not (a user trial: h_max = 1e-9 over t = 100 wrote 217 MB in 20 s,
         # on its way to 2 TB)

@@ -891,7 +891,8 @@ def resolve_steps(h, t_end=None, n_steps=None, t0: float = 0.0) -> tuple[float, 
     if not (math.isfinite(span) and span > 0.0):
         # (a user trial looked for backward runs here: only the Python API's backward=True makes one)
         raise ParameterError("t_end", f"must be after t0 = {t0!r} (and finite), got {t_end!r}; runs go forward in "
-                                      "time (a backward one: elimfast.integrate(..., backward=True) in Python)")
+                                      "time (a backward one: elimfast.integrate(..., backward=True) in Python)",
+                             related=("t0",))
     if not span / h <= MAX_STEPS:
         raise ParameterError("t_end", f"(t_end - t0)/h = {span / h:.3g} steps, more than "
                                       f"{compact_number(MAX_STEPS)}: {STEPS_REASON}", related=("h", "t0"))

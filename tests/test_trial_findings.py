@@ -159,3 +159,16 @@ def test_a_bit_flipped_in_the_method_tables_is_found_by_inspect(tmp_path):
     assert result.exit_code != 0 and "/method" in result.output, result.output
     with RunFile(out) as run_file, pytest.raises(elimfast.errors.ElimfastError, match="/method"):
         run_file.verify()
+
+
+@pytest.mark.parametrize("config", ["kepler.yaml", "kepler_adaptive.yaml"])
+def test_a_t_end_before_a_t0_given_by_set_names_the_set(config):
+    """`check calogero.yaml --set integration.t0=6` was told 'integration.t_end: must be after t0 =
+    6.0' without the --set that made it so, as other rules that depend on t0 name it."""
+    from pathlib import Path
+
+    from elimfast.config import ConfigError, load_run
+    path = Path(__file__).resolve().parents[1] / "configs" / config
+    with pytest.raises(ConfigError, match=r"integration.t_end: must be .*after t0 = 2000.*\(with --set "
+                                          r"integration.t0=2000\)$"):
+        load_run(path, ["integration.t0=2000"])
