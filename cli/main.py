@@ -1110,6 +1110,10 @@ def paper(config_dir, out_dir, workers, overwrite, quiet):
         if not (Path(config_dir) / name).is_file():
             fail(f"{Path(config_dir) / name}: no such sweep file; give --configs the folder of the paper's sweeps "
                  "(configs/paper in the repository)", EXIT_USAGE)
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        # (a user trial's --out naming a file was told only "<it>: File exists", after the runs)
+        fail(f"--out {out_dir}: is a file, not a folder; give a folder for the tables and figures (it is created "
+             "if missing), e.g. --out paper-out", EXIT_USAGE)
     earlier = [name for name in reproduction.TABLES + reproduction.FIGURES if (Path(out_dir) / name).exists()]
     if earlier and not overwrite:
         fail(f"{out_dir} holds the tables of an earlier run ({', '.join(earlier[:2])}"

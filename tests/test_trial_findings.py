@@ -172,3 +172,13 @@ def test_a_t_end_before_a_t0_given_by_set_names_the_set(config):
     with pytest.raises(ConfigError, match=r"integration.t_end: must be .*after t0 = 2000.*\(with --set "
                                           r"integration.t0=2000\)$"):
         load_run(path, ["integration.t0=2000"])
+
+
+def test_paper_out_naming_a_file_is_refused_before_any_run(tmp_path):
+    """`elimfast paper --out existing_file.yaml` was told only '<it>: File exists', with no fix."""
+    target = tmp_path / "k.yaml"
+    target.write_text("x: 1\n")
+    result = CliRunner().invoke(cli, ["paper", "--out", str(target)])
+    assert result.exit_code == 2 and "is a file, not a folder" in result.output and "--out" in result.output, \
+        result.output
+    assert target.read_text() == "x: 1\n"
