@@ -23,7 +23,8 @@ import numba
 import numpy as np
 
 from .errors import ParameterError, exact_time
-from .integrate import DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message, undefined_at
+from .integrate import (DEFAULT_MAX_HALVINGS, DEFAULT_SOLVER, Integration, failure_message, gradients_independence,
+                        undefined_at)
 from .integrate import STATUS_NAMES as _RUN_STATUS_NAMES
 from .integrate import SolverSettings, resolve_steps
 from .kernels import codes
@@ -139,8 +140,10 @@ class EnsembleResult:
                         "is not defined there; choose initial states away from the problem's singularities")
         # y, y0: a state grown far beyond its start is named (an escaping Henon-Heiles orbit, |p| ~ 8e6, was
         # told to allow more step halvings, a user trial)
+        indices = [self.problem.invariant_names.index(name) for name in self.conserve]
         message = failure_message(self.method, self.solver, code, step, t_start, self.h, self.diagnostics[index],
-                                  imposed=len(self.conserve), y=self.y_final[index], y0=self.y0[index])
+                                  imposed=len(self.conserve), y=self.y_final[index], y0=self.y0[index],
+                                  independence=gradients_independence(self.problem, indices, self.y_final[index]))
         return name + f"trajectory {index}: " + message[len(name):]
 
 

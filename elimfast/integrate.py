@@ -1317,12 +1317,14 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
         nearly_singular = False
     if (status == codes.STATUS_SINGULAR and not lim and imposed != 0 and independence is not None
-            and independence >= DEGENERATE_AT_FAILURE and d[codes.DIAG_INCREMENT] <= solver_rules.BAND_CAP):
-        # Converged, but Gamma too degenerate for alpha, where the invariants' gradients are independent:
-        # a (sub)step too short for Gamma, whose entries (Legendre coefficients of size ~h^j) fall below
-        # the rounding of the sums that form them; halving made it worse (a user trial: Kepler e = 0.9
-        # imposing L and A_y at h = 1e-5, after 4 halvings, was told that Assumption 1 fails and to
-        # impose other invariants; GHBVM completes; docs/solver.md#a-substep-without-imposing)
+            and independence >= DEGENERATE_AT_FAILURE and d[codes.DIAG_INCREMENT] <= solver_rules.BAND_CAP
+            and math.isfinite(d[codes.DIAG_CONDITION])):
+        # Converged, but Gamma too degenerate for alpha (finite cond: not exactly singular, as on a
+        # radial orbit, where L's Gamma vanishes by symmetry), where the invariants' gradients are
+        # independent: a (sub)step too short for Gamma, whose entries (Legendre coefficients of size
+        # ~h^j) fall below the rounding of the sums that form them; halving made it worse (a user trial:
+        # Kepler e = 0.9 imposing L and A_y at h = 1e-5, after 4 halvings, was told that Assumption 1
+        # fails and to impose other invariants; GHBVM completes; docs/solver.md#a-substep-without-imposing)
         seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
         shorter = "loosen rtol or raise epsilon" if adaptive else (
             "take a larger h" + (", or fewer halvings (solver.max_halvings)" if depth > 0 else ""))

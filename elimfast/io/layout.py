@@ -321,6 +321,11 @@ def _small_dataset(group, name: str, value, checksum: bool = True):
     return dataset_id
 
 
+def _state_dataset(group, name: str, value):
+    """A named /state dataset: contiguous, unchecksummed (_small_dataset's checksum=False)."""
+    return _small_dataset(group, name, value, checksum=False)
+
+
 SMALL_CHUNK_BYTES = 1 << 20   # _small_dataset's chunks (HDF5 allows up to 4 GB; an ensemble's y0 may be larger)
 
 

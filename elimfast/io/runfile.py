@@ -58,7 +58,7 @@ from ..errors import DiskFullError, ElimfastError
 from .layout import (FORMAT, FORMAT_VERSION, LIBVER, NOT_FINITE_FROM, SPACE_BASE, SPACE_FACTOR, SPACE_MARGIN,
                      STATS_PREFIX, STATUS_RUNNING, VALUE_AT_T0, read_flag, stats_attributes, VERIFY_BLOCK_BYTES,
                      _Growing, _plain,
-                     _replace_attributes, _set_attributes, _small_dataset, append_rows, attach, component_names,
+                     _replace_attributes, _set_attributes, _state_dataset, append_rows, attach, component_names,
                      create_run_group, dimension, multiplier_datasets, multiplier_name, PER_STEP_RECORDS,
                      RUNS_GROUP, run_attributes, split_run_path, SWEEP_FORMAT,
                      PROBLEM_FILE_DIGEST, problem_file_attributes, SET_OVERRIDES, set_overrides_attribute,
@@ -342,8 +342,7 @@ class RunWriter:
                 **(attributes or {})})
             state = f.create_group("state")
             initial = dict(run.state(), n_samples=np.int64(1), wall_time_s=0.0, kernel_time_s=0.0)
-            datasets["state"] = {key: _small_dataset(state, key, value, checksum=False)
-                                 for key, value in initial.items()}
+            datasets["state"] = {key: _state_dataset(state, key, value) for key, value in initial.items()}
             n, s = run.y.size, run.coef.shape[0]
             record = _record_dataset(state, _record_length(n, s, run.multipliers.size,
                                                            sum(v.size for v in _record_tail(run.state()))))
@@ -895,7 +894,7 @@ class RunFile:
             if first_error is not None:
                 raise _damaged(self.path, f"{where} {rows_text(_merged(damaged))}", first_error)
             chunks += -(-count // chunk_rows)
-        with self._reading("/method"):   # the tables, written at once (checksummed in files from this version)
+        with self._reading("/method"):
             for name in f["method"]:
                 f["method"][name][()]
         return {"chunks": chunks, "checksummed": checksummed}
