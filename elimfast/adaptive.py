@@ -156,8 +156,8 @@ class StepControl:
                 # (a user trial: epsilon = 1e-9 ran 400 steps and failed, ELIM's Gamma too short for such steps;
                 # an error 1e-24 per step needs epsilon ~1e-3 at order 8)
                 raise ParameterError("epsilon", f"must be at least {MIN_EPSILON:g}: a run takes about 1/epsilon steps "
-                                                f"per time scale, and below that no accuracy needs more; got "
-                                                f"{epsilon:g}; 0.05 is a good start")
+                                                f"per time scale, and no accuracy needs more than 1/{MIN_EPSILON:g} of "
+                                                f"them; got {epsilon:g}; 0.05 is a good start")
             object.__setattr__(self, "epsilon", epsilon)
         for name in ("h", "h_max"):
             if getattr(self, name) is not None:
