@@ -45,6 +45,11 @@ def error_line(exc: BaseException) -> tuple[str, int]:
         return f"not a UTF-8 text file ({one_line(exc)})", EXIT_USAGE
     if isinstance(exc, MemoryError):
         return "out of memory; lower output.every's sample count or the problem size", EXIT_FAILED
+    if isinstance(exc, ValueError) and str(exc).startswith("Number of threads specified must be > 0"):
+        # Numba's own check of its thread count, raised when a parallel kernel first starts (a user
+        # trial's NUMBA_NUM_THREADS=0 ensemble was an internal error)
+        return (f"NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', '?')} in the environment: Numba needs at "
+                "least 1 thread; unset it, or set it to the number of cores"), EXIT_USAGE
     where = ""
     tb = exc.__traceback__
     while tb is not None:

@@ -182,3 +182,12 @@ def test_paper_out_naming_a_file_is_refused_before_any_run(tmp_path):
     assert result.exit_code == 2 and "is a file, not a folder" in result.output and "--out" in result.output, \
         result.output
     assert target.read_text() == "x: 1\n"
+
+
+def test_numba_s_thread_count_of_zero_is_named_not_an_internal_error():
+    """NUMBA_NUM_THREADS=0 made an ensemble sweep fail with 'internal error: ValueError: Number of
+    threads specified must be > 0. at parallel.py:42 (please report it...)', exit 1."""
+    from elimfast_cli.main import EXIT_USAGE, error_line
+    message, code = error_line(ValueError("Number of threads specified must be > 0."))
+    assert code == EXIT_USAGE and message.startswith("NUMBA_NUM_THREADS=") and "unset it" in message
+    assert error_line(ValueError("something else"))[0].startswith("internal error: ValueError")
