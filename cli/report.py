@@ -169,8 +169,8 @@ def energy_note(run_file, drift=None, problem=None) -> str | None:
 
 def _terms_peak(run_file, problem, reference: float):
     """integrate.terms_peak of a run file's samples, read with the stride it would take."""
-    from elimfast.integrate import PEAK_SAMPLES, terms_peak
-    stride = max(1, -(-run_file.n_samples // PEAK_SAMPLES))
+    from elimfast.integrate import peak_stride, terms_peak
+    stride = peak_stride(run_file.n_samples)
     return terms_peak(problem, run_file.y(stride), run_file.t(stride), reference)
 
 

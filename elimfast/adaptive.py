@@ -255,7 +255,7 @@ MAX_OUTPUT_TIMES = 10_000_000   # samples at requested times (t_eval, output.tim
 def resolve_span(t0: float, t_end, n_steps=None, h_max=None) -> float:
     """An adaptive run's t_end: given, finite and after t0 (n_steps does not apply), and no more
     than MAX_STEPS steps of h_max, when given, after it."""
-    from .integrate import MAX_STEPS, compact_number, resolve_t0
+    from .integrate import MAX_STEPS, STEPS_COST, compact_number, resolve_t0
     t0 = resolve_t0(t0)
     if n_steps is not None:   # named itself: a user trial was told 't_end is needed' beside its t_end
         raise ParameterError("n_steps", "does not apply to adaptive steps: the controller decides how many it "
@@ -270,9 +270,8 @@ def resolve_span(t0: float, t_end, n_steps=None, h_max=None) -> float:
         # a fixed h was bounded so, h_max not (a user trial: h_max = 1e-9 over t = 100 wrote 217 MB in 20 s,
         # on its way to 2 TB)
         raise ParameterError("h_max", f"gives (t_end - t0)/h_max = {(t_end - t0) / h_max:.3g} steps at least, more "
-                                      f"than {compact_number(MAX_STEPS)}: that many steps take hours to days even at "
-                                      "a microsecond each, and their per-step records alone 40 GB; raise h_max or "
-                                      "shorten the run", related=("t_end", "t0"))
+                                      f"than {compact_number(MAX_STEPS)}: {STEPS_COST}; raise h_max or shorten the run",
+                             related=("t_end", "t0"))
     return t_end
 
 

@@ -568,6 +568,11 @@ GROWN_TERMS = 100.0      # H's terms this many times their size at t0: rounding 
 PEAK_SAMPLES = 100_000   # states terms_peak looks at, at most (strided beyond)
 
 
+def peak_stride(n_states: int) -> int:
+    """The stride that leaves at most PEAK_SAMPLES of n_states (terms_peak's, and a file reader's)."""
+    return max(1, -(-n_states // PEAK_SAMPLES))
+
+
 def terms_peak(problem: Problem, states, times, reference: float) -> tuple[float, float] | None:
     """(the largest size of H's terms over ``states`` against ``reference``, their size at t0,
     and the time of that largest; Problem.invariant_scales), None without states or a
@@ -577,7 +582,7 @@ def terms_peak(problem: Problem, states, times, reference: float) -> tuple[float
     states, times = np.asarray(states), np.asarray(times)
     if states.ndim != 2 or states.shape[0] == 0 or not (reference > 0.0):
         return None
-    stride = max(1, -(-states.shape[0] // PEAK_SAMPLES))
+    stride = peak_stride(states.shape[0])
     try:
         with np.errstate(all="ignore"):
             sizes = problem.H_term_sizes(states[::stride])
@@ -852,8 +857,9 @@ def suggest(word, options, label: str) -> str:
 
 
 # Why a run may take at most MAX_STEPS steps (said in the error).
-STEPS_REASON = ("that many steps take hours to days even at a microsecond each, and their per-step records "
-                "alone 40 GB; raise h or shorten the run")
+STEPS_COST = ("that many steps take hours to days even at a microsecond each, and their per-step records "
+              "alone 40 GB")
+STEPS_REASON = f"{STEPS_COST}; raise h or shorten the run"   # (adaptive.resolve_span's h_max: raise h_max)
 
 
 def resolve_t0(t0) -> float:
@@ -1311,21 +1317,23 @@ def failure_message(method: Method, solver: SolverSettings, status: int, step: i
         advice += f", or use a lower s (docs/adaptive.md measures s <= {ADAPTIVE_MEASURED_S})"
     nearly_singular = (status == codes.STATUS_NOT_CONVERGED and d[codes.DIAG_CONDITION] > NEARLY_SINGULAR_GAMMA
                        and depth > 0)
-    if nearly_singular and independence is not None and independence >= DEGENERATE_AT_FAILURE:
+    independent = independence is not None and independence >= DEGENERATE_AT_FAILURE
+    independent_text = (f"the invariants' gradients independent here (smallest singular value {independence:.2g})"
+                        if independent else "")
+    if nearly_singular and independent:
         # Gamma's condition grows with its scaling too (near a pericentre of e = 0.99 cond ~ 1/h): with
         # the gradients independent here, smaller steps are the cure, not other invariants.
-        seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
+        seen.append(independent_text)
         nearly_singular = False
-    if (status == codes.STATUS_SINGULAR and not lim and imposed != 0 and independence is not None
-            and independence >= DEGENERATE_AT_FAILURE and d[codes.DIAG_INCREMENT] <= solver_rules.BAND_CAP
-            and math.isfinite(d[codes.DIAG_CONDITION])):
+    if (status == codes.STATUS_SINGULAR and not lim and imposed != 0 and independent
+            and d[codes.DIAG_INCREMENT] <= solver_rules.BAND_CAP and math.isfinite(d[codes.DIAG_CONDITION])):
         # Converged, but Gamma too degenerate for alpha (finite cond: not exactly singular, as on a
         # radial orbit, where L's Gamma vanishes by symmetry), where the invariants' gradients are
         # independent: a (sub)step too short for Gamma, whose entries (Legendre coefficients of size
         # ~h^j) fall below the rounding of the sums that form them; halving made it worse (a user trial:
         # Kepler e = 0.9 imposing L and A_y at h = 1e-5, after 4 halvings, was told that Assumption 1
         # fails and to impose other invariants; GHBVM completes; docs/solver.md#a-substep-without-imposing)
-        seen.append(f"the invariants' gradients independent here (smallest singular value {independence:.2g})")
+        seen.append(independent_text)
         shorter = "loosen rtol or raise epsilon" if adaptive else (
             "take a larger h" + (", or fewer halvings (solver.max_halvings)" if depth > 0 else ""))
         advice = (f"a step of {d[codes.DIAG_STEP]:.3g} is too short for ELIM's Gamma here: its entries, of size about "
