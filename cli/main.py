@@ -257,6 +257,19 @@ def _file_name(ctx, param, value):
 SET_HELP = "Override a config key, e.g. --set method.s=4 --set integration.t_end=100 (repeatable)."
 
 
+def _allow_python_option(command):
+    """--allow-python: a python: problem file named by the config (or --set) may run. Set in the
+    environment, so that a sweep's worker processes (and a local Dask cluster's) inherit it."""
+    def allow(ctx, param, value):
+        if value:
+            from elimfast.config import ALLOW_PYTHON_ENV
+            os.environ[ALLOW_PYTHON_ENV] = "1"
+        return value
+    return click.option("--allow-python", is_flag=True, expose_value=False, callback=allow,
+                        help="Run the python: problem files the config names: they are code, which a config alone "
+                             "never runs (also: ELIMFAST_ALLOW_PYTHON=1).")(command)
+
+
 def _load(config: str, overrides):
     from elimfast.config import load_run
     return load_run(config, overrides=list(overrides))
@@ -274,6 +287,7 @@ def _resolved_yaml(spec, output_path=None) -> str:
 
 @cli.command(context_settings=CONTEXT)
 @click.argument("config", metavar="CONFIG")
+@_allow_python_option
 @click.option("-o", "--output", metavar="OUT.h5", callback=_file_name,
               help="The HDF5 file to write (overrides output.path).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
@@ -573,6 +587,7 @@ def _report_run(outcome, config, path, quiet, problem=None) -> int:
 
 @cli.command(context_settings=CONTEXT)
 @click.argument("config", metavar="CONFIG")
+@_allow_python_option
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
 def check(config, overrides):
     """Validate CONFIG, check its derivatives and invariants, print the resolved config.
@@ -932,6 +947,7 @@ def _format_tableau(method, A, b, c, eta) -> str:
 # --- sweep, paper -------------------------------------------------------------------------
 @cli.command(context_settings=CONTEXT)
 @click.argument("sweep_file", metavar="SWEEP.yaml")
+@_allow_python_option
 @click.option("-o", "--output", metavar="OUT.h5", callback=_file_name,
               help="Store every run under /runs/<label>/ of this file.")
 @click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",

@@ -17,9 +17,13 @@ from .errors import ElimfastError
 from .kernels.codes import FAMILY_LIM
 
 
-def load(path, run: str | None = None):
+def load(path, run: str | None = None, *, allow_python: bool | None = None):
     """The Result stored in the run file ``path``, or in the run labelled ``run`` of a sweep
     file (``path`` may also be given as ``"sweep.h5:/runs/<label>"``).
+
+    The problem is built again from the stored config: a python: problem file it names (if
+    that path exists here) is code, run only with ``allow_python=True`` (default:
+    config.python_allowed()), so that opening a file someone sent runs nothing beside it.
 
     y_final and t_final are the saved state of a run file (what --resume continues from),
     and a sweep run's state after its last completed step (its attributes; the last sample in
@@ -35,12 +39,12 @@ def load(path, run: str | None = None):
 
     file_path, run = split_run_path(path, run)
     if run is None and is_ensemble_file(file_path):
-        return load_ensemble(file_path)
+        return load_ensemble(file_path, allow_python=allow_python)
     with RunFile(file_path, run=run) as stored:
         source = f"{stored.name} (its stored config)"
         try:
             spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
-                                      base_dir=Path(file_path).parent)
+                                      base_dir=Path(file_path).parent, allow_python=allow_python)
         except ElimfastError as err:
             raise type(err)(f"{stored.name}: cannot rebuild the run from its stored config: {err}") from None
         t, y = stored.t(), stored.y()
@@ -97,11 +101,12 @@ def _adaptive_parts(stored, spec) -> dict:
     return parts
 
 
-def load_ensemble(path, lazy: bool = False):
+def load_ensemble(path, lazy: bool = False, *, allow_python: bool | None = None):
     """The EnsembleResult of the ensemble sweep stored in ``path``, as the sweep returned it.
 
     The problem, the method and the settings are built again from the stored config (as
-    ``elimfast.ensemble.EnsembleRun`` builds them for a run); the arrays are read from the
+    ``elimfast.ensemble.EnsembleRun`` builds them for a run; a python: problem file only with
+    ``allow_python``, as ``load``); the arrays are read from the
     file, all at once, or with ``lazy`` each when first used (so that a summary of a large
     ensemble holds a column or two, never every array). OutputError for a file whose
     ensemble is not complete (it says how to complete it) or that cannot be read.
@@ -124,7 +129,7 @@ def load_ensemble(path, lazy: bool = False):
         source = f"{path}:/ensemble (its stored config)"
         try:
             spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
-                                      base_dir=path.parent)
+                                      base_dir=path.parent, allow_python=allow_python)
         except ElimfastError as err:
             raise type(err)(f"{path}:/ensemble: cannot rebuild the ensemble from its stored config: {err}") from None
         run = EnsembleRun.from_spec(spec, stored.column("y0", 0, 1)[0], n_threads=1)

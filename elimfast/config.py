@@ -36,7 +36,10 @@ Numbers may be arithmetic on numbers, ``pi`` and ``e`` (``pi/30``, ``2*pi*10``, 
 evaluated in double precision exactly as Python would (``pi/30 == math.pi/30``); initial
 values may also use the problem's parameters. Nothing in a config can run code: YAML is
 read with a safe loader (no tags, no aliases; a key given twice is an error) and expressions
-are parsed as data.
+are parsed as data. A ``python:`` problem file is code, so a config naming one is refused
+unless the user allowed Python files outside the config (``python_allowed``: the CLI's
+``--allow-python``, ``allow_python=True`` in Python, or ELIMFAST_ALLOW_PYTHON=1), as
+``numpy.load`` refuses pickles unless ``allow_pickle=True``.
 
 The keys and types are validated by pydantic (config_schema.py); ``load_run`` keeps each
 validation in elimfast's cache, so that a config run again skips pydantic (_Builder.validate).
@@ -48,10 +51,13 @@ values parsed as YAML) before validating.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import copy
 import functools
 import inspect
 import json
+import os
 import pickle
 import re
 from dataclasses import dataclass
@@ -242,10 +248,48 @@ class RunSpec:
 
 
 
+# --- running a python: problem file: the user's decision, never the config's ------------------
+
+ALLOW_PYTHON_ENV = "ELIMFAST_ALLOW_PYTHON"
+# Set for one call (allowing_python): a Dask worker runs the tasks of several clients at once.
+_allow_python = contextvars.ContextVar("elimfast_allow_python", default=None)
+
+
+def python_allowed(allow: bool | None = None) -> bool:
+    """May a config's ``python:`` problem file be run? ``allow`` when given (a caller's
+    ``allow_python=``), else the innermost ``allowing_python``, else ELIMFAST_ALLOW_PYTHON=1 in
+    the environment (which the CLI's ``--allow-python`` sets, so that a sweep's worker
+    processes inherit it)."""
+    if allow is not None:
+        return bool(allow)
+    here = _allow_python.get()
+    if here is not None:
+        return here
+    return os.environ.get(ALLOW_PYTHON_ENV, "").strip().lower() in ("1", "true", "yes")
+
+
+@contextlib.contextmanager
+def allowing_python(allow: bool | None = True):
+    """``python_allowed`` is ``allow`` inside (None: unchanged)."""
+    if allow is None:
+        yield
+        return
+    token = _allow_python.set(bool(allow))
+    try:
+        yield
+    finally:
+        _allow_python.reset(token)
+
+
+PYTHON_REFUSED = ("is a Python file: running it runs its code, and a config alone never runs code; if you trust "
+                  "the file, pass --allow-python (Python: allow_python=True; or set ELIMFAST_ALLOW_PYTHON=1)")
+
+
 # --- entry points -------------------------------------------------------------------------
 
-def load_run(path, overrides=()) -> RunSpec:
-    """Read, override and validate a YAML run config; raise ConfigError (one line) on any fault."""
+def load_run(path, overrides=(), *, allow_python: bool | None = None) -> RunSpec:
+    """Read, override and validate a YAML run config; raise ConfigError (one line) on any fault.
+    ``allow_python``: may a ``python:`` problem file it names be run (default: python_allowed())."""
     source = str(path)
     file_path = Path(path)
     text = read_text_file(file_path, source, what="config file", example="a .yaml file")
@@ -253,20 +297,21 @@ def load_run(path, overrides=()) -> RunSpec:
     if data is None:
         raise ConfigError(f"{source}: the file is empty; a config needs problem, method and integration sections")
     return load_run_from_dict(data, source=source, overrides=overrides, base_dir=file_path.resolve().parent,
-                              remember=True, lines=lines)
+                              remember=True, lines=lines, allow_python=allow_python)
 
 
 def load_run_from_dict(data, source: str = "<dict>", overrides=(), *, base_dir=None, remember: bool = False,
-                       lines: dict | None = None) -> RunSpec:
+                       lines: dict | None = None, allow_python: bool | None = None) -> RunSpec:
     """Validate config data (as yaml.safe_load returns it); ``base_dir``: where relative
     ``python:`` paths start (default: the current directory). ``remember``: keep the
     validation in elimfast's cache and take it from there when this data comes again
     (load_run does, for config files; a sweep's runs do not: one file per run, while
     their process validates them all with one import of pydantic). ``lines``: the line of
-    each key path in ``source`` (parse_yaml_with_lines), for the errors to name."""
+    each key path in ``source`` (parse_yaml_with_lines), for the errors to name.
+    ``allow_python``: may a ``python:`` problem file be run (default: python_allowed())."""
     data, overridden = _apply_overrides(copy.deepcopy(data), overrides, source)
     return _Builder(source, overridden, Path(base_dir) if base_dir is not None else Path.cwd(),
-                    remember=remember, lines=lines).build(data)
+                    remember=remember, lines=lines, allow_python=python_allowed(allow_python)).build(data)
 
 
 def read_text_file(path, source: str, *, what: str = "file", example: str = "a .yaml file",
@@ -567,9 +612,10 @@ def write_out_shorthands(data: dict, error) -> dict:
 
 class _Builder:
     def __init__(self, source: str, overridden: dict, base_dir: Path, remember: bool = False,
-                 lines: dict | None = None):
+                 lines: dict | None = None, allow_python: bool = False):
         self.source, self.overridden, self.base_dir, self.remember = source, overridden, base_dir, remember
         self.lines = lines or {}
+        self.allow_python = allow_python
 
     # errors
     def override_of(self, path) -> str | None:
@@ -1054,6 +1100,9 @@ class _Builder:
                 read_text_file(path, str(path), what="python problem file", example="a .py file")
             except ConfigError as err:
                 raise self.error(("problem", "python"), str(err)) from None
+        if not self.allow_python and path.exists():
+            # after the file's own faults (a missing file is told so: problem_from_file), before it is imported
+            raise self.error(("problem", "python"), f"{section.python} {PYTHON_REFUSED}")
         problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name,
                                     check=False)   # checked below with the other modes (problem.check)
         return problem, {"python": str(path.resolve()), "name": problem.name,

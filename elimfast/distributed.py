@@ -138,6 +138,13 @@ def _python_files(configs: list[dict], source: str) -> dict[str, str]:
     return shipped
 
 
+def _client_allows_python() -> bool:
+    """config.python_allowed() here, on the client: its worker functions take it as an argument
+    (a worker's environment does not carry the client's --allow-python)."""
+    from .config import python_allowed
+    return python_allowed()
+
+
 def _localise(config: dict, source: str, shipped: dict[str, str]) -> dict:
     """On a worker: a config whose python: file is not visible here (or differs) points at the
     shipped copy, written into this machine's cache under its content hash."""
@@ -160,13 +167,16 @@ def _localise(config: dict, source: str, shipped: dict[str, str]) -> dict:
 
 
 def _task(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool,
-          shipped: dict[str, str]) -> RunOutcome:
+          shipped: dict[str, str], allow_python: bool = False) -> RunOutcome:
     """A sweep run on a worker: sweep._execute, after making a shipped python: file visible. The
     Result comes back without its problem (the client puts its own back, ``_client_problem``):
     the problem's Numba functions, unpickled in the client, were compiled there afresh, once per
     worker and function, in every sweep (1.3 s of Table 1's 2.7 s with 2 workers, and a
-    'compiling Numba kernels (once ...)' line each time)."""
-    outcome = _execute(label, coordinates, _localise(config, source, shipped), source, store_arrays)
+    'compiling Numba kernels (once ...)' line each time). ``allow_python``: the client's
+    config.python_allowed(), which a worker's environment does not carry."""
+    from .config import allowing_python
+    with allowing_python(allow_python):
+        outcome = _execute(label, coordinates, _localise(config, source, shipped), source, store_arrays)
     if outcome.result is not None:
         outcome.result.problem = None
     return outcome
@@ -183,10 +193,12 @@ def _client_problem(config: dict, source: str, problems: dict):
     return problems[key]
 
 
-def _warm(configs: list[dict], source: str, shipped: dict[str, str]) -> dict:
+def _warm(configs: list[dict], source: str, shipped: dict[str, str], allow_python: bool = False) -> dict:
     """On every worker, before the runs: load the kernels and build each problem once (generated
     code and Numba's cache by content hash), and take one step of each; report what was found."""
     import elimfast
+
+    from .config import allowing_python, load_run_from_dict
 
     start = time.perf_counter()
     for config in configs:
@@ -195,10 +207,9 @@ def _warm(configs: list[dict], source: str, shipped: dict[str, str]) -> dict:
         if isinstance(integration, dict) and "h" in integration:   # fixed steps: two of them (an adaptive
             integration.pop("t_end", None)                          # run is only loaded: its length is unknown)
             integration["n_steps"] = 2
-            _task("warm", {}, config, source, True, shipped)   # a failure is the run's to report, later
+            _task("warm", {}, config, source, True, shipped, allow_python)   # a failure is the run's to report
         else:
-            from .config import load_run_from_dict
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(Exception), allowing_python(allow_python):
                 load_run_from_dict(_localise(config, source, shipped), source=source, base_dir=Path(source).parent)
     return {"version": elimfast.__version__, "seconds": time.perf_counter() - start, "pid": os.getpid()}
 
@@ -216,7 +227,7 @@ def warm_workers(client, configs: list[dict], source: str, shipped: dict[str, st
             seen.add(key)
             distinct.append(config)
     try:
-        reports = client.run(_warm, distinct, source, shipped)
+        reports = client.run(_warm, distinct, source, shipped, _client_allows_python())
     except ImportError as error:   # the workers' environment lacks elimfast (or a dependency)
         raise SweepError(f"the Dask workers cannot import elimfast ({error}); install elimfast in the "
                          "workers' environment") from None
@@ -244,9 +255,9 @@ def run_sweep_on(client, spec: SweepSpec, store_arrays: bool = True,
     if total:
         shipped = _python_files([config for _, _, config in jobs], spec.source)
         warm_workers(client, [config for _, _, config in jobs], spec.source, shipped, on_message)
-        futures, problems = {}, {}
+        futures, problems, allow = {}, {}, _client_allows_python()
         for index, (label, coordinates, config) in enumerate(jobs):
-            future = client.submit(_task, label, coordinates, config, spec.source, store_arrays, shipped,
+            future = client.submit(_task, label, coordinates, config, spec.source, store_arrays, shipped, allow,
                                    key=f"elimfast-run-{index}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
                                    retries=RETRIES)
             futures[future] = (label, coordinates, config)
@@ -293,7 +304,8 @@ def block_bounds(n_trajectories: int, threads: int, ranges=None) -> list[tuple[i
     return [(first, min(first + size, stop)) for start, stop in ranges for first in range(start, stop, size)]
 
 
-def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict[str, str]) -> dict:
+def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict[str, str],
+                    allow_python: bool = False) -> dict:
     """On a worker: one block of an ensemble in the parallel kernel, on the worker's threads (one
     block at a time per process): (its rows, as ensemble.EnsembleRun.rows gives them, threads used)."""
     import numba
@@ -302,7 +314,7 @@ def _ensemble_block(config: dict, source: str, states: np.ndarray, shipped: dict
     from .ensemble import EnsembleRun, check_states
 
     spec = load_run_from_dict(_localise(copy.deepcopy(config), source, shipped), source=source,
-                              base_dir=Path(source).parent)
+                              base_dir=Path(source).parent, allow_python=allow_python)
     threads = 1
     with contextlib.suppress(Exception):
         from distributed import get_worker
@@ -328,7 +340,7 @@ def ensemble_blocks_on(client, spec: SweepSpec, states: np.ndarray, ranges,
     distributed = _distributed()
     if not any(stop > start for start, stop in ranges):
         return
-    shipped = _python_files([spec.base], spec.source)
+    shipped, allow = _python_files([spec.base], spec.source), _client_allows_python()
     warm_workers(client, [spec.base], spec.source, shipped, on_message)
     workers = client.scheduler_info().get("workers", {})
     bounds = block_bounds(states.shape[0], sum(worker.get("nthreads", 1) for worker in workers.values()), ranges)
@@ -344,7 +356,7 @@ def ensemble_blocks_on(client, spec: SweepSpec, states: np.ndarray, ranges,
         if bound is None:
             return None
         start, stop = bound
-        future = client.submit(_ensemble_block, spec.base, spec.source, states[start:stop], shipped,
+        future = client.submit(_ensemble_block, spec.base, spec.source, states[start:stop], shipped, allow,
                                key=f"elimfast-block-{start}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
                                retries=RETRIES)
         futures[future] = bound

@@ -1166,12 +1166,17 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
 _PR_SET_PDEATHSIG = 1   # linux/prctl.h
 
 
-def _worker_init(parent: int | None = None) -> None:
+def _worker_init(parent: int | None = None, allow_python: bool = False) -> None:
     """A forked worker starts with Python's default signal handling, not the parent's watchdog,
     and dies with its parent ``parent``: after a kill -9 of the sweep, orphaned workers waited
     forever on the pool's queue and, sharing the forked output file's descriptor, held its
-    writer lock, so --resume and inspect refused the file until they were found and killed."""
+    writer lock, so --resume and inspect refused the file until they were found and killed.
+    ``allow_python``: the parent's config.python_allowed() (its allowing_python, if that is what
+    allowed it, is not inherited by a process)."""
     import signal
+    if allow_python:
+        from .config import ALLOW_PYTHON_ENV
+        os.environ[ALLOW_PYTHON_ENV] = "1"
     with contextlib.suppress(ValueError, OSError):
         signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -1315,7 +1320,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         # inherits them instead of loading them again. Not when the first run's config was
         # refused: on an empty cache the sweep compiled for 2 minutes, then reported that every
         # run's config was refused (a user trial); the runs that load compile in their workers.
-        from . import config  # noqa: F401
+        from . import config
         if not outcome.config_error:
             from .kernels import stepper  # noqa: F401
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
@@ -1324,7 +1329,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         # walks (and so never copies, page by page) the parent's Numba objects.
         gc.freeze()
         pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(jobs))), mp_context=context,
-                                   initializer=_worker_init, initargs=(os.getpid(),))
+                                   initializer=_worker_init, initargs=(os.getpid(), config.python_allowed()))
         try:
             futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
                        for label, coordinates, config in jobs}
@@ -1817,17 +1822,21 @@ def python_wording(message: str) -> str:
     return "".join(out)
 
 
-def run(spec, path=None, *, client=None, **options) -> SweepOutcome:
+def run(spec, path=None, *, client=None, allow_python: bool | None = None, **options) -> SweepOutcome:
     """Run a sweep (a SweepSpec or a sweep file's path), storing it in ``path`` if given;
     on the Dask cluster of ``client`` (a ``dask.distributed.Client``) if given, else in
-    local worker processes. The options are those of ``run_to_file``; its errors name them as
-    keywords (overwrite=True), where the command line's name its flags (--overwrite)."""
+    local worker processes. ``allow_python``: may the python: problem files its configs name
+    be run (default: config.python_allowed(); the CLI's --allow-python). The options are those of
+    ``run_to_file``; its errors name them as keywords (overwrite=True), where the command line's
+    name its flags (--overwrite)."""
+    from .config import allowing_python
     if client is not None and not (callable(getattr(client, "submit", None))
                                    and callable(getattr(client, "wait_for_workers", None))):
         raise TypeError(f"client must be a dask.distributed.Client (or None for local worker processes), got "
                         f"{type(client).__name__}; for a scheduler's address pass scheduler='tcp://host:8786'")
     try:
-        return run_to_file(spec, path, client=client, **options)
+        with allowing_python(allow_python):
+            return run_to_file(spec, path, client=client, **options)
     except ElimfastError as error:
         worded = python_wording(str(error))
         if worded != str(error):

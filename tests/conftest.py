@@ -48,10 +48,18 @@ def pytest_collection_finish(session):
     if any(item.nodeid.startswith("tests/test_per_problem_kernel.py") for item in session.items):
         root = Path(__file__).resolve().parents[1]
         code = ("from elimfast.config import load_run; from elimfast.per_problem import time_loop_for\n"
-                + "".join(f"time_loop_for(load_run({str(root / config)!r}).problem)\n"
+                + "".join(f"time_loop_for(load_run({str(root / config)!r}, allow_python=True).problem)\n"
                           for config in PER_PROBLEM_CONFIGS))
         _per_problem_compile.append(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
                                                      stderr=subprocess.PIPE))
+
+
+@pytest.fixture
+def allow_python(monkeypatch):
+    """The user allowed python: problem files (ELIMFAST_ALLOW_PYTHON=1, which --allow-python sets):
+    for tests of what such a problem does, not of the permission (tests/test_python_allowed.py)."""
+    from elimfast.config import ALLOW_PYTHON_ENV
+    monkeypatch.setenv(ALLOW_PYTHON_ENV, "1")
 
 
 @pytest.fixture(scope="session")

@@ -432,6 +432,7 @@ def test_check_prints_the_resolved_config_as_yaml():
     ("kepler.yaml", ["method=GHBVM(12,3)"], "# H: not a polynomial: GHBVM(12,3) keeps it up to the quadrature "
                                             "error of its k = 12 nodes"),
 ])
+@pytest.mark.usefixtures("allow_python")
 def test_check_says_whether_the_method_keeps_H_exactly(config, overrides, line):
     result = invoke("check", ROOT / "configs" / config, *[item for o in overrides for item in ("--set", o)])
     assert result.exit_code == 0, result.output

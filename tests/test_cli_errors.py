@@ -137,6 +137,7 @@ def assert_one_line_error(stderr: str, fragment: str):
 
 
 @pytest.mark.parametrize("name", CASES)
+@pytest.mark.usefixtures("allow_python")
 def test_bad_input_exits_2_with_one_line(name, tmp_path):
     args, fragment = make_case(name, tmp_path)
     result = CliRunner().invoke(cli, [str(a) for a in args])

@@ -217,6 +217,7 @@ LOAD_AND_RUN = textwrap.dedent("""
 """)
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_a_fresh_process_loading_a_seen_problem_compiles_nothing(tmp_path):
     env = dict(os.environ, ELIMFAST_CACHE_DIR=str(tmp_path / "cache"))
     configs = [str(CONFIGS / "kepler_expressions.yaml"), str(CONFIGS / "kepler_python.yaml")]
@@ -375,6 +376,7 @@ def test_derivatives_that_explode_are_refused(cache_root, monkeypatch):
     assert info.value.key == "hamiltonian"
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_an_unwritable_cache_is_a_config_error(tmp_path, monkeypatch):
     from elimfast.config import ConfigError, load_run
     blocker = tmp_path / "not_a_directory"

@@ -48,6 +48,7 @@ def config_error(data, overrides=(), source="run.yaml") -> ConfigError:
 # --- the shipped configs ---------------------------------------------------------------
 
 @pytest.mark.parametrize("path", ALL_CONFIGS, ids=[p.stem for p in ALL_CONFIGS])
+@pytest.mark.usefixtures("allow_python")
 def test_every_shipped_config_loads_and_validates(path):
     spec = load_run(path)
     assert isinstance(spec, RunSpec) and spec.source == str(path)
@@ -85,6 +86,7 @@ def test_kepler_config_is_the_make_run_config():
     assert spec.problem.name == "kepler" and spec.problem.parameters == {"eccentricity": 0.6}
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_user_problems_in_configs_are_the_builtin_kepler():
     builtin = problems.kepler(0.6)
     for name in ("kepler_expressions", "kepler_python"):
@@ -643,6 +645,7 @@ def test_file_faults_are_config_errors(tmp_path):
         load_run(CONFIGS / "kepler.yaml", overrides=["method.s=[1"])
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_python_problem_path_is_relative_to_the_config(tmp_path):
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "problem.py").write_text((CONFIGS / "kepler_problem.py").read_text())

@@ -311,6 +311,7 @@ def test_resume_refuses_an_ensemble_file_of_another_config_or_without_the_done_r
                              "trajectories, so --resume cannot tell what is done; pass --overwrite to run it again\n")
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_resume_refuses_an_ensemble_whose_python_problem_file_changed(tmp_path, small_blocks, monkeypatch):
     """A user trial: an ensemble of a python: problem killed part-way, the file's H and grad_H changed,
     --resume: trajectories 0-55 came from the old file, 56 on from the new, exit 0."""

@@ -566,6 +566,7 @@ def drift_problem(directory: Path, misbehaviour: str) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.usefixtures("allow_python")
 def test_a_signal_stops_a_kernel_call_that_never_returns(tmp_path, sig):
     config = drift_problem(tmp_path, LOOP)
     path = tmp_path / "loop.h5"
@@ -596,6 +597,7 @@ def test_a_signal_stops_a_kernel_call_that_never_returns(tmp_path, sig):
 
 
 # --- 9. a problem function that raises ------------------------------------------------------------------
+@pytest.mark.usefixtures("allow_python")
 def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_path):
     config = drift_problem(tmp_path, RAISE)
     path = tmp_path / "raise.h5"
@@ -624,6 +626,7 @@ def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_pa
         np.testing.assert_array_equal(a["steps/iterations"][:], b["steps/iterations"][:])
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_a_sweep_run_whose_problem_raises_fails_alone(tmp_path):
     drift_problem(tmp_path, RAISE)
     sweep = write_yaml(tmp_path / "sweep.yaml", {
@@ -722,6 +725,7 @@ def test_a_file_written_before_the_predictor_kept_gamma_s_resumes_without_it(tmp
 
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.usefixtures("allow_python")
 def test_a_signal_stops_a_sweep_whose_run_never_returns(tmp_path, workers):
     """In process (one worker) the watchdog ends the kernel call; with worker processes the
     parent stops at once and kills its workers (which cannot run a signal handler)."""

@@ -57,6 +57,7 @@ def _same_run(a, b):
     (lambda: ehbvm(12, 3), (L, AY), "fixed_point"),
     (lambda: ghbvm(12, 3), (L,), "newton"),
 ], ids=["EHBVM newton", "EHBVM fixed point", "GHBVM newton"])
+@pytest.mark.usefixtures("allow_python")
 def test_the_per_problem_kernel_takes_the_shared_kernels_steps_bit_for_bit(user_kepler, make, conserve, solver):
     """The README's run (EHBVM(12,3) imposing L and A_y, e = 0.6, h = 0.1) and LIM, with both
     solvers, in chunks (a kernel call continues the last exactly): every sample, iteration
@@ -71,6 +72,7 @@ def test_the_per_problem_kernel_takes_the_shared_kernels_steps_bit_for_bit(user_
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("allow_python")
 def test_a_python_file_problem_runs_on_its_kernel_bit_for_bit(per_problem_kernel_compiled):
     """A user trial: a python: problem was refused ('H is not at the top of a module'): elimfast
     compiles such a file's functions itself (user_file._compile), so they are no attribute of their
@@ -86,6 +88,7 @@ def test_a_python_file_problem_runs_on_its_kernel_bit_for_bit(per_problem_kernel
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("allow_python")
 def test_the_per_problem_kernel_is_cached_and_named_in_the_file(user_kepler, tmp_path):
     """Compiled in this process (the test above, or here), it loads in another without compiling:
     `elimfast run` prints no compile line, and inspect names the kernel."""
@@ -101,6 +104,7 @@ def test_the_per_problem_kernel_is_cached_and_named_in_the_file(user_kepler, tmp
     assert "kernel per_problem" in inspected.stdout, inspected.stdout
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_the_kernel_module_follows_the_problems_functions(user_kepler):
     """The module imports the problem's functions by module and name; its digest (the file's and
     the cache's name) covers the text they come from, so another problem is another kernel and

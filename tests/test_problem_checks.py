@@ -84,6 +84,7 @@ def test_every_builtin_passes_the_derivative_check_by_a_wide_margin():
 
 
 @pytest.mark.parametrize("config", sorted(p.name for p in CONFIGS.glob("*.yaml")))
+@pytest.mark.usefixtures("allow_python")
 def test_every_shipped_config_passes_both_checks(cache_root, config):
     problem = load_run(CONFIGS / config).problem   # check: true runs both
     assert max(r.ratio for r in check_derivatives(problem)) < 0.05
@@ -263,6 +264,7 @@ def test_a_wrong_sign_in_an_invariants_gradient_fails_naming_the_invariant(row):
     assert info.value.key == f"invariants.{name}"
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_wrong_sign_grad_h_in_a_python_file_is_refused_naming_the_users_file(cache_root, tmp_path):
     """Issue 10, point 7: this file passed `elimfast check` and ran to "complete"."""
     path = write_problem(tmp_path, KEPLER_FILE.replace("out[0] = y[0] * mu_r3", "out[0] = -y[0] * mu_r3")
@@ -291,6 +293,7 @@ def test_wrong_sign_grad_h_in_a_python_file_is_refused_naming_the_users_file(cac
         assert "Traceback" not in result.output and not (tmp_path / "o.h5").exists()
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_a_function_that_raises_outside_its_domain_near_the_initial_state_is_no_internal_error(cache_root, tmp_path):
     """A user trial's finding: a python file whose grad_H raises (its own domain check) at one of the
     check's seeded points near y0 stopped `run` and `check` with 'internal error ... please report it',
@@ -321,6 +324,7 @@ def test_a_function_that_raises_outside_its_domain_near_the_initial_state_is_no_
         assert "internal error" not in result.output and "Traceback" not in result.output
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_check_false_skips_the_derivative_check_but_elimfast_check_still_reports_it(cache_root, tmp_path):
     write_problem(tmp_path, KEPLER_FILE.replace("out[2] = y[2]", "out[2] = 2.0 * y[2]"))
     config = tmp_path / "run.yaml"
@@ -334,6 +338,7 @@ def test_check_false_skips_the_derivative_check_but_elimfast_check_still_reports
     assert "dH/dp1 = " in result.stderr and "relative error 1.0e+00" in result.stderr
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_elimfast_check_with_check_false_names_the_config_and_gives_no_advice_it_already_follows(cache_root,
                                                                                                 tmp_path):
     """A user trial's finding: with problem.check: false, 'elimfast check' reported a wrong gradient
@@ -358,6 +363,7 @@ def test_elimfast_check_with_check_false_names_the_config_and_gives_no_advice_it
                                     "[0.0, 0.0, 0.0, 2.0]: it is not defined there"), result.stderr
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_elimfast_check_prints_the_derivative_check_and_the_hessians_source(cache_root):
     for config, source in (("kepler.yaml", "analytic"), ("kepler_expressions.yaml", "symbolic"),
                            ("kepler_python.yaml", "finite differences")):
@@ -632,6 +638,7 @@ def test_an_initial_state_where_H_is_not_defined_is_refused_by_check_run_and_int
         elimfast.integrate(problem, hbvm(6, 3), 0.1, n_steps=2, y0=[-1.0, 0.1, 0.49, 0.0])
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_a_run_whose_H_is_not_defined_on_part_of_its_orbit_says_so(cache_root, tmp_path):
     """The same trial with problem.check: false and an H that is NaN only for q < -0.5 (its
     grad_H finite everywhere): the run completed without a word and inspect said 'no step done yet'
@@ -664,6 +671,7 @@ def test_a_run_whose_H_is_not_defined_on_part_of_its_orbit_says_so(cache_root, t
     assert "invariants   no figures: after 100 steps, the invariants are NaN or infinite in some or all" in report
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_a_gradient_that_goes_nan_where_H_is_finite_is_named_not_the_step(cache_root, tmp_path):
     """A user trial: a python: file whose grad_H returned NaN on part of the orbit was told
     'reduce h; check the initial state and the problem's singularities'. The failure now probes grad H

@@ -269,6 +269,7 @@ def test_resume_says_what_a_changed_event_would_do(tmp_path):
                              "spacing part-way" + advice)
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_resume_with_an_edited_python_problem_file_says_so_and_records_it(tmp_path):
     """A user trial's finding: the config names a python: problem by its path only, so a file
     edited between a kill and --resume (H scaled by 1.01 in H, grad_H and hess_H) was continued

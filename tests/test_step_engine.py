@@ -636,6 +636,7 @@ def test_energy_warning_of_an_adaptive_run_speaks_of_rtol_not_of_its_first_step(
     assert tight.energy_warning() is None
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_energy_note_says_what_a_loss_that_a_larger_k_leaves_unchanged_is(tmp_path):
     """Two user trials: the note said 'raise k or reduce h' where neither helps: the Pythagorean
     three-body problem lost 1e-8 of H to round-off at a close encounter (its terms 1e4 times their
@@ -783,6 +784,7 @@ def test_result_repr_is_a_short_summary():
     assert text.startswith("<Result HBVM(6,3) on kepler") and len(text) < 300 and "\n" not in text
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_steps_next_to_a_zero_of_gamma_are_counted(tmp_path):
     """docs/solver.md#when-gamma-passes-through-zero. A user trial: a 7-atom Lennard-Jones cluster
     imposing L_z, h = 0.005: one step took alpha = 0.194 between -3.3e-4 and 3.9e-4 (a pole of

@@ -116,6 +116,7 @@ def test_a_problem_file_s_njit_helpers_are_cached_with_its_functions(tmp_path):
     assert again == first and "compiling" not in said, said
 
 
+@pytest.mark.usefixtures("allow_python")
 def test_the_H_note_of_a_run_resumed_with_an_edited_problem_file_names_the_edit(tmp_path):
     """A user trial killed a run, edited its python: file's potential and resumed: the note spoke of
     quadrature and k, and not of the two H the run had solved."""
