@@ -21,8 +21,8 @@ from .codes import (internal, FAMILY_LIM, SOLVER_FIXED_POINT, SOLVER_NEWTON_ACCE
 from .linalg import invert_complex, invert_pair, invert_real, lu_factor, lu_solve_factored
 from .simd import (abs4, add4, addsub4, div4, load4, load4_dup_row, load4_row, mul4, pair4, raise4, splat4, store4,
                    store4_row, store_pair_row, sub4)
-from .maps import (EPS, RHS_STABLE, condition_number, elim_map, elim_rhs_terms, elim_rounding, gradient_sizes,
-                   lim_map, lim_rounding)
+from .maps import (EPS, RHS_STABLE, column_scaled_condition, condition_number, elim_map, elim_rhs_terms, elim_rounding,
+                   gradient_sizes, lim_map, lim_rounding)
 
 # The stopping rule's constants (docs/solver.md; measured there, not tunables).
 BAND_FACTOR = 4.0          # the rounding band is B = 4 omega ...
@@ -771,7 +771,9 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     # Spurious solutions (docs/solver.md): a nearly singular Gamma, or a correction as large as the term.
     cond = condition_number(work, nu, False)
     info[1] = cond
-    if not (cond <= MAX_CONDITION):
+    if not (cond <= MAX_CONDITION) and not (column_scaled_condition(work, nu) <= MAX_CONDITION):
+        # Only a Gamma ill-conditioned after its columns are scaled is spurious: the w_c in its
+        # columns make cond(Gamma) alone grow as the step shrinks (maps.column_scaled_condition).
         return STATUS_SINGULAR, iteration
     for c in range(nu):
         if not (abs(h_powers[c] * mult[c]) <= MAX_ETA_CORRECTION):
