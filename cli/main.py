@@ -8,6 +8,7 @@ are imported inside the commands that need them, so ``--help`` stays instant.
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import math
 import os
@@ -257,17 +258,19 @@ def _file_name(ctx, param, value):
 SET_HELP = "Override a config key, e.g. --set method.s=4 --set integration.t_end=100 (repeatable)."
 
 
-def _allow_python_option(command):
-    """--allow-python: a python: problem file named by the config (or --set) may run. Set in the
-    environment, so that a sweep's worker processes (and a local Dask cluster's) inherit it."""
+def _allow_python_option(command, names: str = "the config names"):
+    """--allow-python: the python: problem files named by the config (or --set) may run, for this
+    command only (config.allowing_python until click closes its context: a CLI called in-process,
+    from a notebook, leaves no permission behind); a sweep's worker processes and Dask tasks are
+    given it by the sweep."""
     def allow(ctx, param, value):
         if value:
-            from elimfast.config import ALLOW_PYTHON_ENV
-            os.environ[ALLOW_PYTHON_ENV] = "1"
+            from elimfast.config import allowing_python
+            ctx.with_resource(allowing_python(True))
         return value
     return click.option("--allow-python", is_flag=True, expose_value=False, callback=allow,
-                        help="Run the python: problem files the config names: they are code, which a config alone "
-                             "never runs (also: ELIMFAST_ALLOW_PYTHON=1).")(command)
+                        help=f"Run the python: problem files {names}: they are code, which a config alone never "
+                             "runs (also: ELIMFAST_ALLOW_PYTHON=1).")(command)
 
 
 def _load(config: str, overrides):
@@ -360,12 +363,13 @@ def run(config, output, overrides, overwrite, resume, quiet):
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
-        resume_command=_resume_command(config, path), origins=origins, set_overrides=set_overrides,
+        resume_command=_resume_command(config, path, spec), origins=origins, set_overrides=set_overrides,
         notice=lambda line: click.echo(f"note: {line}", err=True))
     _INTERRUPTED.pop()   # the run has handled its own signals; what follows is the report
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
-    return _report_run(outcome, config, path, quiet, problem=spec.problem)
+    return _report_run(outcome, config, path, quiet, problem=spec.problem,
+                       resume_command=_resume_command(config, path, spec))
 
 
 def _refuse_resuming_a_sweep(path) -> None:
@@ -414,7 +418,7 @@ def _stored_spec(path, overrides, config):
     A refusal names a key the user changed: a --set key first, then one CONFIG writes out, then
     one that follows from them (a user trial's --set integration.rtol was refused as
     'integration.atol (in CONFIG)': atol defaults to rtol, and comes first in key order)."""
-    from elimfast.config import ConfigError, _clip, load_run_from_dict, parse_yaml, read_text_file
+    from elimfast.config import ConfigError, _clip, load_run_from_dict, parse_yaml, python_file_named, read_text_file
     from elimfast.io.hdf5 import RunFile
     from elimfast.io.layout import stored_set_overrides
     from elimfast.streaming import (ABSENT, EXTENSION_KEYS, LOAD_ONLY_KEYS, SOLVER_SECTIONS, STEP_SOLVER_KEYS,
@@ -426,6 +430,18 @@ def _stored_spec(path, overrides, config):
     set_overrides = _merge_sets(stored_sets, overrides)
     source = f"{path} (its stored config)"
     data = parse_yaml(text, source)
+    written = parse_yaml(read_text_file(Path(config), str(config), what="config file"), str(config))
+    # Only CONFIG and the --set given here may name the Python file to run: the file's stored --set
+    # values and stored config are the file's, and a run file someone sent must not choose code (a
+    # user trial: a stored 'problem=evil.py' ran evil.py under the --allow-python given for CONFIG's file).
+    config_dir = Path(config).resolve().parent
+    users_file = python_file_named(written, overrides, config_dir)
+    with_stored = python_file_named(written, set_overrides, config_dir)
+    if with_stored is not None and with_stored != users_file:
+        item = next((item for item in reversed(stored_sets) if _set_key(item).split(".")[0] == "problem"), "")
+        raise ConfigError(f"{path}: the --set {_clip(item)} stored by its earlier run names the Python file "
+                          f"{with_stored}, which {config} does not; a run file cannot choose code to run: if you trust "
+                          f"that file, give the --set again yourself (with --allow-python)", key="problem.python")
     try:
         loaded = _load(config, set_overrides)
     except ConfigError as err:
@@ -437,7 +453,6 @@ def _stored_spec(path, overrides, config):
             raise earlier_end_refusal(path, *earlier) from None
         raise
     given = parse_yaml(_resolved_yaml(loaded), str(config))
-    written = parse_yaml(read_text_file(Path(config), str(config), what="config file"), str(config))
     set_keys = _given_keys(overrides)
     changes, from_config, rank, where = [], [], {}, {}
     for key, value in config_differences(data, given):
@@ -471,6 +486,10 @@ def _stored_spec(path, overrides, config):
         # reported "with kepler.yaml's changes: solver.max_iter=100", a default that follows from it)
         from_config = [item for item in from_config if rank.get(_set_key(item)) != 2]
     origins = {key: where[key] for key in sorted(rank, key=rank.get)}
+    stored_file = python_file_named(data, (), Path(path).resolve().parent)
+    if stored_file is not None and stored_file != users_file:
+        # the stored config's own Python file is loaded below only where CONFIG names it too
+        raise resume_refusal(path, "problem.python", configs=(data, given), origins=origins)
     # The stored config resolves both t_end and n_steps: a run continued to a later end
     # gets the other from the one given.
     keys = {_set_key(item) for item in changes}
@@ -527,11 +546,16 @@ def _set_key(item: str) -> str:
     return str(item).partition("=")[0].strip()
 
 
-def _resume_command(config, path) -> str:
+def _resume_command(config, path, spec=None) -> str:
     """The command that continues a run: its --set values are stored in the file
-    (io.layout.SET_OVERRIDES) and applied again, so they are not part of it."""
+    (io.layout.SET_OVERRIDES) and applied again, so they are not part of it. With --allow-python
+    when the run of ``spec`` runs a python: problem file by the user's leave (this command's)."""
     import shlex
-    return shlex.join(["elimfast", "run", str(config), "-o", str(path), "--resume"])
+
+    from elimfast.config import python_allowed
+    problem = spec.resolved.get("problem") if spec is not None else None
+    allow = ["--allow-python"] if isinstance(problem, dict) and "python" in problem and python_allowed() else []
+    return shlex.join(["elimfast", "run", str(config), "-o", str(path), "--resume", *allow])
 
 
 def _merge_sets(stored, given) -> list[str]:
@@ -553,7 +577,7 @@ def _given_keys(overrides) -> set[str]:
     return keys
 
 
-def _report_run(outcome, config, path, quiet, problem=None) -> int:
+def _report_run(outcome, config, path, quiet, problem=None, resume_command=None) -> int:
     from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX
     from elimfast.streaming import interrupted_line
 
@@ -576,7 +600,7 @@ def _report_run(outcome, config, path, quiet, problem=None) -> int:
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:
         click.echo(interrupted_line(outcome.signal_name, outcome.steps_done, outcome.n_steps, outcome.t, path,
-                                    _resume_command(config, path)), err=True)
+                                    resume_command or _resume_command(config, path)), err=True)
         return EXIT_INTERRUPTED
     if outcome.status.startswith(STOPPED_PREFIX) and outcome.message:
         click.echo(f"error: {one_line(outcome.message)}", err=True)
@@ -947,7 +971,7 @@ def _format_tableau(method, A, b, c, eta) -> str:
 # --- sweep, paper -------------------------------------------------------------------------
 @cli.command(context_settings=CONTEXT)
 @click.argument("sweep_file", metavar="SWEEP.yaml")
-@_allow_python_option
+@functools.partial(_allow_python_option, names="the sweep's configs name")
 @click.option("-o", "--output", metavar="OUT.h5", callback=_file_name,
               help="Store every run under /runs/<label>/ of this file.")
 @click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",

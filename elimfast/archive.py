@@ -17,6 +17,10 @@ from .errors import ElimfastError
 from .kernels.codes import FAMILY_LIM
 
 
+# Where load or load_ensemble refuses a python: problem file: the data needs no problem.
+_WITHOUT_RUNNING_IT = "; or read the data without its problem: elimfast.open_datatree(path)"
+
+
 def load(path, run: str | None = None, *, allow_python: bool | None = None):
     """The Result stored in the run file ``path``, or in the run labelled ``run`` of a sweep
     file (``path`` may also be given as ``"sweep.h5:/runs/<label>"``).
@@ -31,7 +35,7 @@ def load(path, run: str | None = None, *, allow_python: bool | None = None):
     The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
     Raises OutputError (an ElimfastError) for a file or run that cannot be read.
     """
-    from .config import load_run_from_dict, parse_yaml
+    from .config import PythonNotAllowed, load_run_from_dict, parse_yaml
     from .integrate import Result
     from .io.ensemblefile import is_ensemble_file
     from .io.layout import split_run_path
@@ -46,7 +50,8 @@ def load(path, run: str | None = None, *, allow_python: bool | None = None):
             spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
                                       base_dir=Path(file_path).parent, allow_python=allow_python)
         except ElimfastError as err:
-            raise type(err)(f"{stored.name}: cannot rebuild the run from its stored config: {err}") from None
+            raise type(err)(f"{stored.name}: cannot rebuild the run from its stored config: {err}"
+                            f"{_WITHOUT_RUNNING_IT if isinstance(err, PythonNotAllowed) else ''}") from None
         t, y = stored.t(), stored.y()
         invariants = {name: stored.invariant(name) for name in stored.invariant_names}
         multipliers = stored.multipliers()
@@ -111,7 +116,7 @@ def load_ensemble(path, lazy: bool = False, *, allow_python: bool | None = None)
     ensemble holds a column or two, never every array). OutputError for a file whose
     ensemble is not complete (it says how to complete it) or that cannot be read.
     """
-    from .config import load_run_from_dict, parse_yaml
+    from .config import PythonNotAllowed, load_run_from_dict, parse_yaml
     from .ensemble import ROW_ARRAYS, EnsembleRun, LazyEnsembleResult
     from .io.ensemblefile import STATUS_COMPLETE, EnsembleFile
     from .io.safety import OutputError
@@ -131,7 +136,8 @@ def load_ensemble(path, lazy: bool = False, *, allow_python: bool | None = None)
             spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
                                       base_dir=path.parent, allow_python=allow_python)
         except ElimfastError as err:
-            raise type(err)(f"{path}:/ensemble: cannot rebuild the ensemble from its stored config: {err}") from None
+            raise type(err)(f"{path}:/ensemble: cannot rebuild the ensemble from its stored config: {err}"
+                            f"{_WITHOUT_RUNNING_IT if isinstance(err, PythonNotAllowed) else ''}") from None
         run = EnsembleRun.from_spec(spec, stored.column("y0", 0, 1)[0], n_threads=1)
         settings = {"problem": spec.problem, "method": spec.method, "h": float(stored.attrs.get("h", run.h)),
                     "conserve": run.conserve, "n_steps": int(stored.attrs.get("n_steps", run.n_steps)),

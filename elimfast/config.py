@@ -265,7 +265,7 @@ def python_allowed(allow: bool | None = None) -> bool:
     here = _allow_python.get()
     if here is not None:
         return here
-    return os.environ.get(ALLOW_PYTHON_ENV, "").strip().lower() in ("1", "true", "yes")
+    return os.environ.get(ALLOW_PYTHON_ENV, "").strip().lower() in ("1", "true", "yes", "on")
 
 
 @contextlib.contextmanager
@@ -283,6 +283,32 @@ def allowing_python(allow: bool | None = True):
 
 PYTHON_REFUSED = ("is a Python file: running it runs its code, and a config alone never runs code; if you trust "
                   "the file, pass --allow-python (Python: allow_python=True; or set ELIMFAST_ALLOW_PYTHON=1)")
+
+
+class PythonNotAllowed(ConfigError):
+    """A config names a python: problem file that the user has not allowed (python_allowed): no
+    fault of the config, so callers that read a config failing to load as an edit (a sweep's
+    --resume) pass it on as it is."""
+
+
+def python_file_named(data, overrides=(), base_dir=None, source: str = "<dict>") -> Path | None:
+    """The python: problem file (resolved) that config data names with the --set items
+    ``overrides`` applied, or None; read without loading anything (load_run_from_dict's rules:
+    the shorthand ``problem: file.py``, paths relative to ``base_dir``)."""
+    try:
+        data, _ = _apply_overrides(copy.deepcopy(data), overrides, source)
+    except ConfigError:
+        return None
+    problem = data.get("problem") if isinstance(data, dict) else None
+    name = problem if isinstance(problem, str) and problem.endswith(".py") else (
+        problem.get("python") if isinstance(problem, dict) else None)
+    if not isinstance(name, str):
+        return None
+    try:
+        path = Path(name).expanduser()
+        return (path if path.is_absolute() else Path(base_dir if base_dir is not None else Path.cwd()) / path).resolve()
+    except (OSError, RuntimeError, ValueError):
+        return None
 
 
 # --- entry points -------------------------------------------------------------------------
@@ -1090,19 +1116,29 @@ class _Builder:
         return problem.with_initial(y0)
 
     def python_file(self, section: Section):
-        from .problems.user_file import problem_from_file
+        from .problems.user_file import missing_file_text, problem_from_file
 
-        path = Path(section.python).expanduser()
-        if not path.is_absolute():
-            path = self.base_dir / path
-        if path.exists():
+        try:
+            path = Path(section.python).expanduser()
+            if not path.is_absolute():
+                path = self.base_dir / path
+            if b"\0" in os.fsencode(path):   # Path.exists says False, and open raises ValueError
+                raise ValueError("embedded null byte")
+            exists = path.exists()
+        except (OSError, RuntimeError, ValueError) as err:   # a NUL, a lone surrogate, ~nosuchuser, too long
+            reason = getattr(err, "strerror", None) or str(err)
+            raise self.error(("problem", "python"), f"{section.python!r} is not a usable path ({reason}); give "
+                                                    "the path of a .py file") from None
+        if exists:
             try:
                 read_text_file(path, str(path), what="python problem file", example="a .py file")
             except ConfigError as err:
                 raise self.error(("problem", "python"), str(err)) from None
-        if not self.allow_python and path.exists():
-            # after the file's own faults (a missing file is told so: problem_from_file), before it is imported
-            raise self.error(("problem", "python"), f"{section.python} {PYTHON_REFUSED}")
+        if not exists:   # told here, so that nothing is ever read from a path checked before it existed
+            raise self.error(("problem", "python"), missing_file_text(path))
+        if not self.allow_python:   # the file's own faults first, and nothing is imported
+            error = self.error(("problem", "python"), f"{section.python} {PYTHON_REFUSED}")
+            raise PythonNotAllowed(str(error), key=error.key, line=error.line)
         problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name,
                                     check=False)   # checked below with the other modes (problem.check)
         return problem, {"python": str(path.resolve()), "name": problem.name,

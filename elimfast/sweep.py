@@ -364,13 +364,16 @@ def _check_same_problem(source: str, runs: list[SweepRun], reference: dict) -> N
                                              "for an orbit over whole periods)")
 
 
-def load_sweep(path: str | os.PathLike) -> SweepSpec:
+def load_sweep(path: str | os.PathLike, *, allow_python: bool | None = None) -> SweepSpec:
     """Read and expand a sweep file (see the module docstring). Runs are validated later,
     each by the config loader, so that one bad point fails alone with its reason; the
     reference run, which every error needs, is loaded here, and so are the numbers of plain
-    axes (SweepError, with the line of the key at fault)."""
+    axes (SweepError, with the line of the key at fault). ``allow_python``: may the reference
+    run's python: problem file be run (default: config.python_allowed())."""
+    from .config import allowing_python
     try:
-        return _load_sweep(Path(path))
+        with allowing_python(allow_python):
+            return _load_sweep(Path(path))
     except SweepError as err:
         if err.key is None or err.source != str(Path(path)):
             raise
@@ -978,6 +981,7 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[..., dict[str, int]]:
     So a failed run can be run again with more halvings or another solver, and values can be
     added to an axis, without recomputing the rest. Raises OutputError naming the first run
     and key that would change; returns {label: place in the edited grid}."""
+    from .config import PythonNotAllowed
     from .streaming import LOAD_ONLY_KEYS, SOLVER_SECTIONS, config_difference, step_solver_change
 
     def accept(stored: dict[str, str], written_by: str | None = None,
@@ -993,6 +997,8 @@ def solver_only_edit(spec: SweepSpec, path) -> Callable[..., dict[str, int]]:
                                   f"keeps every stored run; pass --overwrite to start again, or {elsewhere}")
             try:
                 point = _load_point(spec.source, label, runs[label].config)
+            except PythonNotAllowed:
+                raise   # not an edit: the user did not allow the run's python: file (a user trial)
             except ElimfastError as error:
                 raise OutputError(f"{edited}, and the stored run {label!r} no longer loads: {error}") from None
             current = _config_text(point.resolved)
@@ -1619,6 +1625,22 @@ def _config_text(resolved: dict) -> str:
     return yaml.safe_dump(resolved or {}, sort_keys=False, default_flow_style=None, width=100)
 
 
+def refuse_python_not_allowed(spec: SweepSpec) -> None:
+    """PythonNotAllowed, before any run, naming the first run (or an ensemble's base) whose config
+    names an existing python: problem file that the user has not allowed (config.python_allowed):
+    a user trial's sweep ran every other run first, then stopped on that one with exit 2."""
+    from .config import PYTHON_REFUSED, PythonNotAllowed, python_allowed, python_file_named
+    if python_allowed():
+        return
+    configs = [("", spec.base)] if spec.ensemble is not None else [(run.label, run.config) for run in spec.runs]
+    for label, config in configs:
+        named = python_file_named(config, base_dir=Path(spec.source).parent)
+        if named is not None and named.is_file():
+            where = f" (run {label!r})" if label else ""
+            raise PythonNotAllowed(f"{spec.source}{where}: problem.python: {named} {PYTHON_REFUSED}",
+                                   key="problem.python")
+
+
 def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool = False,
                 resume: bool = False, keep_results: bool = False, client=None, scheduler: str | None = None,
                 on_start: Callable[[int], None] | None = None,
@@ -1673,6 +1695,7 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                         else "problem file")
                 raise OutputError(f"{path}: is the sweep's {what} itself, which writing would replace; give another "
                                   "output file, e.g. out/sweep.h5")
+    refuse_python_not_allowed(spec)
     say = on_message or (lambda line: None)
     writer = None
 

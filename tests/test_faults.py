@@ -584,7 +584,7 @@ def test_a_signal_stops_a_kernel_call_that_never_returns(tmp_path, sig):
         assert f.verify()["checksummed"]
         t = float(f.saved_state()["clock"][0])
     assert finished.last_line == (f"interrupted by {name} at step {saved}/100000 (t = {exact_time(t)}); {path} is complete "
-                                  f"up to there; continue with: elimfast run {config} -o {path} --resume")
+                                  f"up to there; continue with: elimfast run {config} -o {path} --resume --allow-python")
     if sig == signal.SIGINT:                 # fix the problem, resume, compare with a run of the fixed one
         drift_problem(tmp_path, FIXED)
         resumed = elimfast("run", config, "-o", path, "--resume")
@@ -614,7 +614,7 @@ def test_a_problem_function_that_raises_is_one_line_naming_the_users_file(tmp_pa
                      if not line.startswith("compiling "))
     assert errors == (f"error: {tmp_path / 'drift.py'}: a problem function raised ValueError: q is beyond the "
                       f"wall at step 50001 (t = 50); {path} holds the {saved} steps saved before it; fix the "
-                      f"problem, then continue with: elimfast run {config} -o {path} --resume\n")
+                      f"problem, then continue with: elimfast run {config} -o {path} --resume --allow-python\n")
     assert "u_" not in result.stderr
     drift_problem(tmp_path, FIXED)
     resumed = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])

@@ -2,8 +2,7 @@
 the config (--allow-python, allow_python=True, ELIMFAST_ALLOW_PYTHON=1). A user trial ran a
 config naming a file whose top-level code wrote where it liked, under `run` and under `check`.
 
-Every test here takes the permission away first (monkeypatch: the CLI's flag sets the variable
-in this process too, and monkeypatch puts the old value back).
+Every test here takes the permission away first (the folder fixture: ELIMFAST_ALLOW_PYTHON unset).
 """
 import yaml
 import pytest
@@ -11,7 +10,8 @@ from click.testing import CliRunner
 
 import elimfast
 from cli.main import cli
-from elimfast.config import ALLOW_PYTHON_ENV, ConfigError, allowing_python, load_run, python_allowed
+from elimfast.config import (ALLOW_PYTHON_ENV, ConfigError, PythonNotAllowed, allowing_python, load_run,
+                             load_run_from_dict, python_allowed)
 
 # A harmonic oscillator whose import leaves a mark in the test's folder: the mark is what running
 # it does (elimfast imports a copy of the file from its cache: hence the folder's path in the text).
@@ -98,12 +98,21 @@ def test_a_sweep_runs_a_python_file_only_when_allowed_also_in_its_worker_process
     sweep.write_text(yaml.safe_dump({"base": "builtin.yaml", "grid": [
         {"name": "problem", "values": [{"label": "osc", "set": {"problem": {"python": "osc.py"}}}]},
         {"name": "h", "key": "integration.h", "values": [0.1, 0.05]}]}))
-    refused = invoke("sweep", sweep, "--workers", "2", "-q")
-    assert refused.exit_code == 2 and "--allow-python" in refused.stderr, refused.output
+    out = folder / "sweep.h5"
+    refused = invoke("sweep", sweep, "--workers", "2", "-q", "-o", out)
+    # before any run (a user trial: the other runs ran first, then the sweep stopped)
+    assert refused.exit_code == 2 and refused.stdout == "" and not out.exists(), refused.output
+    assert refused.stderr.startswith(f"error: {sweep} (run 'osc/0.1'): problem.python: "), refused.stderr
+    assert "--allow-python" in refused.stderr and refused.stderr.count("\n") == 1
     assert not (folder / "MARK").exists()
-    allowed = invoke("sweep", sweep, "--workers", "2", "-q", "--allow-python")
+    allowed = invoke("sweep", sweep, "--workers", "2", "-q", "--allow-python", "-o", out)
     assert allowed.exit_code == 0, allowed.output
     assert allowed.stdout.count("complete") == 2 and (folder / "MARK").exists()
+    assert not python_allowed()   # the flag's leave ended with its command
+    # --resume without the flag: the same refusal, not "the sweep was edited" (a user trial)
+    again = invoke("sweep", sweep, "-q", "-o", out, "--resume")
+    assert again.exit_code == 2 and "is a Python file" in again.stderr and "edited" not in again.stderr
+    assert invoke("sweep", sweep, "-q", "-o", out, "--resume", "--allow-python").exit_code == 0
 
 
 def test_a_dask_task_takes_the_clients_permission_not_the_workers_environment(folder):
@@ -125,10 +134,76 @@ def test_opening_a_run_file_runs_no_python_file_beside_it(folder):
     out = folder / "o.h5"
     assert invoke("run", folder / "osc.yaml", "-o", out, "-q", "--allow-python").exit_code == 0
     (folder / "MARK").unlink()
-    del __import__("os").environ[ALLOW_PYTHON_ENV]    # set by the flag, in this process
-    with pytest.raises(elimfast.ElimfastError, match=r"cannot rebuild the run from its stored config: .*"
-                                                     r"is a Python file.*allow_python=True"):
+    with pytest.raises(PythonNotAllowed, match=r"cannot rebuild the run from its stored config: .*is a Python "
+                                               r"file.*allow_python=True.*; or read the data without its problem: "
+                                               r"elimfast.open_datatree\(path\)$"):
         elimfast.load(out)
     assert not (folder / "MARK").exists()
     result = elimfast.load(out, allow_python=True)   # (the module this process imported for the run)
     assert result.steps_done == 10 and result.problem.name == "osc"
+
+
+def test_the_cli_flag_allows_for_its_command_only(folder):
+    """A user trial: --allow-python wrote ELIMFAST_ALLOW_PYTHON=1 into this process's environment for
+    good, so that a later elimfast.load in the same notebook ran the file of a run file it opened."""
+    from cli.main import cli as command
+    command.main(["check", str(folder / "osc.yaml"), "--allow-python"], standalone_mode=False)
+    assert not python_allowed() and ALLOW_PYTHON_ENV not in __import__("os").environ
+
+
+@pytest.mark.parametrize("name,reason", [("a\x00.py", "null"), ("~no_such_user_zz9/x.py", "home"),
+                                         ("x" * 300 + ".py", "too long")])
+def test_a_path_that_cannot_be_a_file_is_one_config_error(folder, name, reason):
+    """A user trial: a NUL in the path, a lone surrogate or ~nosuchuser was an internal error; a name
+    too long for the file system named neither the config nor the key."""
+    with pytest.raises(ConfigError, match=rf"problem\.python: .* is not a usable path \(.*{reason}.*\); give the "
+                                          r"path of a \.py file|problem\.python: python problem file .* does not exist"):
+        load_run_from_dict({"problem": {"python": name}, **REST}, source="c.yaml", allow_python=True)
+
+
+def test_a_run_file_cannot_choose_the_python_file_its_resume_runs(folder):
+    """A user trial: a run file's stored --set values (plain JSON in it) are applied at --resume, so an
+    edited file could name another Python file, which then ran under the --allow-python given for the
+    config's own file. Only the config and the --set given now may name it."""
+    import json
+
+    import h5py
+    (folder / "evil.py").write_text(OSCILLATOR.format(mark=str(folder / "EVIL")))
+    out = folder / "o.h5"
+    assert invoke("run", folder / "osc.yaml", "-o", out, "-q", "--allow-python",
+                  "--set", "integration.t_end=0.5").exit_code == 0
+    with h5py.File(out, "r+") as f:
+        f.attrs["set_overrides"] = json.dumps([f"problem={folder / 'evil.py'}"])
+    refused = invoke("run", folder / "osc.yaml", "-o", out, "--resume", "--allow-python", "-q")
+    assert refused.exit_code == 2 and "a run file cannot choose code to run" in refused.stderr, refused.output
+    assert not (folder / "EVIL").exists()
+    with h5py.File(out, "r+") as f:   # the stored config's own file, with the stored --set put back
+        f.attrs["set_overrides"] = json.dumps(["integration.t_end=0.5"])
+        f.attrs["config"] = str(f.attrs["config"]).replace(str(folder / "osc.py"), str(folder / "evil.py"))
+    refused = invoke("run", folder / "osc.yaml", "-o", out, "--resume", "--allow-python", "-q")
+    assert refused.exit_code == 2 and "problem.python" in refused.stderr, refused.output
+    assert not (folder / "EVIL").exists()
+
+
+def test_the_resume_command_a_run_prints_repeats_the_allowance(folder):
+    """A user trial: the 'continue with' command of a python: problem's stopped run left out
+    --allow-python, and run as printed it was refused."""
+    (folder / "late.py").write_text(OSCILLATOR.format(mark=str(folder / "MARK")).replace(
+        "    out[0] = y[0]\n", "    if y[0] < -0.9:\n        raise ValueError('late')\n    out[0] = y[0]\n"))
+    (folder / "late.yaml").write_text(yaml.safe_dump({"problem": {"python": "late.py"}, **REST,
+                                                      "integration": {"h": 0.1, "t_end": 4}}))
+    failed = invoke("run", folder / "late.yaml", "-o", folder / "late.h5", "--allow-python")
+    assert failed.exit_code == 1, failed.output
+    assert f"--resume --allow-python" in failed.stderr, failed.stderr
+
+
+def test_load_sweep_takes_the_allowance_its_reference_run_needs(folder):
+    sweep = folder / "ref.yaml"
+    sweep.write_text(yaml.safe_dump({"base": "osc.yaml", "grid": [{"name": "h", "key": "integration.h",
+                                                                    "values": [0.1, 0.05]}],
+                                     "error": {"reference": {"set": {"integration": {"h": 0.01}}}}}))
+    from elimfast.sweep import load_sweep
+    with pytest.raises(Exception, match="is a Python file"):
+        load_sweep(sweep)
+    assert not (folder / "MARK").exists()
+    assert len(load_sweep(sweep, allow_python=True).runs) == 2

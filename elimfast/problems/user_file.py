@@ -143,14 +143,17 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
     return problem
 
 
+def missing_file_text(path) -> str:
+    return f"python problem file {path} does not exist; check the path (relative paths are relative to the config file)"
+
+
 def _build_from_file(path, parameters, initial, name) -> Problem:
     path = Path(path).expanduser()
     label = str(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise UserProblemError(f"python problem file {label} does not exist; check the path (relative paths "
-                               "are relative to the config file)", key="python") from None
+        raise UserProblemError(missing_file_text(label), key="python") from None
     except (OSError, UnicodeDecodeError) as err:
         raise UserProblemError(f"python problem file {label} cannot be read ({err})", key="python") from None
     module = _load_module(path, text)
