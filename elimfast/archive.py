@@ -35,10 +35,12 @@ def load(path, run: str | None = None, *, allow_python: bool | None = None):
     The file of an ensemble sweep gives its EnsembleResult (``load_ensemble``).
     Raises OutputError (an ElimfastError) for a file or run that cannot be read.
     """
+    import warnings
+
     from .config import PythonNotAllowed, load_run_from_dict, parse_yaml
     from .integrate import Result
     from .io.ensemblefile import is_ensemble_file
-    from .io.layout import split_run_path
+    from .io.layout import PROBLEM_FILE_DIGEST, problem_file_changed, split_run_path
     from .io.runfile import RunFile
 
     file_path, run = split_run_path(path, run)
@@ -52,6 +54,10 @@ def load(path, run: str | None = None, *, allow_python: bool | None = None):
         except ElimfastError as err:
             raise type(err)(f"{stored.name}: cannot rebuild the run from its stored config: {err}"
                             f"{_WITHOUT_RUNNING_IT if isinstance(err, PythonNotAllowed) else ''}") from None
+        changed = problem_file_changed(stored.attrs.get(PROBLEM_FILE_DIGEST), spec.problem)
+        if changed:   # a user trial: the permission was given for the file that made the run
+            warnings.warn(f"{stored.name}: {changed}: the Result's problem is that file as it is now, not the "
+                          "run's", stacklevel=2)
         t, y = stored.t(), stored.y()
         invariants = {name: stored.invariant(name) for name in stored.invariant_names}
         multipliers = stored.multipliers()

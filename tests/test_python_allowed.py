@@ -141,6 +141,10 @@ def test_opening_a_run_file_runs_no_python_file_beside_it(folder):
     assert not (folder / "MARK").exists()
     result = elimfast.load(out, allow_python=True)   # (the module this process imported for the run)
     assert result.steps_done == 10 and result.problem.name == "osc"
+    # the file changed since the run: said, since the permission was for the file that made it
+    (folder / "osc.py").write_text((folder / "osc.py").read_text() + "\n# edited\n")
+    with pytest.warns(UserWarning, match=r"o\.h5: the problem file .*osc\.py has changed since it was stored"):
+        assert elimfast.load(out, allow_python=True).steps_done == 10
 
 
 def test_the_cli_flag_allows_for_its_command_only(folder):
