@@ -257,9 +257,9 @@ _allow_python = contextvars.ContextVar("elimfast_allow_python", default=None)
 
 def python_allowed(allow: bool | None = None) -> bool:
     """May a config's ``python:`` problem file be run? ``allow`` when given (a caller's
-    ``allow_python=``), else the innermost ``allowing_python``, else ELIMFAST_ALLOW_PYTHON=1 in
-    the environment (which the CLI's ``--allow-python`` sets, so that a sweep's worker
-    processes inherit it)."""
+    ``allow_python=``), else the innermost ``allowing_python`` (the CLI's ``--allow-python``, for
+    its command), else ELIMFAST_ALLOW_PYTHON=1 in the environment (the user's standing leave; a
+    sweep's worker processes are given the parent's answer, sweep._worker_init)."""
     if allow is not None:
         return bool(allow)
     here = _allow_python.get()
@@ -306,7 +306,8 @@ def python_file_named(data, overrides=(), base_dir=None, source: str = "<dict>")
         return None
     try:
         path = Path(name).expanduser()
-        return (path if path.is_absolute() else Path(base_dir if base_dir is not None else Path.cwd()) / path).resolve()
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+        return (path if path.is_absolute() else base / path).resolve()
     except (OSError, RuntimeError, ValueError):
         return None
 
@@ -1129,13 +1130,12 @@ class _Builder:
             reason = getattr(err, "strerror", None) or str(err)
             raise self.error(("problem", "python"), f"{section.python!r} is not a usable path ({reason}); give "
                                                     "the path of a .py file") from None
-        if exists:
-            try:
-                read_text_file(path, str(path), what="python problem file", example="a .py file")
-            except ConfigError as err:
-                raise self.error(("problem", "python"), str(err)) from None
         if not exists:   # told here, so that nothing is ever read from a path checked before it existed
             raise self.error(("problem", "python"), missing_file_text(path))
+        try:
+            read_text_file(path, str(path), what="python problem file", example="a .py file")
+        except ConfigError as err:
+            raise self.error(("problem", "python"), str(err)) from None
         if not self.allow_python:   # the file's own faults first, and nothing is imported
             error = self.error(("problem", "python"), f"{section.python} {PYTHON_REFUSED}")
             raise PythonNotAllowed(str(error), key=error.key, line=error.line)

@@ -1180,9 +1180,11 @@ def _worker_init(parent: int | None = None, allow_python: bool = False) -> None:
     ``allow_python``: the parent's config.python_allowed() (its allowing_python, if that is what
     allowed it, is not inherited by a process)."""
     import signal
+    from .config import ALLOW_PYTHON_ENV
     if allow_python:
-        from .config import ALLOW_PYTHON_ENV
         os.environ[ALLOW_PYTHON_ENV] = "1"
+    else:   # the parent's answer, also where it said no to an inherited ELIMFAST_ALLOW_PYTHON
+        os.environ.pop(ALLOW_PYTHON_ENV, None)
     with contextlib.suppress(ValueError, OSError):
         signal.set_wakeup_fd(-1)
     signal.signal(signal.SIGINT, signal.default_int_handler)
