@@ -80,8 +80,7 @@ _FAILURE_ADVICE = {
 _ADAPTIVE_FAILURE_ADVICE = {
     codes.STATUS_NOT_CONVERGED: "the step control found no step that converges; raise solver.max_iter",
     codes.STATUS_SINGULAR: ("Assumption 1 of the paper fails for these invariants here (Gamma, docs/methods.md); "
-                            f"impose fewer or other invariants, or {_TAKE_GHBVM}; Kepler e = 0.99999 on "
-                            "time-reversible steps: EHBVM(8,4) fails at the pericentre, GHBVM(8,4) does not)"),
+                            f"impose fewer or other invariants, or {_TAKE_GHBVM})"),
     codes.STATUS_NONFINITE: "check the initial state and the problem's singularities",
     codes.STATUS_TIME_SCALE: ("sigma must stay positive and finite along the whole orbit: take a power of a "
                               "distance, e.g. (q1**2 + q2**2)**0.75, or use step_control: error "
