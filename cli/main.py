@@ -360,16 +360,16 @@ def run(config, output, overrides, overwrite, resume, quiet):
         integration = Integration.from_spec(spec)
         from elimfast import streaming
     label = f"{spec.method.name} {spec.problem.name}"
+    resume_command = _resume_command(config, path, spec)
     outcome = streaming.run_to_file(
         integration, path, config_text=_resolved_yaml(spec, path), t_end=spec.t_end, overwrite=overwrite,
         resume=resume, progress=streaming.progress_for(quiet), label=label,
-        resume_command=_resume_command(config, path, spec), origins=origins, set_overrides=set_overrides,
+        resume_command=resume_command, origins=origins, set_overrides=set_overrides,
         notice=lambda line: click.echo(f"note: {line}", err=True))
     _INTERRUPTED.pop()   # the run has handled its own signals; what follows is the report
     if from_config:
         outcome.note = "; ".join(filter(None, [outcome.note, f"with {config}'s changes: {', '.join(from_config)}"]))
-    return _report_run(outcome, config, path, quiet, problem=spec.problem,
-                       resume_command=_resume_command(config, path, spec))
+    return _report_run(outcome, config, path, quiet, resume_command, problem=spec.problem)
 
 
 def _refuse_resuming_a_sweep(path) -> None:
@@ -546,14 +546,14 @@ def _set_key(item: str) -> str:
     return str(item).partition("=")[0].strip()
 
 
-def _resume_command(config, path, spec=None) -> str:
+def _resume_command(config, path, spec) -> str:
     """The command that continues a run: its --set values are stored in the file
     (io.layout.SET_OVERRIDES) and applied again, so they are not part of it. With --allow-python
     when the run of ``spec`` runs a python: problem file by the user's leave (this command's)."""
     import shlex
 
     from elimfast.config import python_allowed
-    problem = spec.resolved.get("problem") if spec is not None else None
+    problem = spec.resolved.get("problem")
     allow = ["--allow-python"] if isinstance(problem, dict) and "python" in problem and python_allowed() else []
     return shlex.join(["elimfast", "run", str(config), "-o", str(path), "--resume", *allow])
 
@@ -577,7 +577,7 @@ def _given_keys(overrides) -> set[str]:
     return keys
 
 
-def _report_run(outcome, config, path, quiet, problem=None, resume_command=None) -> int:
+def _report_run(outcome, config, path, quiet, resume_command: str, problem=None) -> int:
     from elimfast.io.hdf5 import STATUS_COMPLETE, STATUS_INTERRUPTED, STOPPED_PREFIX
     from elimfast.streaming import interrupted_line
 
@@ -600,7 +600,7 @@ def _report_run(outcome, config, path, quiet, problem=None, resume_command=None)
         return EXIT_OK
     if outcome.status == STATUS_INTERRUPTED:
         click.echo(interrupted_line(outcome.signal_name, outcome.steps_done, outcome.n_steps, outcome.t, path,
-                                    resume_command or _resume_command(config, path)), err=True)
+                                    resume_command), err=True)
         return EXIT_INTERRUPTED
     if outcome.status.startswith(STOPPED_PREFIX) and outcome.message:
         click.echo(f"error: {one_line(outcome.message)}", err=True)

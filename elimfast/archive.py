@@ -21,6 +21,19 @@ from .kernels.codes import FAMILY_LIM
 _WITHOUT_RUNNING_IT = "; or read the data without its problem: elimfast.open_datatree(path)"
 
 
+def _rebuilt_spec(config_text: str, where: str, what: str, base_dir, allow_python):
+    """The RunSpec of the config stored at ``where`` (a run file, a sweep's run, an ensemble's
+    group), for load and load_ensemble; its error names ``where`` and the ``what`` it rebuilds."""
+    from .config import PythonNotAllowed, load_run_from_dict, parse_yaml
+    source = f"{where} (its stored config)"
+    try:
+        return load_run_from_dict(parse_yaml(config_text, source), source=source, base_dir=base_dir,
+                                  allow_python=allow_python)
+    except ElimfastError as err:
+        hint = _WITHOUT_RUNNING_IT if isinstance(err, PythonNotAllowed) else ""
+        raise type(err)(f"{where}: cannot rebuild the {what} from its stored config: {err}{hint}") from None
+
+
 def load(path, run: str | None = None, *, allow_python: bool | None = None):
     """The Result stored in the run file ``path``, or in the run labelled ``run`` of a sweep
     file (``path`` may also be given as ``"sweep.h5:/runs/<label>"``).
@@ -37,7 +50,6 @@ def load(path, run: str | None = None, *, allow_python: bool | None = None):
     """
     import warnings
 
-    from .config import PythonNotAllowed, load_run_from_dict, parse_yaml
     from .integrate import Result
     from .io.ensemblefile import is_ensemble_file
     from .io.layout import PROBLEM_FILE_DIGEST, problem_file_changed, split_run_path
@@ -47,13 +59,8 @@ def load(path, run: str | None = None, *, allow_python: bool | None = None):
     if run is None and is_ensemble_file(file_path):
         return load_ensemble(file_path, allow_python=allow_python)
     with RunFile(file_path, run=run) as stored:
-        source = f"{stored.name} (its stored config)"
-        try:
-            spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
-                                      base_dir=Path(file_path).parent, allow_python=allow_python)
-        except ElimfastError as err:
-            raise type(err)(f"{stored.name}: cannot rebuild the run from its stored config: {err}"
-                            f"{_WITHOUT_RUNNING_IT if isinstance(err, PythonNotAllowed) else ''}") from None
+        spec = _rebuilt_spec(str(stored.attrs.get("config", "")), stored.name, "run", Path(file_path).parent,
+                             allow_python)
         changed = problem_file_changed(stored.attrs.get(PROBLEM_FILE_DIGEST), spec.problem)
         if changed:   # a user trial: the permission was given for the file that made the run
             warnings.warn(f"{stored.name}: {changed}: the Result's problem is that file as it is now, not the "
@@ -122,7 +129,6 @@ def load_ensemble(path, lazy: bool = False, *, allow_python: bool | None = None)
     ensemble holds a column or two, never every array). OutputError for a file whose
     ensemble is not complete (it says how to complete it) or that cannot be read.
     """
-    from .config import PythonNotAllowed, load_run_from_dict, parse_yaml
     from .ensemble import ROW_ARRAYS, EnsembleRun, LazyEnsembleResult
     from .io.ensemblefile import STATUS_COMPLETE, EnsembleFile
     from .io.safety import OutputError
@@ -137,13 +143,8 @@ def load_ensemble(path, lazy: bool = False, *, allow_python: bool | None = None)
         if not stored.has("diagnostics"):
             raise OutputError(f"{path}: its ensemble was written by an earlier elimfast (no /ensemble/diagnostics); "
                               "read it with h5py or xarray, or run the sweep again")
-        source = f"{path}:/ensemble (its stored config)"
-        try:
-            spec = load_run_from_dict(parse_yaml(str(stored.attrs.get("config", "")), source), source=source,
-                                      base_dir=path.parent, allow_python=allow_python)
-        except ElimfastError as err:
-            raise type(err)(f"{path}:/ensemble: cannot rebuild the ensemble from its stored config: {err}"
-                            f"{_WITHOUT_RUNNING_IT if isinstance(err, PythonNotAllowed) else ''}") from None
+        spec = _rebuilt_spec(str(stored.attrs.get("config", "")), f"{path}:/ensemble", "ensemble", path.parent,
+                             allow_python)
         run = EnsembleRun.from_spec(spec, stored.column("y0", 0, 1)[0], n_threads=1)
         settings = {"problem": spec.problem, "method": spec.method, "h": float(stored.attrs.get("h", run.h)),
                     "conserve": run.conserve, "n_steps": int(stored.attrs.get("n_steps", run.n_steps)),

@@ -144,7 +144,9 @@ def problem_from_file(path, parameters=None, initial=None, name: str | None = No
 
 
 def missing_file_text(path) -> str:
-    return f"python problem file {path} does not exist; check the path (relative paths are relative to the config file)"
+    """The one error for a python: problem file that is not there (here and config's gate)."""
+    return (f"python problem file {path} does not exist; check the path (relative paths are relative to the "
+            "config file)")
 
 
 def _build_from_file(path, parameters, initial, name) -> Problem:
