@@ -265,6 +265,10 @@ def python_allowed(allow: bool | None = None) -> bool:
     here = _allow_python.get()
     if here is not None:
         return here
+    return _env_allows_python()
+
+
+def _env_allows_python() -> bool:
     return os.environ.get(ALLOW_PYTHON_ENV, "").strip().lower() in ("1", "true", "yes", "on")
 
 
@@ -283,6 +287,16 @@ def allowing_python(allow: bool | None = True):
 
 PYTHON_REFUSED = ("is a Python file: running it runs its code, and a config alone never runs code; if you trust "
                   "the file, pass --allow-python (Python: allow_python=True; or set ELIMFAST_ALLOW_PYTHON=1)")
+# When the environment allows it, only a caller's allow_python=False refuses: the variable is no fix.
+PYTHON_REFUSED_BY_CALLER = ("is a Python file: running it runs its code, and this call was given allow_python=False "
+                            f"(which overrides {ALLOW_PYTHON_ENV}); if you trust the file, pass allow_python=True")
+
+
+def python_refused_text() -> str:
+    """Why a python: file was refused, with the fix that applies: PYTHON_REFUSED, or
+    PYTHON_REFUSED_BY_CALLER when the environment allows Python files (only a caller's
+    allow_python=False refuses then, and setting the variable is no fix)."""
+    return PYTHON_REFUSED_BY_CALLER if _env_allows_python() else PYTHON_REFUSED
 
 
 class PythonNotAllowed(ConfigError):
@@ -1137,7 +1151,7 @@ class _Builder:
         except ConfigError as err:
             raise self.error(("problem", "python"), str(err)) from None
         if not self.allow_python:   # the file's own faults first, and nothing is imported
-            error = self.error(("problem", "python"), f"{section.python} {PYTHON_REFUSED}")
+            error = self.error(("problem", "python"), f"{section.python} {python_refused_text()}")
             raise PythonNotAllowed(str(error), key=error.key, line=error.line)
         problem = problem_from_file(path, parameters=section.parameters, initial=section.initial, name=section.name,
                                     check=False)   # checked below with the other modes (problem.check)

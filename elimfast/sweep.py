@@ -1631,7 +1631,7 @@ def refuse_python_not_allowed(spec: SweepSpec) -> None:
     """PythonNotAllowed, before any run, naming the first run (or an ensemble's base) whose config
     names an existing python: problem file that the user has not allowed (config.python_allowed):
     a user trial's sweep ran every other run first, then stopped on that one with exit 2."""
-    from .config import PYTHON_REFUSED, PythonNotAllowed, python_allowed, python_file_named
+    from .config import PythonNotAllowed, python_allowed, python_file_named, python_refused_text
     if python_allowed():
         return
     configs = [("", spec.base)] if spec.ensemble is not None else [(run.label, run.config) for run in spec.runs]
@@ -1639,7 +1639,7 @@ def refuse_python_not_allowed(spec: SweepSpec) -> None:
         named = python_file_named(config, base_dir=Path(spec.source).parent)
         if named is not None and named.is_file():
             where = f" (run {label!r})" if label else ""
-            raise PythonNotAllowed(f"{spec.source}{where}: problem.python: {named} {PYTHON_REFUSED}",
+            raise PythonNotAllowed(f"{spec.source}{where}: problem.python: {named} {python_refused_text()}",
                                    key="problem.python")
 
 

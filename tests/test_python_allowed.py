@@ -87,8 +87,12 @@ def test_the_python_api_refuses_unless_allowed(folder, monkeypatch):
     (folder / "MARK").unlink()
     monkeypatch.setenv(ALLOW_PYTHON_ENV, "1")
     assert python_allowed()
-    with allowing_python(False), pytest.raises(ConfigError, match="is a Python file"):
+    with allowing_python(False), pytest.raises(ConfigError, match="is a Python file") as refused:
         load_run(folder / "osc.yaml")   # the caller's word before the environment's
+    # ... and the message does not suggest the variable that is already set (a user trial)
+    assert "allow_python=False" in str(refused.value) and f"set {ALLOW_PYTHON_ENV}" not in str(refused.value)
+    with pytest.raises(ConfigError, match="given allow_python=False"):
+        load_run(folder / "osc.yaml", allow_python=False)
     assert not (folder / "MARK").exists()
     assert load_run(folder / "osc.yaml").problem.name == "osc"
 
