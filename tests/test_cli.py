@@ -164,14 +164,15 @@ def test_many_unimposed_steps_of_an_adaptive_run_name_its_shortest_steps(tmp_pat
     invariants were degenerate along the orbit, which is not so. The note names the short steps too.
     (At e = 0.99 and 0.9995 those steps are now taken imposed: they were split on cond(Gamma) alone,
     and then taken unimposed, docs/solver.md; at e = 0.9999 too, since cond(Gamma) is taken with its
-    columns scaled. At e = 0.99999, rtol 1e-12, 77 of 246 steps over one period are too short for
-    Gamma.)"""
+    columns scaled, and at e = 0.99999 and beyond since its pivots are judged per column. With
+    s = 8, whose Gamma holds Legendre coefficients of index 6 and 7 (~h^6, h^7), 47 of 573
+    pericentre steps of e = 0.99 at epsilon 0.02 are too short for Gamma.)"""
     import yaml
     config = tmp_path / "e099.yaml"
     config.write_text(yaml.safe_dump({
-        "problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.99999}},
-        "conserve": ["angular_momentum", "lrl_y"], "method": {"name": "ehbvm", "s": 4},
-        "integration": {"rtol": 1e-12, "t_end": "2*pi"}}))
+        "problem": {"builtin": "kepler", "parameters": {"eccentricity": 0.99}},
+        "conserve": ["angular_momentum", "lrl_y"], "method": {"name": "ehbvm", "k": 16, "s": 8},
+        "integration": {"step_control": "time_scale", "epsilon": 0.02, "t_end": "2*pi"}}))
     out = tmp_path / "e099.h5"
     ran = invoke("run", config, "-o", out)
     assert ran.exit_code == 0, ran.output

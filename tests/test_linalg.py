@@ -3,7 +3,7 @@ Gram matrix, SPD)."""
 import numpy as np
 import pytest
 
-from elimfast.kernels.linalg import cholesky_solve, invert, lu_solve
+from elimfast.kernels.linalg import cholesky_solve, invert, lu_factor, lu_factor_columns, lu_solve
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
@@ -36,6 +36,65 @@ def test_lu_solve_needs_pivoting_and_is_scale_invariant():
 ])
 def test_lu_solve_reports_singular_or_badly_conditioned(a):
     assert lu_solve(a.copy(), np.ones(2)) == 1
+
+
+def _factors(factor, a):
+    a, pivots = np.array(a, dtype=float), np.zeros(len(a), dtype=np.int64)
+    return factor(a, pivots), a, pivots
+
+
+def test_lu_factor_columns_judges_each_pivot_against_its_column_and_factors_as_lu_factor():
+    """ELIM's Gamma carries h^(2(nu-1-c)) in column c: in absolute time its columns can differ by
+    more than lu_factor's floor (Kepler e = 0.99999 at pericentre: 1.4e-14) where the matrix is
+    well conditioned once they are scaled. lu_factor_columns judges each pivot against its own
+    column, so it is blind to column scaling; its factors are lu_factor's wherever that succeeds."""
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 3, 5):
+        for _ in range(20):
+            a = rng.normal(size=(n, n))
+            status, lu, pivots = _factors(lu_factor, a)
+            status_c, lu_c, pivots_c = _factors(lu_factor_columns, a)
+            assert status == status_c == 0
+            assert np.array_equal(lu, lu_c) and np.array_equal(pivots, pivots_c)
+            # columns scaled by powers of two (exact): the same factors, U's columns scaled
+            scales = 2.0 ** -rng.integers(0, 80, size=n)
+            status_s, lu_s, pivots_s = _factors(lu_factor_columns, a * scales)
+            assert status_s == 0 and np.array_equal(pivots_s, pivots)
+            assert np.array_equal(np.triu(lu_s), np.triu(lu) * scales)
+            assert np.array_equal(np.tril(lu_s, -1), np.tril(lu, -1))
+    scaled = np.array([[1.0, 3.0], [2.0, 1.0]]) * np.array([2.0 ** -50, 1.0])
+    assert _factors(lu_factor, scaled)[0] == 1 and _factors(lu_factor_columns, scaled)[0] == 0
+    # what no column scaling cures stays singular
+    for singular in (np.zeros((2, 2)), [[1.0, 2.0], [2.0, 4.0]], [[1.0, 1.0], [1.0, 1.0 + 1e-15]],
+                     [[1e-30, 1.0], [2e-30, 2.0]], [[np.nan, 0.0], [0.0, 1.0]]):
+        assert _factors(lu_factor_columns, singular)[0] == 1
+
+
+@pytest.mark.parametrize("a, row_scales, column_scales", [
+    (np.random.default_rng(3).normal(size=(3, 3)), [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]),
+    (np.random.default_rng(4).normal(size=(2, 2)), [1e-5, 1.0], [1e-14, 1.0]),          # Kepler e = 0.99999's shape
+    (np.array([[1.0, 2.0, 3.0], [2.0, 4.1, 6.0], [1.0, 0.0, 1.0]]), [1e3, 1.0, 1e-9], [1e8, 1e-4, 1.0]),
+])
+def test_equilibrated_condition_is_blind_to_row_and_column_scales(a, row_scales, column_scales):
+    """maps.equilibrated_condition: cond_inf of Gamma with its columns, then its rows, scaled to unit
+    size (numpy computes the same), within a factor n^2 of the same whatever scales the rows and
+    columns carry (cond(Gamma) in the third case: 5e19), so large only for nearly dependent rows."""
+    from types import SimpleNamespace
+    from elimfast.kernels.maps import equilibrated_condition
+
+    def equilibrated(matrix):
+        n = matrix.shape[0]
+        work = SimpleNamespace(small_copy=matrix.copy(), small_matrix=matrix.copy(), small_inverse=np.zeros((n, n)),
+                               small_pivots=np.zeros(n, dtype=np.int64))
+        assert lu_factor_columns(work.small_matrix, work.small_pivots) == 0
+        return equilibrated_condition.py_func(work, n)
+
+    gamma = np.asarray(row_scales)[:, None] * a * np.asarray(column_scales)
+    scaled = gamma / np.abs(gamma).max(axis=0)
+    scaled = scaled / np.abs(scaled).max(axis=1)[:, None]
+    assert equilibrated(gamma) == pytest.approx(np.linalg.cond(scaled, np.inf), rel=1e-8)
+    n = a.shape[0]   # one pass of scaling each way: the same up to a factor of n^2 whatever the scales
+    assert equilibrated(a) / n ** 2 <= equilibrated(gamma) <= n ** 2 * equilibrated(a)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])

@@ -25,6 +25,23 @@ def lu_factor(a, pivots):
     int64, the row swapped with row i at step i. Returns 0, or 1 if a pivot falls below
     RELATIVE_PIVOT_FLOOR * max|a| (singular or badly conditioned) or a is not finite.
     """
+    return _lu_factor(a, pivots, False)
+
+
+@njit(cache=True, inline="always")
+def lu_factor_columns(a, pivots):
+    """lu_factor judging each pivot against its own column's largest entry instead of the
+    matrix's: the floor of the LU of a D for a diagonal D > 0 that gives every column the same
+    size. Scaling columns changes neither partial pivoting's choice of rows nor the multipliers,
+    so where lu_factor succeeds this gives its factors bit for bit; it succeeds also where the
+    columns differ in size by more than 1/RELATIVE_PIVOT_FLOOR (ELIM's Gamma, whose columns carry
+    w_c = h^(2(nu-1-c)) in absolute time: maps.elim_map). The factors are those of a itself.
+    """
+    return _lu_factor(a, pivots, True)
+
+
+@njit(cache=True, inline="always")
+def _lu_factor(a, pivots, per_column):
     n = a.shape[0]
     scale = 0.0
     for i in range(n):
@@ -44,7 +61,14 @@ def lu_factor(a, pivots):
                 pivot_abs = abs(a[i, col])
                 pivot_row = i
         pivots[col] = pivot_row
-        if pivot_abs <= RELATIVE_PIVOT_FLOOR * scale:
+        floor = scale
+        if per_column:
+            # the column as it stands, U's entries above the pivot included: scaling a column
+            # scales all of it, so this floor, like the pivot, is blind to that scaling
+            floor = 0.0
+            for i in range(n):
+                floor = max(floor, abs(a[i, col]))
+        if pivot_abs <= RELATIVE_PIVOT_FLOOR * floor:
             return 1
         if pivot_row != col:
             for j in range(n):
