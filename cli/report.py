@@ -534,6 +534,7 @@ def ensemble_summary(ensemble_file) -> str:
     counts = np.zeros(max(STATUS_NAMES) + 1, dtype=np.int64)
     drift = {name: 0.0 for name in ensemble_file.invariant_names}
     iterations, completed = 0, 0
+    split = {"split_steps": [0, 0], "unimposed_steps": [0, 0]}   # trajectories with some, steps in all
     for start, stop in ensemble_file.blocks():
         kept = ensemble_file.stored_mask(start, stop)
         codes = ensemble_file.column("status", start, stop)[kept]
@@ -542,6 +543,10 @@ def ensemble_summary(ensemble_file) -> str:
         ok[kept] = codes == STATUS_OK
         completed += int(ok.sum())
         iterations += int(ensemble_file.column("iterations", start, stop)[ok].sum())
+        for name, (having, total) in split.items():
+            if ensemble_file.has(name):
+                values = ensemble_file.column(name, start, stop)[ok]
+                split[name] = [having + int((values > 0).sum()), total + int(values[values > 0].sum())]
         for name in drift:
             values = ensemble_file.column(f"invariant_errors/{name}", start, stop)[ok]
             if values.size:
@@ -557,6 +562,15 @@ def ensemble_summary(ensemble_file) -> str:
             tag = "  (imposed)" if name in conserve else ""
             rows.append(f"  {name:<{width}}  {value:.3e}{tag}")
         row("iterations", f"mean {iterations / completed:,.1f} a completed trajectory, total {iterations:,}")
+        having, total = split["split_steps"]
+        if having:
+            row("split steps", f"{total:,} in {having:,} of the {completed:,} trajectories (steps the solver could not "
+                               "converge whole were split into substeps; every invariant is kept there too)")
+        having, total = split["unimposed_steps"]
+        if having:
+            row("unimposed", f"{total:,} steps in {having:,} of the {completed:,} trajectories were taken without "
+                             "imposing the invariants (imposing failed; each such step kept them to round-off, at "
+                             "several times a step's cost; docs/solver.md#a-substep-without-imposing)")
     if "threads" in a:
         row("threads", str(a["threads"]))
     row("created", f"{root.get('created')} with elimfast {root.get('elimfast_version')}, numba "

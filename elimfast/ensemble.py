@@ -61,8 +61,11 @@ class EnsembleResult:
     for a trajectory that failed before completing a step);
     iterations (n_traj,) fixed-point iterations summed over the steps (a failed step's
     included); max_multiplier (n_traj,) max |alpha| (ELIM) or |lambda| (LIM) over the
-    completed steps, 0 for GAUSS/HBVM; status (n_traj,) codes.STATUS_* codes or
-    kernels.ensemble.STATUS_EXCEPTION (names: ``reasons``); steps_done (n_traj,).
+    completed steps that imposed the invariants, 0 for GAUSS/HBVM; status (n_traj,) codes.STATUS_* codes
+    or kernels.ensemble.STATUS_EXCEPTION (names: ``reasons``); steps_done (n_traj,); split_steps
+    (n_traj,) steps split into substeps; unimposed_steps (n_traj,) steps taken, or with a substep
+    taken, without imposing the invariants (docs/solver.md#a-substep-without-imposing; -1: not
+    recorded, an ensemble file written before elimfast counted them).
     """
 
     problem: Problem
@@ -81,6 +84,7 @@ class EnsembleResult:
     status: np.ndarray
     steps_done: np.ndarray
     split_steps: np.ndarray
+    unimposed_steps: np.ndarray
     solver: SolverSettings
     diagnostics: np.ndarray
 
@@ -177,7 +181,7 @@ def check_states(problem: Problem, Y0) -> np.ndarray:
 # invariant_errors, a mapping of such arrays, comes beside them): one block of an ensemble is
 # these arrays for some of its rows, plus invariant_errors.
 ROW_ARRAYS = ("y_final", "t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps",
-              "diagnostics")
+              "unimposed_steps", "diagnostics")
 
 
 class LazyEnsembleResult(EnsembleResult):
@@ -259,7 +263,8 @@ class EnsembleRun:
         n, real, integer = 2 * self.problem.degrees_of_freedom, np.dtype(np.float64), np.dtype(np.int64)
         layout = {"y_final": ((n,), real), "t_final": ((), real), "iterations": ((), integer),
                   "max_multiplier": ((), real), "status": ((), integer), "steps_done": ((), integer),
-                  "split_steps": ((), integer), "diagnostics": ((self.n_diagnostics,), real)}
+                  "split_steps": ((), integer), "unimposed_steps": ((), integer),
+                  "diagnostics": ((self.n_diagnostics,), real)}
         return {name: layout[name] for name in ROW_ARRAYS}
 
     def rows(self, states: np.ndarray) -> dict:
@@ -282,7 +287,8 @@ class EnsembleRun:
                     *run.kernel_settings(),
                     states, self.t0, run.n_steps, run.multipliers.size, threads,
                     rows["y_final"], rows["t_final"], inv_error, rows["iterations"], rows["max_multiplier"],
-                    rows["status"], rows["steps_done"], rows["split_steps"], rows["diagnostics"])
+                    rows["status"], rows["steps_done"], rows["split_steps"], rows["unimposed_steps"],
+                    rows["diagnostics"])
         finally:
             numba.set_num_threads(previous_threads)
         # A trajectory that completed no step has no invariant error to report (NaN, as inspect

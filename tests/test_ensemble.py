@@ -126,6 +126,30 @@ def test_singular_trajectory_is_reported_in_its_row(central_quartic, family):
     assert "1 trajectory of 2 steps" in repr(one) and "3 trajectories of 20 steps" in repr(ensemble)
 
 
+def test_steps_taken_without_imposing_are_counted_and_have_no_multiplier(central_quartic):
+    """A user trial: an ensemble trajectory that took most steps without imposing its invariant
+    showed only a huge iteration count, and its max |alpha| (3.0e-3) was not the run file's
+    (1.0e-3): the kernel took the multipliers of the failed imposed solves. Now each trajectory
+    counts such steps (unimposed_steps), its max |alpha| is over the steps that imposed, as a
+    run's alpha history (NaN for the others), and the ensemble's table says so."""
+    from elimfast.sweep import ensemble_table
+    radial = [0.5, 0.0, 0.0, 0.0]   # L = 0 all along: Gamma singular, steps taken unimposed (test_api.py)
+    states = np.array([central_quartic.y0, radial, central_quartic.y0])
+    conserve = ["angular_momentum"]
+    ensemble = integrate_ensemble(central_quartic, ehbvm(6, 3), 0.1, states, n_steps=20, conserve=conserve)
+    assert ensemble.ok.all()
+    for i, y0 in enumerate(states):
+        alone = elimfast.integrate(central_quartic, ehbvm(6, 3), 0.1, n_steps=20, conserve=conserve, y0=y0)
+        np.testing.assert_array_equal(ensemble.y_final[i], alone.y_final)
+        unimposed = np.isnan(alone.alpha).any(axis=1)
+        assert ensemble.unimposed_steps[i] == unimposed.sum()
+        imposed = np.abs(alone.alpha[~unimposed])
+        assert ensemble.max_multiplier[i] == (imposed.max() if imposed.size else 0.0)
+    assert ensemble.unimposed_steps.tolist() == [0, 20, 0]
+    _, rows = ensemble_table(ensemble)
+    assert ["steps not imposing the invariants, per trajectory", "20", "0", "1 of 3 ok have some"] in rows
+
+
 def test_non_finite_trajectory_matches_integrate(quartic):
     # A huge momentum: the first step overflows, like integrate's.
     states = np.array([quartic.y0, [0.0, 1e100]])

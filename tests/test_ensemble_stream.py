@@ -359,3 +359,21 @@ def test_resume_of_an_ensemble_takes_an_edit_of_comments_or_description_and_name
             result.output
         assert "--overwrite" in result.output and result.output.count("\n") == 1
         path.write_text(path.read_text().replace(edit[1], edit[0]))
+
+
+def test_an_ensemble_file_written_before_unimposed_steps_were_counted_reads_and_resumes(tmp_path, small_blocks,
+                                                                                           monkeypatch):
+    """/ensemble/unimposed_steps is new: a file without it reads it as -1 (not recorded) in load_ensemble
+    and xarray's view, inspect says nothing of it, and --resume completes the file without it."""
+    from elimfast.archive import load_ensemble
+    path = ensemble_sweep(tmp_path)
+    half = stopped_after_blocks(path, tmp_path / "half.h5", 2, monkeypatch, workers=2)
+    with h5py.File(half, "r+") as f:
+        del f["ensemble/unimposed_steps"]
+    sweeps.run_to_file(path, half, resume=True, workers=1)
+    with h5py.File(half, "r") as f:
+        assert "unimposed_steps" not in f["ensemble"] and f["ensemble"].attrs["status"] == "complete"
+    loaded = load_ensemble(half)
+    assert loaded.unimposed_steps.tolist() == [-1] * N_TRAJECTORIES and loaded.ok.all()
+    report = CliRunner().invoke(cli, ["inspect", str(half)])
+    assert report.exit_code == 0 and "unimposed" not in report.output, report.output

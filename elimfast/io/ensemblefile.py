@@ -10,7 +10,7 @@ An ensemble sweep file has the root of a sweep file (``sweepfile.py``: format
     y0                        (n, 2m)        the initial states
     y_final                   (n, 2m)        the state after the last completed step
     t_final, max_multiplier   (n,)           end time; max |alpha| (ELIM) or |lambda| (LIM)
-    iterations, status, steps_done, split_steps   (n,) int64   (status 0: complete)
+    iterations, status, steps_done, split_steps, unimposed_steps   (n,) int64   (status 0: complete)
     diagnostics               (n, 6)         of a failed step (kernels/stepper.py try_step)
     invariant_errors/<name>   (n,)           max |I(t) - I(0)|: H, then every invariant (NaN: no step done)
     stored                    (n,) uint8     the done record: 1 where the trajectory's row is written
@@ -31,7 +31,8 @@ flushes. The file is written in HDF5's SWMR mode, so a killed writer leaves it
 consistent, with every block marked stored readable, and ``elimfast sweep ... --resume``
 runs only the trajectories not marked. Files written before the done record (the
 ensemble whole, at the end) lack ``stored``, ``split_steps`` and ``diagnostics``; they
-are read as complete.
+are read as complete. Files written before ``unimposed_steps`` was counted read it as -1 (not
+recorded), and a resume of one leaves it so.
 """
 from __future__ import annotations
 
@@ -51,6 +52,8 @@ STATUS_RUNNING, STATUS_COMPLETE = "running", "complete"
 # The status of a trajectory whose row is not written yet: the fill value of /ensemble/status (a user
 # trial: a killed ensemble read with open_datatree showed its unwritten rows as status 0, 'ok').
 NOT_STORED, NOT_STORED_WORD = -1, "not_stored"
+# The per-trajectory dataset that files written by an earlier elimfast lack (read as -1, not recorded).
+NOT_ALWAYS_STORED = "unimposed_steps"
 READ_BLOCK_ROWS = 1 << 16     # rows per read where a reader scans a whole column (bounded memory)
 # The labels of the diagnostic dimension, in the order of kernels/stepper.py's DIAG_* indices
 # (not imported: the file layer loads no kernels; tests/test_ensemble_stream.py checks the order).
@@ -63,6 +66,8 @@ ROW_LONG_NAMES = {"y0": "initial state y = (q, p)", "y_final": "state after the 
                   "status": "0: complete; -1: not yet written to the file; otherwise why the trajectory stopped "
                             "(flag_meanings; EnsembleResult.failure_message(i) explains it)",
                   "steps_done": "steps completed", "split_steps": "steps split into substeps",
+                  "unimposed_steps": "steps taken, or with a substep taken, without imposing the invariants "
+                                     "(imposing failed there; -1: not recorded)",
                   "diagnostics": "the failed step's diagnostics (0 where the trajectory completed)"}
 
 
@@ -153,7 +158,7 @@ def write_rows(group, start: int, stop: int, rows: dict) -> None:
         if name == "invariant_errors":
             for invariant, errors in values.items():
                 group["invariant_errors"][invariant][start:stop] = errors
-        else:
+        elif name in group or name != NOT_ALWAYS_STORED:
             group[name][start:stop] = values
 
 
@@ -285,6 +290,9 @@ class EnsembleFile:
         return name in self._group
 
     def column(self, name: str, start: int = 0, stop: int | None = None) -> np.ndarray:
+        if name == NOT_ALWAYS_STORED and name not in self._group:   # written before it was counted
+            stop = self.n_trajectories if stop is None else stop
+            return np.full(stop - start, -1, dtype=np.int64)
         try:
             return np.asarray(self._group[name][start:stop])
         except (KeyError, OSError, RuntimeError, ValueError) as err:

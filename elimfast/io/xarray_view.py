@@ -81,8 +81,8 @@ def result_dataset(result):
 def ensemble_dataset(result, status_names: dict):
     """An EnsembleResult as an xarray.Dataset, with the names of an ensemble file's /ensemble
     (ensemblefile.py): y0 and y_final on (trajectory, component); t_final, iterations,
-    max_multiplier, status (CF flag_values and flag_meanings), steps_done and split_steps on
-    trajectory; diagnostics on (trajectory, diagnostic); the file's invariant_errors/<name> as
+    max_multiplier, status (CF flag_values and flag_meanings), steps_done, split_steps and
+    unimposed_steps on trajectory; diagnostics on (trajectory, diagnostic); the file's invariant_errors/<name> as
     one variable invariant_error on (trajectory, invariant), H first. Attributes: problem,
     method, h, n_steps, conserve, failed and the units. status_names: code -> word (the
     caller's: io does not import the ensemble module). A result read from a file reads
@@ -101,7 +101,7 @@ def ensemble_dataset(result, status_names: dict):
     data = {"y0": (("trajectory", "component"), np.asarray(result.y0), {"long_name": ROW_LONG_NAMES["y0"]}),
             "y_final": (("trajectory", "component"), np.asarray(result.y_final),
                         {"long_name": ROW_LONG_NAMES["y_final"]})}
-    for name in ("t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps"):
+    for name in ("t_final", "iterations", "max_multiplier", "status", "steps_done", "split_steps", "unimposed_steps"):
         data[name] = ("trajectory", np.asarray(getattr(result, name)),
                       {"long_name": ROW_LONG_NAMES[name], **(time_unit if name == "t_final" else {})})
     data["status"][2].update(status_flags(status_names, np.asarray(result.status).dtype))

@@ -42,8 +42,9 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     same workspace layout, the first step cold), so the trajectory is bit for bit the run
     integrate makes. Writes, current after every step (so that they hold the last
     completed step if a problem function raises): y (n,) the state; errors (1 + n_inv,)
-    max |I(y_n) - I(y0)| for H, then every invariant; counts (3,) = [steps done,
-    iterations so far, split steps]; reals (2,) = [t, max |multiplier|]; diagnostics
+    max |I(y_n) - I(y0)| for H, then every invariant; counts (4,) = [steps done,
+    iterations so far, split steps, steps taken unimposed]; reals (2,) = [t, max |multiplier|
+    over the steps that imposed the invariants, as a run file's alpha history]; diagnostics
     (N_DIAGNOSTICS,) of a failed step (stepper.try_step). Returns the status; a failed
     step is not applied (its iterations are counted).
     """
@@ -73,6 +74,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
     counts[0] = 0
     counts[1] = 0
     counts[2] = 0
+    counts[3] = 0
     H_initial = H(y, params)
     invariants(y, params, inv_initial)
 
@@ -93,9 +95,14 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
             break
         if substeps > 1:
             counts[2] += 1
-        for a in range(n_mult):
-            if not (abs(multipliers[a]) <= reals[1]):
-                reals[1] = abs(multipliers[a])
+        if work.info[5] > 0.0:
+            # (a substep of) it taken without imposing the invariants: no multiplier exists
+            # (stepper.record_multipliers, NaN in a run's history)
+            counts[3] += 1
+        else:
+            for a in range(n_mult):
+                if not (abs(multipliers[a]) <= reals[1]):
+                    reals[1] = abs(multipliers[a])
         reals[0] = clock[0]
         counts[0] = step + 1
         # The invariants after every step: time_loop's samples with store_every = 1.
@@ -115,7 +122,7 @@ def _run_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, sett
 def _guarded_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables, conserve_idx,
                         h, y0, t0, n_steps, n_mult, index,
                         y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps,
-                        diagnostics):
+                        unimposed_steps, diagnostics):
     """Trajectory ``index``: _run_trajectory, then its results copied to row ``index`` of the outputs.
 
     An exception from a problem function becomes STATUS_EXCEPTION: escaping a prange
@@ -130,7 +137,7 @@ def _guarded_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, 
     """
     y = np.empty(y0.shape[0])
     errors = np.zeros(inv_error.shape[1])
-    counts = np.zeros(3, dtype=np.int64)
+    counts = np.zeros(4, dtype=np.int64)
     reals = np.zeros(2)
     failure = np.zeros(N_DIAGNOSTICS)
     try:
@@ -145,6 +152,7 @@ def _guarded_trajectory(H, grad_H, hess_H, invariants, grad_invariants, params, 
     steps_done[index] = counts[0]
     iterations[index] = counts[1]
     split_steps[index] = counts[2]
+    unimposed_steps[index] = counts[3]
     t_final[index] = reals[0]
     max_multiplier[index] = reals[1]
     for a in range(N_DIAGNOSTICS):
@@ -170,7 +178,7 @@ ENSEMBLE_SIGNATURE = types.void(
     MATRIX, types.float64, types.int64, types.int64, types.int64,                      # Y0, t0, n_steps, n_mult,
     #                                                                                    n_workers
     MATRIX, VECTOR, MATRIX, INT_VECTOR, VECTOR, INT_VECTOR, INT_VECTOR, INT_VECTOR,    # outputs
-    MATRIX,
+    INT_VECTOR, MATRIX,
 )
 
 
@@ -182,7 +190,7 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
                   conserve_idx,
                   Y0, t0, n_steps, n_mult, n_workers,
                   y_final, t_final, inv_error, iterations, max_multiplier, status, steps_done, split_steps,
-                  diagnostics):
+                  unimposed_steps, diagnostics):
     """Run n_steps steps of one method from each row of Y0, trajectories in parallel.
 
     Each trajectory is the run ``stepper.time_loop`` makes from step 0 with
@@ -201,11 +209,14 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
         every invariant of the problem (imposed or not);
       iterations (n_traj,): iterations summed over the steps, the failed step's included;
       max_multiplier (n_traj,): max over completed steps of |alpha|_inf (ELIM) or
-        |lambda|_inf (LIM), 0 when there is none;
+        |lambda|_inf (LIM), 0 when there is none (steps taken without imposing the invariants
+        have none: stepper.try_step);
       status (n_traj,): STATUS_OK, the failing step's status, or STATUS_EXCEPTION when
         a problem function raised (the outputs then hold the last completed step); a
         failure ends that trajectory only; steps_done (n_traj,): steps completed;
       split_steps (n_traj,): steps that were split into substeps;
+      unimposed_steps (n_traj,): steps taken, or with a substep taken, without imposing the
+        invariants (docs/solver.md#a-substep-without-imposing);
       diagnostics (n_traj, N_DIAGNOSTICS): of a failed trajectory's failed step.
     """
     settings = Settings(family, solver, stable_rhs, warm_start, predictor, tol, max_iter, max_halvings)
@@ -222,4 +233,5 @@ def ensemble_loop(H, grad_H, hess_H, invariants, grad_invariants, params,
             status[i] = _guarded_trajectory(
                 H, grad_H, hess_H, invariants, grad_invariants, params, settings, tables, conserve_idx,
                 h, Y0[i], t0, n_steps, n_mult, i,
-                y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps, diagnostics)
+                y_final, t_final, inv_error, iterations, max_multiplier, steps_done, split_steps, unimposed_steps,
+                diagnostics)
