@@ -451,6 +451,15 @@ def _stored_spec(path, overrides, config):
             # the run"), before the resume's own rule could say why (a user trial)
             from elimfast.streaming import earlier_end_refusal
             raise earlier_end_refusal(path, *earlier) from None
+        stored_only = [item for item in stored_sets if item not in overrides and f"--set {item}" in str(err)]
+        if stored_only:
+            # A --set the file stored, applied to another CONFIG than its run's, was blamed as the user's
+            # (a user trial resumed a file written from another Kepler config: 'not a whole number of steps
+            # ... (value from --set integration.t_end=16000*pi)', a --set never typed there)
+            raise ConfigError(f"{path}: the --set {_clip(stored_only[-1])} that its earlier run stored (and "
+                              f"--resume applies again) does not fit {config}: {err}; was the run made from "
+                              f"another config? resume it with that one (the file stores it: elimfast inspect "
+                              f"{path})", key=err.key) from None
         raise
     given = parse_yaml(_resolved_yaml(loaded), str(config))
     set_keys = _given_keys(overrides)

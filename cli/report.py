@@ -240,6 +240,10 @@ def unused_h_note(h, first=None) -> str:
 # Above this fraction of a run's steps, substeps taken without imposing are no transient zero of
 # Gamma: the imposed invariant is degenerate along the orbit (L on a circular Kepler orbit: 234 of 240).
 UNIMPOSED_DEGENERATE_FRACTION = 0.01
+# What such degenerate invariants look like (a user trial: the solar system imposing its three angular
+# momenta, every step unimposed, was told of circular orbits and close approaches it did not have).
+DEGENERATE_EXAMPLES = ("e.g. L on a circular orbit, where it is a function of H, or the components of the angular "
+                       "momentum of a nearly planar system, whose rows of Gamma are nearly proportional")
 
 
 def _literal_sum(run_file) -> str | None:
@@ -263,11 +267,13 @@ def unimposed_text(count: int, steps_done: int, adaptive: bool = False, literal_
         # a user trial: Kepler e = 0.99 under the time-scale controller, epsilon 0.05, whose pericentre
         # steps of 5e-5 are too short for Gamma, was told that L and A_y were degenerate on its orbit
         text += ("; that many means that its shortest steps (at close approaches) are too short for Gamma, "
-                 "or that the imposed invariants are degenerate along this orbit (e.g. L on a circular one): a "
-                 "larger epsilon or rtol takes longer steps there; imposing fewer or none is faster")
+                 f"or that the imposed invariants are degenerate along this orbit ({DEGENERATE_EXAMPLES}): a "
+                 "larger epsilon or rtol takes longer steps there; imposing fewer or none, or GHBVM (LIM), is "
+                 "faster")
     elif count > UNIMPOSED_DEGENERATE_FRACTION * steps_done:
-        text += ("; that many means the imposed invariants are degenerate along this orbit (e.g. L on a "
-                 "circular orbit), where the method keeps them by itself: impose fewer or none, which is faster")
+        text += (f"; that many means the imposed invariants are degenerate along this orbit ({DEGENERATE_EXAMPLES}),"
+                 " where ELIM's Gamma is (nearly) singular: impose fewer or none, which is faster, or take GHBVM "
+                 "(LIM), whose Gram matrix does not degenerate with Gamma (docs/methods.md#lim)")
     return text
 
 
@@ -334,8 +340,10 @@ def summary(run_file, integrity: dict | None = None) -> str:
             last = ""
             if sizes.size > 1 and str(run_file.status) == "complete" and sizes[-1] < sizes[:-1].min():
                 # the last step is cut to land on t_end: as 'h min' it read 5.2e-3 for a controller whose
-                # steps were all 0.085-0.092 (a user trial); it is no measure of the controller's work
-                last = f"; the last, cut to land on t_end, {sizes[-1]:.3e}"
+                # steps were all 0.085-0.092 (a user trial); it is no measure of the controller's work;
+                # or on the terminal event that ended the run (a user trial read 't_end' there)
+                where = "the terminal event" if _terminal_event_time(run_file) is not None else "t_end"
+                last = f"; the last, cut to land on {where}, {sizes[-1]:.3e}"
                 sizes = sizes[:-1]
             row("h", f"min {sizes.min():.3e}, median {np.median(sizes):.3e}, max {sizes.max():.3e}{last}")
         row("steps done", f"{done:,}")
@@ -368,13 +376,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
                      if run_file.swmr else ")"))
     elif status == "running":
         status = "running (another process is writing it)"
-    elif status == "complete" and run_file.event_names():
-        # a terminal event ends a run before t_end (docs/adaptive.md)
-        clock = run_file.saved_state().get("clock")
-        t_end = a.get("t_end")
-        t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else None
-        if t_final is not None and t_end is not None and t_final < float(t_end):
-            status += f" (ended by a terminal event at t = {t_final:.10g})"
+    elif status == "complete" and _terminal_event_time(run_file) is not None:
+        status += f" (ended by a terminal event at t = {_terminal_event_time(run_file):.10g})"
     row("status", status)
     # how the run was continued (--resume with other solver settings, to a later end, or an edited
     # python: problem file)
@@ -426,8 +429,15 @@ def summary(run_file, integrity: dict | None = None) -> str:
     kept_H = ("  (H: GAUSS keeps only a quadratic H; HBVM(k,s) with k > s keeps others)"
               if str(run_file.attrs.get("family", "")) == "gauss"
               else "  (H: kept by HBVM/ELIM/LIM up to the quadrature error of their nodes)")
+    # Imposed, but not at every step: say how often (a user trial read '(imposed)' beside a run none of
+    # whose 12,770 steps could impose it, its alpha history all NaN)
+    substeps = run_file.substep_stats()
+    unimposed = substeps.get("unimposed", 0) if conserve and run_file.steps_done else 0
+    imposed_tag = ("  (imposed, but no step could: see the note below)" if unimposed >= run_file.steps_done > 0
+                   else f"  (imposed; {unimposed:,} of {run_file.steps_done:,} steps could not: see below)" if unimposed
+                   else "  (imposed)")
     for name, value in drift.items():
-        tag = "  (imposed)" if name in conserve else (kept_H if name == "H" else "")
+        tag = imposed_tag if name in conserve else (kept_H if name == "H" else "")
         first = initial.get(name, math.nan)
         relative = ""
         if math.isfinite(first):
@@ -469,7 +479,6 @@ def summary(run_file, integrity: dict | None = None) -> str:
                          else "")
                       + (", kernel per_problem" if solver.get("kernel") == "per_problem" else "")
                       + (", project_energy true" if solver.get("project_energy") else ""))
-    substeps = run_file.substep_stats()
     row("split steps", f"{substeps['split']:,}" + (f" (at most {substeps['max']} substeps in one step; a step the "
                                                    "solver could not converge is split in halves)"
                                                    if substeps["split"] else ""))
@@ -499,6 +508,19 @@ def summary(run_file, integrity: dict | None = None) -> str:
     if run_file.state_damage:
         row("saved state", run_file.state_damage)
     return "\n".join(rows)
+
+
+def _terminal_event_time(run_file) -> float | None:
+    """The time a terminal event ended a complete run with events before its t_end (docs/adaptive.md),
+    else None."""
+    if str(run_file.status) != "complete" or not run_file.event_names():
+        return None
+    clock = run_file.saved_state().get("clock")
+    t_end = run_file.attrs.get("t_end")
+    t_final = float(np.asarray(clock).ravel()[0]) if clock is not None else None
+    if t_final is not None and t_end is not None and t_final < float(t_end):
+        return t_final
+    return None
 
 
 def ensemble_summary(ensemble_file) -> str:

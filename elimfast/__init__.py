@@ -18,13 +18,13 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 from . import methods, problems
 from .errors import ConvergenceError, ElimfastError
 
-__all__ = ["__version__", "integrate", "load", "open_datatree", "Integration", "Result", "ConvergenceError",
-           "ElimfastError", "methods", "problems"]
+__all__ = ["__version__", "integrate", "load", "open_datatree", "Integration", "Result", "SolverSettings",
+           "ConvergenceError", "ElimfastError", "methods", "problems"]
 
 # Imported on first use: they import the Numba kernels (about 0.2-0.4 s with a warm cache),
 # which `import elimfast`, the CLI's listings and --help never need (open_datatree: xarray).
 _LAZY = {"integrate": "integrate", "Integration": "integrate", "Result": "integrate", "load": "archive",
-         "open_datatree": "io.xarray_tree"}
+         "open_datatree": "io.xarray_tree", "SolverSettings": "integrate"}   # SolverSettings: integrate(solver=)
 
 
 def __getattr__(name):

@@ -425,6 +425,11 @@ class AdaptiveChunk:
     status: int
 
 
+# Steps that collapsed (below 4 eps of t_end) while still this fraction of the run's first step or more:
+# the run is too long for steps the solution needs, not nearing a singularity (failure_message).
+FAR_END_STEP = 1e-3
+
+
 def initial_step(problem: Problem, method: Method, y0: np.ndarray, rtol: float, atol: float) -> float:
     """A first step from the problem (Hairer, Norsett & Wanner, Solving ODEs I, II.4): the
     controller corrects it within a few steps.
@@ -623,6 +628,14 @@ class AdaptiveIntegration:
                 # blamed a singularity of H, 'which no solver setting gets through'.
                 return collapse + (f"no step converged within solver.max_iter = {self.solver.max_iter} iterations, "
                                    f"below every default: {raise_max_iter(self.solver)}")
+            if abs(d[codes.DIAG_STEP]) >= FAR_END_STEP * abs(self.h):
+                # Steps the size of the run's first, measured against a far t_end: t_end is out of reach, the
+                # solution is not singular (a user trial: Lennard-Jones scattering with t_end = 1e14, and
+                # Kepler e = 0.9 with t_end = 1e15, were told of a singularity at step 1). Falling into a
+                # singularity, the steps shrink by orders of magnitude first (1e-113 in a user trial).
+                return collapse + (f"steps of this size suit the solution here, but t_end - t0 = "
+                                   f"{self.t_end - self.t0:.3g} is too far for them: shorten the run (integration."
+                                   f"t_end; one run should take at most ~10^10 steps), or loosen rtol")
             return collapse + ("the solution is likely nearing a singularity of H (a collision, or a fall into a "
                                f"centre), which {NO_SETTING_GETS_THROUGH}; check the initial state and the "
                                "problem's parameters")

@@ -545,6 +545,12 @@ def _apply_overrides(data, overrides, source):
             child = node.get(part)
             if child is None:
                 child = node[part] = {}
+            if depth == 0 and part in ("method", "problem") and isinstance(child, str):
+                # a short form (method: EHBVM(12,3), problem: kepler) written out, so that a key under
+                # it can be set, as a sweep's set can (a user trial: --set method.s=4 was refused)
+                data = node = write_out_shorthands(
+                    data, lambda where, text: ConfigError(f"{source}: {_join(where)}: {text}"))
+                child = node[part]
             if not isinstance(child, dict):
                 raise ConfigError(f"{source}: --set {item!r}: {'.'.join(parts[:depth + 1])} is not a section, so it "
                                   "has no keys; set it as a whole instead")

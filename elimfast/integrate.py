@@ -356,6 +356,17 @@ class Result:
     # found there; AdaptiveIntegration.check_events_finite)
     events_not_finite: dict = field(default_factory=dict)
 
+    @property
+    def ended_by_event(self) -> str | None:
+        """The name of the terminal event that ended a complete run (at t_final, before the t_end it
+        was given: docs/adaptive.md), else None. status stays 'complete' (a user trial looked for it)."""
+        if self.status != "complete":
+            return None
+        for name, record in self.events.items():
+            if getattr(record, "terminal", False) and record.t.size and record.t[-1] == self.t_final:
+                return name
+        return None
+
     def _initial_state(self) -> np.ndarray | None:
         """y0, else the first sample (a Result built without y0), else None."""
         if self.y0 is not None:
@@ -805,6 +816,29 @@ def gradients_independence(problem: Problem, indices, y) -> float | None:
         return None     # (a python: file's, which the run reports itself) leaves it unjudged
 
 
+def _dependent_around(problem: Problem, indices: np.ndarray, y0, tries: int = 4) -> bool:
+    """Whether grad H and the gradients of the invariants ``indices`` are linearly dependent at every one
+    of ``tries`` states 1% around y0 (seeded): a relation between the functions, not a property of y0."""
+    rng = np.random.default_rng(20261204)
+    y0 = np.asarray(y0, dtype=float)
+    size = float(np.max(np.abs(y0))) or 1.0
+    with np.errstate(all="ignore"):
+        for _ in range(tries):
+            y = y0 + 0.01 * (np.abs(y0) + 0.1 * size) * rng.standard_normal(y0.shape)
+            try:
+                scaled = _scaled_gradients(problem, indices, y)
+            except Exception:   # noqa: BLE001 -- a problem function that fails there: no judgement
+                return False
+            if scaled is None:
+                return False
+            sizes = np.linalg.norm(scaled, axis=1)
+            if not np.all(sizes > 0.0) or not np.all(np.isfinite(scaled)):
+                return False
+            if float(np.linalg.svd(scaled / sizes[:, None], compute_uv=False)[-1]) >= DEPENDENT_GRADIENTS:
+                return False
+    return True
+
+
 def require_independent_gradients(problem: Problem, names: tuple[str, ...], indices: np.ndarray, y0) -> None:
     """Refuse to impose invariants whose gradients at y0 are linearly dependent on grad H and
     on those of the invariants listed before them (ParameterError naming ``conserve[i]``),
@@ -835,6 +869,16 @@ def require_independent_gradients(problem: Problem, names: tuple[str, ...], indi
         smallest = float(np.linalg.svd(np.vstack(rows), compute_uv=False)[-1])
         if smallest < DEPENDENT_GRADIENTS:
             others = "grad H" + "".join(f" and grad {other}" for other in names[:index])
+            if _dependent_around(problem, indices[:index + 1], y0):
+                # a relation between them holds everywhere (a user trial: Kepler's H, L, A_x, A_y, tied by
+                # |A|^2 = 1 + 2 H L^2, was told to start from another state, which was refused the same way)
+                raise ParameterError(
+                    "conserve",
+                    f"names {name!r}, whose gradient depends linearly on {others} at y0 and at every state tried "
+                    f"around it (smallest singular value of the unit gradients {smallest:.1e}): a relation ties "
+                    "these invariants (Kepler's H, L and LRL vector: |A|^2 = 1 + 2 H L^2), so no state helps; "
+                    "Gamma (LIM: the Gram matrix) is singular: leave it out, the method keeps it with the others "
+                    "(docs/methods.md)", index=index)
             example = "; angular momentum on a circular orbit, say, is a function of H" if index == 0 else ""
             raise ParameterError(
                 "conserve",

@@ -239,7 +239,13 @@ def interrupted_line(signal_name: str | None, steps_done: int, n_steps: int, t: 
 # --- progress -----------------------------------------------------------------------------
 class NoProgress:
     """Progress reports: by steps when their number is known, else (adaptive steps) by the
-    fraction of [t0, t_end] covered (t_span)."""
+    fraction of [t0, t_end] covered (t_span). silent: the lines said during the run (write) are
+    dropped too (`--quiet`: errors only; a user trial saw its mid-run note)."""
+
+    silent = False
+
+    def __init__(self, silent: bool = False):
+        self.silent = silent
 
     def start(self, steps_done: int, n_steps: int | None, label: str, t_span=None) -> None:
         pass
@@ -253,7 +259,8 @@ class NoProgress:
     def write(self, line: str, notice) -> None:
         """Say ``line`` through ``notice`` (the caller's: the CLI's 'note: ...' on stderr) in the middle of
         the run; a bar is cleared around it."""
-        notice(line)
+        if not self.silent:
+            notice(line)
 
 
 class LineProgress(NoProgress):
@@ -333,7 +340,7 @@ def progress_for(quiet: bool, stream=None) -> NoProgress:
     """Nothing when quiet, a bar on a terminal, plain lines otherwise."""
     stream = stream if stream is not None else sys.stderr
     if quiet:
-        return NoProgress()
+        return NoProgress(silent=True)
     isatty = getattr(stream, "isatty", None)
     return BarProgress(stream) if isatty is not None and isatty() else LineProgress(stream)
 
@@ -762,6 +769,24 @@ def earlier_end_refusal(path, new_end: float, old_end: float) -> OutputError:
                        "a new run (-o NEW.h5) for a shorter one")
 
 
+def _extend_times_hint(attrs: dict, stored_t, new_end: float) -> str:
+    """How to give output.times that keep the stored ones and reach new_end, in the form the stored
+    config gave them: a later stop for {start, stop, step}, else the whole list with new_end added (a
+    user trial: a list was told to set output.times.stop, which a list does not have)."""
+    import yaml
+    try:
+        times = ((yaml.safe_load(str(attrs.get("config", ""))) or {}).get("output") or {}).get("times")
+    except (yaml.YAMLError, AttributeError):
+        times = None
+    if isinstance(times, dict) or stored_t is None:
+        return f"keep its start and step and give a later stop, e.g. --set output.times.stop={exact_time(new_end)}"
+    shown = [exact_time(float(t)) for t in stored_t]
+    listed = ", ".join(shown) if len(shown) <= 8 else ", ".join(shown[:3] + ["..."] + shown[-2:])
+    return (f"give the whole list, the times written first, then later ones, e.g. --set 'output.times=[{listed}, "
+            f"{exact_time(new_end)}]'" + (" (every one of the times written, where '...' stands)" if len(shown) > 8
+                                          else ""))
+
+
 def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, t_end=None) -> dict | None:
     """A --resume that continues the run stored in ``path`` to a later end: None when the end
     is the stored one, else the root attributes the continued run has (RunWriter.resume's
@@ -805,8 +830,7 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
         count = stored_t.size
         if not (new_times.size >= count and np.array_equal(new_times[:count], stored_t)):
             raise OutputError(f"{path}: output.times must keep the {count} times already written and add later "
-                              "ones: keep its start and step and give a later stop, e.g. --set "
-                              f"output.times.stop={exact_time(new_end)}")
+                              f"ones: {_extend_times_hint(attrs, stored_t, new_end)}")
         if status == STATUS_COMPLETE and new_times.size > count and new_times[count] <= old_end:
             raise OutputError(f"{path}: output.times adds times before the stored run's end, {old_end:.10g}: "
                               "only later times can be added")
@@ -816,7 +840,7 @@ def run_extension(path, attrs: dict, status: str, clock, stored_t, integration, 
             raise OutputError(f"{path}: output.times stops at {exact_time(float(new_times[-1]))}, so the run "
                               f"continued to t_end = {exact_time(new_end)} would have no samples after "
                               f"{exact_time(old_end)}, and they cannot be added later: extend output.times with "
-                              f"it, keeping its start and step, e.g. --set output.times.stop={exact_time(new_end)}")
+                              f"it: {_extend_times_hint(attrs, stored_t, new_end)}")
     return {"t_end": new_end, "n_steps": getattr(integration, "n_steps", None),
             "output_times": new_times.size if new_times.size else None}
 

@@ -199,6 +199,7 @@ def test_event_directions_and_terminal_event():
     assert stop.t_final == pytest.approx(0.5 * PERIOD, abs=1e-9)
     assert stop.events["apocentre"].t.size == 1 and stop.t[-1] == stop.t_final
     assert np.array_equal(stop.y_final, stop.events["apocentre"].y[0])
+    assert stop.status == "complete" and stop.ended_by_event == "apocentre" and both.ended_by_event is None
 
 
 @pytest.mark.parametrize("control", [{"h": 1.2, "t_end": 6.0}, {"rtol": 1e-2, "h": 1.2, "h_max": 1.2, "t_end": 6.0}])
@@ -686,6 +687,23 @@ def test_invariants_whose_gradients_are_dependent_at_y0_are_refused_before_the_f
     assert elimfast.integrate(kepler(1e-8), ehbvm(8, 4), 0.1, n_steps=10, conserve=(L1,)).status == "complete"
 
 
+def test_invariants_tied_by_a_relation_everywhere_are_not_told_to_start_elsewhere():
+    """A user trial: L, A_x and A_y on Kepler (|A|^2 = 1 + 2 H L^2 ties them to H everywhere) were
+    told 'leave it out, or start from another state', and a rotated start was refused the same way.
+    Where the gradients are dependent at states around y0 too, the refusal names the relation."""
+    from elimfast.errors import ParameterError
+    p = kepler(0.9)
+    c, s = math.cos(0.3), math.sin(0.3)
+    q, v = p.y0[:2], p.y0[2:]
+    rotated = np.array([c * q[0] - s * q[1], s * q[0] + c * q[1], c * v[0] - s * v[1], s * v[0] + c * v[1]])
+    for method in (ehbvm(8, 4), ghbvm(8, 4)):
+        with pytest.raises(ParameterError) as refused:
+            elimfast.integrate(p, method, 0.1, n_steps=10, conserve=(L1, AX, AY), y0=rotated)
+        message = str(refused.value)
+        assert message.startswith("conserve[2] names 'lrl_y'") and "a relation ties these invariants" in message
+        assert "another state" not in message and "no state helps" in message, message
+
+
 @pytest.mark.parametrize("a", [1.0, 1e7, 1e-7])
 def test_the_dependence_of_gradients_is_judged_whatever_the_units(a):
     """A user trial: Kepler e = 0.6 in SI units was refused for imposing L (smallest singular
@@ -916,6 +934,18 @@ def test_steps_that_collapse_under_the_error_controller_stop_the_run_and_say_why
     result = failed.value.result
     assert result.steps_done < 2000 and result.t[-1] < 0.1
     assert result.relative_invariant_errors()["H"] < 1e-3   # stopped before the steps lost H
+
+
+def test_a_t_end_too_far_for_the_steps_is_said_so_not_a_singularity():
+    """A user trial: Kepler e = 0.9 with t_end = 1e15 (and Lennard-Jones scattering with 1e14) failed at
+    step 1, its steps below 4 eps of t_end, and was told the solution neared a singularity of H. Steps
+    the size of the run's first are the run's length at fault: the message says so."""
+    from elimfast.errors import ConvergenceError
+    with pytest.raises(ConvergenceError) as failed:
+        elimfast.integrate(kepler(0.9), ehbvm(8, 4), t_end=1e15, rtol=1e-10, conserve=(L1, AY))
+    message = str(failed.value)
+    assert "the steps collapsed at step 1" in message and "singularity" not in message, message
+    assert "t_end - t0 = 1e+15 is too far for them: shorten the run (integration.t_end" in message, message
 
 
 def test_a_max_iter_below_the_defaults_is_named_where_it_makes_the_steps_fail():

@@ -215,10 +215,22 @@ def test_inspect_says_a_terminal_event_ended_the_run(tmp_path):
     assert result.exit_code == 0, result.output
     loaded = elimfast.load(out)
     assert loaded.events["apocentre"].t.size == 1 and abs(loaded.events["apocentre"].t[0] - math.pi) < 1e-10
+    assert loaded.status == "complete" and loaded.ended_by_event == "apocentre"   # a user trial looked for it
     report = CliRunner().invoke(cli, ["inspect", str(out)])
     status = next(line for line in report.output.splitlines() if line.startswith("status"))
     assert status.split(None, 1)[1] == f"complete (ended by a terminal event at t = {loaded.t_final:.10g})"
     assert abs(loaded.t_final - math.pi) < 1e-10
+    assert "cut to land on t_end" not in report.output   # (the step to the apocentre is no shortest step)
+    # A terminal pericentre: the last step, cut to land on it, is the shortest; inspect said 't_end' there
+    # (a user trial)
+    pericentre = {**config, "events": {"pericentre": {"expression": "q1*p1 + q2*p2", "direction": 1,
+                                                      "terminal": True}}}
+    ended = tmp_path / "pericentre.h5"
+    assert CliRunner().invoke(cli, ["run", str(write_config(tmp_path, pericentre)), "-o", str(ended),
+                                    "--quiet"]).exit_code == 0
+    h_line = next(line for line in CliRunner().invoke(cli, ["inspect", str(ended)]).output.splitlines()
+                  if line.startswith("h "))
+    assert "the last, cut to land on the terminal event" in h_line and "t_end" not in h_line, h_line
     assert "after the last sample" not in report.output   # the event's state is the last sample
     # output times that stop before the event: the invariant figures say that they do not reach the end
     config["output"] = {"times": [1.0, 2.0, 50.0]}
@@ -403,6 +415,25 @@ def test_an_adaptive_run_continued_to_a_later_end_with_more_output_times(tmp_pat
             "would have no samples after 125.66370614359172") in unsampled.stderr
     with h5py.File(out, "r") as f:
         assert f.attrs["output_times"] == 503 and f["t"].shape[0] == 503
+
+
+def test_output_times_given_as_a_list_are_told_to_grow_as_a_list(tmp_path):
+    """A user trial: output times given as a list, continued to a later end without later times, were
+    told to set output.times.stop, which a list does not have. The advice gives the whole list; it works."""
+    config = {**CONFIG, "integration": {"rtol": 1e-12, "t_end": 10}, "output": {"times": [1, 2, 3.5, 9]}}
+    config.pop("events")
+    path = write_config(tmp_path, config)
+    out = tmp_path / "run.h5"
+    assert CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--quiet"]).exit_code == 0
+    refused = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--set", "integration.t_end=20"])
+    assert refused.exit_code == 2 and "output.times.stop" not in refused.stderr, refused.stderr
+    advice = "--set 'output.times=[1, 2, 3.5, 9, 20]'"
+    assert advice in refused.stderr, refused.stderr
+    followed = CliRunner().invoke(cli, ["run", str(path), "-o", str(out), "--resume", "--quiet", "--set",
+                                        "integration.t_end=20", "--set", "output.times=[1, 2, 3.5, 9, 20]"])
+    assert followed.exit_code == 0, followed.stderr
+    with h5py.File(out, "r") as f:
+        np.testing.assert_array_equal(f["t"][:], [1, 2, 3.5, 9, 20])
 
 
 def test_output_times_given_by_set_are_continued_by_a_set_of_their_stop(tmp_path):

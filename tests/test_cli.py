@@ -145,6 +145,9 @@ def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file,
         f["steps/alpha"][5] = np.nan
     text = invoke("inspect", path).stdout
     assert "1 step(s) were taken, or had a substep taken, without imposing the invariants, because imposing failed there" in text
+    # the invariants' tags say it too (a user trial read '(imposed)' where no step had imposed them)
+    n_steps = len(alpha)
+    assert f"(imposed; 1 of {n_steps:,} steps could not: see below)" in text and "  (imposed)" not in text, text
     largest = np.max(np.abs(np.delete(alpha, 5, axis=0)), axis=0)
     assert f"{largest[0]:.3e} (angular_momentum), {largest[1]:.3e} (lrl_y)" in text
     with RunFile(path) as run_file:
@@ -155,6 +158,10 @@ def test_inspect_counts_steps_with_a_substep_taken_without_imposing(kepler_file,
         f["steps/alpha"][:150] = np.nan
     text = invoke("inspect", path).stdout
     assert "150 step(s) were taken, or had a substep taken" in text and "degenerate along this orbit" in text
+    assert "nearly planar system" in text and "GHBVM (LIM)" in text   # the other degenerate case, and the way out
+    with h5py.File(path, "r+") as f:
+        f["steps/alpha"][:] = np.nan
+    assert "(imposed, but no step could: see the note below)" in invoke("inspect", path).stdout
     assert "too short for Gamma" not in text
 
 
@@ -669,3 +676,8 @@ def test_a_run_whose_steps_mostly_go_unimposed_hears_it_during_the_run(tmp_path)
     assert len(during) == 1 and during[0] < end[0], result.stderr
     plain = invoke("run", nbody, "-o", tmp_path / "g.h5", "--set", "integration.t_end=4e4")
     assert plain.exit_code == 0 and "went without imposing" not in plain.stderr
+    # --quiet prints errors only: not this note either (a user trial)
+    quiet = invoke("run", nbody, "-o", tmp_path / "q.h5", "--set", "method=EHBVM(12,4)", "--set",
+                   "conserve=[angular_momentum_x, angular_momentum_y, angular_momentum_z]", "--set",
+                   "integration.t_end=4e4", "--set", "solver.lim_metric=null", "--quiet")
+    assert quiet.exit_code == 0 and quiet.stderr == "" and quiet.stdout == "", quiet.output

@@ -936,6 +936,21 @@ def test_set_null_leaves_a_key_out_in_every_section():
     assert err.key == "integration.h" and "missing" in str(err) and str(err).endswith("(value from --set integration.h=null)")
 
 
+def test_set_reaches_keys_under_the_short_forms_of_method_and_problem():
+    """A user trial: on a config with method: EHBVM(12,3) and problem: kepler (the README's short
+    forms), --set method.s=4 and --set problem.parameters.eccentricity=0.9 were refused ('method is
+    not a section'), while a sweep's set reached them. They are written out first, as a sweep does."""
+    short = {"problem": "kepler", "method": "EHBVM(12,3)", "conserve": ["angular_momentum"],
+             "integration": {"h": 0.1, "t_end": 1}}
+    spec = load_run_from_dict(short, source="short.yaml",
+                              overrides=["method.s=4", "problem.parameters.eccentricity=0.9"])
+    assert spec.method.name == "EHBVM(12,4)" and spec.problem.parameters["eccentricity"] == 0.9
+    err = config_error({**short, "method": "EHBVM(12"}, overrides=["method.s=4"])   # a bad short form: said
+    assert str(err).startswith("run.yaml: method: ") and "EHBVM(12" in str(err), str(err)
+    err = config_error({**short, "integration": 5}, overrides=["integration.h=0.1"])   # not a section: as before
+    assert "integration is not a section, so it has no keys" in str(err)
+
+
 def test_output_every_refused_beside_output_times_names_their_set():
     """A user trial: --set 'output.times=[...]' on configs/kepler_adaptive.yaml (output.every: 10)
     was told of the file's output.every line only, not of the --set that made the conflict."""

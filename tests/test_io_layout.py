@@ -257,6 +257,14 @@ def test_every_run_file_says_its_step_control_and_files_written_without_it_are_s
     assert elimfast.load(path).to_xarray().attrs["step_control"] == "fixed"
     fixed = elimfast.integrate(problems.kepler(0.6), methods.gauss(3), h=0.1, n_steps=10)
     assert fixed.to_xarray().attrs["step_control"] == "fixed"
+    # n_steps: an adaptive run's file says 0 (not known in advance); so does its xarray view (a user trial)
+    adaptive = tmp_path / "adaptive.h5"
+    assert invoke("run", KEPLER, "-o", adaptive, "-q", "--set", "integration.h=null", "--set",
+                  "integration.rtol=1e-8", "--set", "integration.t_end=2").exit_code == 0
+    with h5py.File(adaptive, "r") as f:
+        assert f.attrs["n_steps"] == 0 and f.attrs["step_control"] == "error"
+    view = elimfast.load(adaptive).to_xarray().attrs
+    assert view["n_steps"] == 0 and view["steps_done"] > 0
     sweep, _ = h_sweep
     with h5py.File(sweep, "r") as f:
         assert {f["runs"][label].attrs["step_control"] for label in f["runs"]} == {"fixed"}

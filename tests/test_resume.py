@@ -514,3 +514,23 @@ def test_a_default_that_follows_from_a_set_value_is_not_called_the_configs_chang
     assert "'s changes" not in resumed.stderr and "with new solver settings" in resumed.stderr, resumed.stderr
     with h5py.File(path, "r") as f:
         assert "max_iter: 100" in f.attrs["config"]
+
+
+def test_resume_with_another_config_does_not_blame_a_set_the_file_stored(tmp_path):
+    """A user trial resumed a file written from one Kepler config (with --set integration.t_end=...)
+    with another (other h): the stored --set, applied again to that config, was refused as if the user
+    had typed it ('not a whole number of steps ... (value from --set integration.t_end=...)'). The
+    message now says that the file's stored --set does not fit that config, and what to do."""
+    import yaml
+    first, other = tmp_path / "first.yaml", tmp_path / "other.yaml"
+    base = {"problem": {"builtin": "kepler"}, "method": "HBVM(6,3)", "integration": {"h": 0.1, "t_end": 1}}
+    first.write_text(yaml.safe_dump(base))
+    other.write_text(yaml.safe_dump({**base, "integration": {"h": 0.3, "t_end": 0.9}}))
+    out = tmp_path / "run.h5"
+    made = CliRunner().invoke(cli, ["run", str(first), "-o", str(out), "--quiet", "--set", "integration.t_end=1.6"])
+    assert made.exit_code == 0, made.output
+    resumed = CliRunner().invoke(cli, ["run", str(other), "-o", str(out), "--resume"])
+    assert resumed.exit_code == 2, resumed.output
+    message = resumed.stderr
+    assert "the --set integration.t_end=1.6 that its earlier run stored" in message, message
+    assert f"does not fit {other}" in message and "another config" in message and message.count("\n") == 1

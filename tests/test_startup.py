@@ -60,7 +60,9 @@ def test_import_elimfast_loads_no_numba_and_the_api_still_works():
     assert elimfast.integrate is integrate and elimfast.Integration is Integration and elimfast.Result is Result
     from elimfast.archive import load
     assert elimfast.load is load
-    assert {"integrate", "load", "Integration", "Result"} <= set(dir(elimfast))
+    assert {"integrate", "load", "Integration", "Result", "SolverSettings"} <= set(dir(elimfast))
+    from elimfast.integrate import SolverSettings
+    assert elimfast.SolverSettings is SolverSettings   # a user trial looked for it there (docs/solver.md)
 
 
 RUN_KERNELS = ("elimfast.kernels.stepper", "elimfast.kernels.adaptive", "elimfast.kernels.ensemble")

@@ -66,6 +66,9 @@ def result_dataset(result):
     control = result.step_control
     attrs["step_control"] = STEP_CONTROL_FIXED   # as a run file says it (layout.run_attributes)
     if control is not None:
+        # n_steps as the run file has it: 0, not known in advance (the README; a user trial saw 8373
+        # here beside the file's 0; steps_done counts the steps)
+        attrs["n_steps"] = 0
         attrs["h_first"] = float(result.h)
         settings = control.as_dict()
         attrs["step_control"] = settings.pop("controller")     # the run file's name for it
