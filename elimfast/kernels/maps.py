@@ -502,7 +502,8 @@ def equilibrated_condition(work, n_t):
     size, then R = diag(1 / row_a), row_a = max_c |Gamma[a, c]| / size_c, every row; inf for a zero
     row or column. Unlike cond(Gamma), all but blind to the units of the invariants (rows)
     and to the powers of h in the columns (w_c): within a factor nu^2 of the same whatever they are,
-    so large only where the rows are nearly dependent, Assumption 1 failing. Uses work.small_inverse as scratch (its row a: Gamma^-1 e_a)."""
+    so large only where the rows are nearly dependent, Assumption 1 failing. Uses
+    work.small_inverse as scratch (its row a: Gamma^-1 e_a)."""
     matrix, inverse, factor, pivots = work.small_copy, work.small_inverse, work.small_matrix, work.small_pivots
     for a in range(n_t):
         for c in range(n_t):
