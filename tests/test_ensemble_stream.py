@@ -363,8 +363,8 @@ def test_resume_of_an_ensemble_takes_an_edit_of_comments_or_description_and_name
 
 def test_an_ensemble_file_written_before_unimposed_steps_were_counted_reads_and_resumes(tmp_path, small_blocks,
                                                                                            monkeypatch):
-    """/ensemble/unimposed_steps is new: a file without it reads it as -1 (not recorded) in load_ensemble
-    and xarray's view, inspect says nothing of it, and --resume completes the file without it."""
+    """/ensemble/unimposed_steps is new: a file without it reads it as -1 (not recorded) in
+    load_ensemble, inspect says nothing of it, and --resume completes the file without it."""
     from elimfast.archive import load_ensemble
     path = ensemble_sweep(tmp_path)
     half = stopped_after_blocks(path, tmp_path / "half.h5", 2, monkeypatch, workers=2)
