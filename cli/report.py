@@ -328,6 +328,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
     method = f"{a.get('method')}, order {2 * int(a.get('s', 0))}"
     row("method", method + (f", imposing {', '.join(conserve)}" if conserve else ""))
     done = run_file.steps_done
+    terminal_t = _terminal_event_time(run_file)   # reads the saved state: once
     samples = (f"samples at {a.get('output_times')} requested times" if "output_times" in a
                else "a sample every step" if str(a.get("output_every")) == "1"
                else f"a sample every {a.get('output_every')} steps")
@@ -342,7 +343,7 @@ def summary(run_file, integrity: dict | None = None) -> str:
                 # the last step is cut to land on t_end: as 'h min' it read 5.2e-3 for a controller whose
                 # steps were all 0.085-0.092 (a user trial); it is no measure of the controller's work;
                 # or on the terminal event that ended the run (a user trial read 't_end' there)
-                where = "the terminal event" if _terminal_event_time(run_file) is not None else "t_end"
+                where = "the terminal event" if terminal_t is not None else "t_end"
                 last = f"; the last, cut to land on {where}, {sizes[-1]:.3e}"
                 sizes = sizes[:-1]
             row("h", f"min {sizes.min():.3e}, median {np.median(sizes):.3e}, max {sizes.max():.3e}{last}")
@@ -376,8 +377,8 @@ def summary(run_file, integrity: dict | None = None) -> str:
                      if run_file.swmr else ")"))
     elif status == "running":
         status = "running (another process is writing it)"
-    elif status == "complete" and _terminal_event_time(run_file) is not None:
-        status += f" (ended by a terminal event at t = {_terminal_event_time(run_file):.10g})"
+    elif status == "complete" and terminal_t is not None:
+        status += f" (ended by a terminal event at t = {terminal_t:.10g})"
     row("status", status)
     # how the run was continued (--resume with other solver settings, to a later end, or an edited
     # python: problem file)
