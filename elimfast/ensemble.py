@@ -339,7 +339,7 @@ def run_in_blocks(run: EnsembleRun, states: np.ndarray, ranges, target_seconds: 
     row_bytes = 8.0 * (states.shape[1] + len(run.invariant_names)) + sum(
         dtype.itemsize * int(np.prod(shape)) for shape, dtype in run.row_layout().values())
     size = first_rows or FIRST_BLOCK_ROWS_PER_THREAD * run.n_threads
-    measured = False
+    seconds, measured = 0.0, False   # the last block's time, once one is measured
     for range_start, range_stop in ranges:
         start = range_start
         while start < range_stop:

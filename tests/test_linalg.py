@@ -85,7 +85,7 @@ def test_equilibrated_condition_is_blind_to_row_and_column_scales(a, row_scales,
     def equilibrated(matrix):
         n = matrix.shape[0]
         work = SimpleNamespace(small_copy=matrix.copy(), small_matrix=matrix.copy(), small_inverse=np.zeros((n, n)),
-                               small_pivots=np.zeros(n, dtype=np.int64))
+                               small_pivots=np.zeros(n, dtype=np.int64), small_rounding=np.zeros((1, n)))
         assert lu_factor_columns(work.small_matrix, work.small_pivots) == 0
         return equilibrated_condition.py_func(work, n)
 

@@ -17,8 +17,6 @@ Gram matrix) and its multipliers, and writes G(coef) into ``work.new_coef``.
 Each map also has its rounding estimate (``*_rounding``): how far round-off alone moves
 G through the multipliers, the second term of the rounding level omega of docs/solver.md.
 """
-import math
-
 import numpy as np
 from numba import njit
 
@@ -273,14 +271,10 @@ def elim_map(grad_H, grad_invariants, params, y, h, coef, alpha, plain_sweep, st
             for a in range(nu):
                 alpha[a] = 0.0
         else:
-            for a in range(nu):
-                for c in range(nu):
-                    small_matrix[a, c] = big_gamma[a, c]
+            _copy_square(big_gamma, small_matrix, nu)
             factored = lu_factor(small_matrix, small_pivots) == 0
             if not factored:
-                for a in range(nu):
-                    for c in range(nu):
-                        small_matrix[a, c] = big_gamma[a, c]
+                _copy_square(big_gamma, small_matrix, nu)   # the first LU overwrote it
                 factored = (lu_factor_columns(small_matrix, small_pivots) == 0
                             and not (equilibrated_condition(work, nu) > EQUILIBRATED_LIMIT))
             if factored:
@@ -503,27 +497,45 @@ def equilibrated_condition(work, n_t):
     row or column. Unlike cond(Gamma), all but blind to the units of the invariants (rows)
     and to the powers of h in the columns (w_c): within a factor nu^2 of the same whatever they are,
     so large only where the rows are nearly dependent, Assumption 1 failing. Uses
-    work.small_inverse as scratch (its row a: Gamma^-1 e_a)."""
+    work.small_inverse as scratch (its row a: row_a Gamma^-1 e_a), and work.small_rounding[0] for
+    the column sizes (elim_rounding writes it afresh before anything reads it)."""
     matrix, inverse, factor, pivots = work.small_copy, work.small_inverse, work.small_matrix, work.small_pivots
-    for a in range(n_t):
-        for c in range(n_t):
-            inverse[a, c] = 1.0 if a == c else 0.0
-        lu_solve_factored(factor, pivots, inverse[a])
-        if not (_row_size(matrix, a, n_t) > 0.0):
+    sizes = work.small_rounding[0]
+    for c in range(n_t):
+        sizes[c] = _column_size(matrix, c, n_t)
+        if not (sizes[c] > 0.0):
             return np.inf
     norm = 0.0
     for a in range(n_t):
+        row = 0.0
         total = 0.0
         for c in range(n_t):
-            total += abs(matrix[a, c]) / _column_size(matrix, c, n_t)
-        norm = max(norm, total / _row_size(matrix, a, n_t))
-    inverse_norm = 0.0   # (R Gamma C)^-1 = C^-1 Gamma^-1 R^-1: entry (c, a) = size_c Gamma^-1[c, a] row_a
+            entry = abs(matrix[a, c]) / sizes[c]
+            row = max(row, entry)
+            total += entry
+        if not (row > 0.0):
+            return np.inf
+        norm = max(norm, total / row)
+        for c in range(n_t):
+            inverse[a, c] = 1.0 if a == c else 0.0
+        lu_solve_factored(factor, pivots, inverse[a])
+        for c in range(n_t):   # (R Gamma C)^-1 = C^-1 Gamma^-1 R^-1: entry (c, a) = size_c Gamma^-1[c, a] row_a
+            inverse[a, c] *= row
+    inverse_norm = 0.0
     for c in range(n_t):
         total = 0.0
         for a in range(n_t):
-            total += abs(inverse[a, c]) * _row_size(matrix, a, n_t)
-        inverse_norm = max(inverse_norm, _column_size(matrix, c, n_t) * total)
+            total += abs(inverse[a, c])
+        inverse_norm = max(inverse_norm, sizes[c] * total)
     return norm * inverse_norm
+
+
+@njit(cache=True, inline="always")
+def _copy_square(source, target, n):
+    """target[:n, :n] = source[:n, :n]"""
+    for a in range(n):
+        for c in range(n):
+            target[a, c] = source[a, c]
 
 
 @njit(cache=True, inline="always")
@@ -532,15 +544,6 @@ def _column_size(matrix, c, n_t):
     size = 0.0
     for a in range(n_t):
         size = max(size, abs(matrix[a, c]))
-    return size
-
-
-@njit(cache=True, inline="always")
-def _row_size(matrix, a, n_t):
-    """max_c |matrix[a, c]| / max_b |matrix[b, c]|: row a's size once the columns have unit size"""
-    size = 0.0
-    for c in range(n_t):
-        size = max(size, abs(matrix[a, c]) / _column_size(matrix, c, n_t))
     return size
 
 
@@ -556,20 +559,21 @@ def column_scaled_condition(work, n_t):
     of 1e-7, a tenth of the time scale there) they differ by 1e-14 and cond(Gamma) reached 7e14
     where the scaled matrix is well conditioned."""
     matrix, inverse = work.small_copy, work.small_inverse
+    sizes = work.small_rounding[0]   # scratch, as in equilibrated_condition
     norm = 0.0
     inverse_norm = 0.0
     for c in range(n_t):
-        size = _column_size(matrix, c, n_t)
-        if not (size > 0.0):
+        sizes[c] = _column_size(matrix, c, n_t)
+        if not (sizes[c] > 0.0):
             return np.inf
         inverse_row = 0.0
         for a in range(n_t):
             inverse_row += abs(inverse[c, a])
-        inverse_norm = max(inverse_norm, size * inverse_row)
+        inverse_norm = max(inverse_norm, sizes[c] * inverse_row)
     for a in range(n_t):
         row = 0.0
         for c in range(n_t):
-            row += abs(matrix[a, c]) / _column_size(matrix, c, n_t)
+            row += abs(matrix[a, c]) / sizes[c]
         norm = max(norm, row)
     return norm * inverse_norm
 

@@ -11,8 +11,6 @@ is factorised once per step, and each iteration applies
 coef <- coef + M^-1 vec(G(coef) - coef).  The fixed point applies coef <- G(coef) (the
 paper's iteration, whose counts Table 2 reports).
 """
-import math
-
 import numpy as np
 from numba import njit
 
@@ -629,7 +627,7 @@ def solve(grad_H, grad_invariants, params, settings, tables, conserve_idx, work,
     newton = settings.solver != SOLVER_FIXED_POINT
     # Bound once: an attribute read inside the loop costs a reference count update per read.
     delta, scale, new_coef, info, h_powers = work.delta, work.scale, work.new_coef, work.info, work.h_powers
-    component, level = work.component_increment, work.rounding_level
+    component = work.component_increment
     max_iter, tol = settings.max_iter, settings.tol
     for c in range(nu):
         h_powers[c] = h ** (2 * (nu - 1 - c))
