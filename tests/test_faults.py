@@ -398,6 +398,30 @@ def test_a_damaged_copy_of_the_saved_state_falls_back_to_the_other(tmp_path, kil
     assert_equal_to_reference(path, long_reference)
 
 
+def test_an_altered_named_state_dataset_is_reported_and_resume_keeps_the_record(tmp_path, killed_run, long_reference):
+    """The named /state datasets are a readable copy of /state/record without checksums of their
+    own: a byte changed in /state/y (contiguous storage: nothing fails on reading it) is reported
+    by inspect, which said nothing before, and resume still continues from the record and ends bit
+    for bit where an uninterrupted run ends. The killed run itself, whose copies are of the same
+    save, reports nothing."""
+    untouched = CliRunner().invoke(cli, ["inspect", str(killed_run)])
+    assert untouched.exit_code == 0 and "saved state" not in untouched.stdout, untouched.output
+    path = copy_of(killed_run, tmp_path)
+    with h5py.File(path, "r", swmr=True) as f:
+        offset = f["state/y"].id.get_offset()
+        before = f["state/y"][()]
+    corrupt(path, offset + 2, count=1)
+    with h5py.File(path, "r", swmr=True) as f:
+        assert not np.array_equal(f["state/y"][()], before)
+    inspected = CliRunner().invoke(cli, ["inspect", str(path)])
+    assert inspected.exit_code == 0, inspected.output
+    assert re.search(r"saved state +/state/y not as in the checksummed copy of the same save \(/state/record\), "
+                     r"which resume reads: altered since", inspected.stdout), inspected.stdout
+    result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(path), *LONG, "--resume"])
+    assert result.exit_code == 0, result.output
+    assert_equal_to_reference(path, long_reference)
+
+
 def test_an_elimfast_file_without_state_is_damaged_not_an_internal_error(tmp_path):
     path = tmp_path / "nostate.h5"
     with h5py.File(path, "w") as f:

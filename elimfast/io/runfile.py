@@ -837,6 +837,13 @@ class RunFile:
         if problems and int(named["steps_done"]) > best["steps_done"]:
             self.state_damage = (f"the newest copy of the saved state is damaged ({'; '.join(problems)}); resume "
                                  f"continues from the other copy, at step {best['steps_done']}")
+        elif (int(named["steps_done"]), int(named["n_samples"])) == (best["steps_done"], best["n_samples"]):
+            # the same save in both: a named copy (no checksum) unlike the record was altered since
+            altered = [f"/state/{key}" for key in named if key in best and not np.array_equal(
+                np.ravel(named[key]), np.ravel(best[key]), equal_nan=True)]
+            if altered:
+                self.state_damage = (f"{', '.join(altered)} not as in the checksummed copy of the same save "
+                                     "(/state/record), which resume reads: altered since; do not read the state there")
         return best
 
     def _sweep_run_counts(self) -> dict:
