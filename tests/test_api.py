@@ -159,6 +159,29 @@ def test_linear_invariants_are_detected_and_refused_for_elim():
     assert result.invariant_errors()["momentum"] < 1e-14
 
 
+def test_a_quadratic_invariant_of_a_quadratic_hamiltonian_is_refused_for_elim():
+    """A user trial: a charged particle in a magnetic field (H and the canonical angular momentum
+    both quadratic) imposing L with EHBVM(6,3) passed check, then split 9,995 of 10,000 steps and
+    failed at a larger h with cond(Gamma) inf. With grad H and grad L affine and {L, H} = 0, every
+    phi_j^T gamma_j vanishes whatever the stages, so Gamma is zero; and the HBVM step of a quadratic
+    H is Gauss collocation, which keeps L anyway. LIM imposes it; a quadratic invariant of a
+    non-quadratic H (Kepler's L) is imposed by ELIM as before."""
+    from elimfast.problems import kepler, problem_from_expressions
+    charged = problem_from_expressions(
+        {"q": ["x", "y"], "p": ["px", "py"]}, "((px + B*y/2)**2 + (py - B*x/2)**2)/2 + k*(x**2 + y**2)/2",
+        invariants={"energy_like": "(px**2 + py**2)/2 + x**2", "canonical_L": "x*py - y*px"},
+        parameters={"B": 1.0, "k": 0.3}, initial={"x": 1.0, "y": 0.0, "px": 0.0, "py": 0.8}, check=False)
+    assert charged.quadratic_invariant_names == ("energy_like", "canonical_L")   # quadratic, conserved or not
+    assert kepler().quadratic_invariant_names == ()                              # H is not quadratic
+    with pytest.raises(ParameterError, match=r"^conserve\[0\] names 'canonical_L', which is quadratic, as H is: "
+                                             r"then EHBVM\(6,3\)'s HBVM step is Gauss collocation.*lim/ghbvm$"):
+        elimfast.integrate(charged, ehbvm(6, 3), 0.05, n_steps=5, conserve=["canonical_L"])
+    kept = elimfast.integrate(charged, hbvm(6, 3), 0.05, n_steps=2000)
+    assert kept.invariant_errors()["canonical_L"] < 1e-14
+    imposed = elimfast.integrate(charged, ghbvm(6, 3), 0.05, n_steps=200, conserve=["canonical_L"])
+    assert imposed.status == "complete" and imposed.invariant_errors()["canonical_L"] < 1e-14
+
+
 def test_an_unknown_solver_is_named_by_integrates_keyword():
     """A user trial's finding: integrate(..., solver='newtn') said 'method must be one of newton,
     fixed_point', while integrate's method is the integrator (ehbvm(8, 4))."""

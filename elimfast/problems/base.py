@@ -115,6 +115,33 @@ def _terms_size(gradient, y, m: int):
     return np.sum(np.abs(gradient[..., :m]), axis=-1) * q_size + np.sum(np.abs(gradient[..., m:]), axis=-1) * p_size
 
 
+def _affine_rows(gradients, y0) -> list[bool]:
+    """For each row of gradients(y) (rows: functions' gradients), whether it is affine in y (the
+    function quadratic or linear): at three seeded pairs of points around y0 (spread as
+    linear_invariant_names' points), every component of the gradient at their midpoint is their
+    mean, to 1e-12 of that component's own size. Each component on its own: the solar system's
+    potential gradient, 1e-17 of its kinetic one (Pluto's p / m), passed a test against the row's
+    largest. A component that cancels to far below its terms may fail the test though affine: the
+    safe side, where ELIM is tried as before. False where a gradient is not finite, or a function
+    raises there (outside its domain)."""
+    rng = np.random.default_rng(20141202)
+    spread = 0.1 * max(1.0, float(np.max(np.abs(y0))))
+    affine = None
+    for _ in range(3):
+        a, b = (y0 * (1.0 + 0.1 * rng.standard_normal(y0.size)) + spread * rng.standard_normal(y0.size)
+                for _ in range(2))
+        try:
+            ga, gb, gm = gradients(a), gradients(b), gradients(0.5 * (a + b))
+        except Exception:   # noqa: BLE001 -- a user's function outside its domain: no answer, so not affine
+            return [False] * (len(affine) if affine is not None else np.atleast_2d(gradients(y0)).shape[0])
+        with np.errstate(invalid="ignore", over="ignore"):
+            size = np.maximum(np.maximum(np.abs(ga), np.abs(gb)), np.abs(gm))
+            here = np.all(np.abs(ga + gb - 2.0 * gm) <= 1e-12 * size, axis=1)
+        here &= np.all(np.isfinite(ga) & np.isfinite(gb) & np.isfinite(gm), axis=1)
+        affine = here if affine is None else affine & here
+    return [bool(value) for value in affine]
+
+
 @dataclass(frozen=True, eq=False)
 class Problem:
     """y' = J grad H(y), y = (q, p), with named invariants L_i (grad L_i^T J grad H = 0).
@@ -296,6 +323,29 @@ class Problem:
             if all(np.max(np.abs(g[i] - reference_row)) <= 1e-13 * size for g in gradients[1:]):
                 linear.append(name)
         return tuple(linear)
+
+    @cached_property
+    def quadratic_invariant_names(self) -> tuple[str, ...]:
+        """Invariants that are quadratic when H is quadratic too (their gradients affine at seeded
+        points near y0, _affine_rows), else (). Linear ones are linear_invariant_names'.
+
+        ELIM cannot impose these either: with grad H and grad L affine and {L, H} = 0, every
+        phi_j^T gamma_j vanishes whatever the stages (docs/methods.md#linear-invariants), so Gamma
+        is zero; and it needs not: on a quadratic H the HBVM step is Gauss collocation, which keeps
+        every quadratic invariant."""
+        if not self.invariant_names:
+            return ()
+        gradient = np.empty(2 * self.degrees_of_freedom)
+
+        def grad_H(y):
+            self.grad_H(_vector(y), self.params, gradient)
+            return gradient[None, :].copy()
+
+        if not _affine_rows(grad_H, self.y0)[0]:
+            return ()
+        affine = _affine_rows(self.invariant_gradients, self.y0)
+        return tuple(name for name, is_affine in zip(self.invariant_names, affine)
+                     if is_affine and name not in self.linear_invariant_names)
 
     def invariant_gradients(self, y) -> np.ndarray:
         """(n_inv, 2m): row i is grad L_i(y)."""
