@@ -65,6 +65,7 @@ import pickle
 import re
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -825,11 +826,26 @@ def ensemble_run(spec: SweepSpec, run, states: np.ndarray, threads: int | None =
         raise SweepError(f"{spec.source}: ensemble: {error}") from None
 
 
-def block_line(rows: dict, start: int, stop: int, done: int, total: int) -> str:
-    """The progress line of an ensemble block just stored (or put in place)."""
+def block_line(rows: dict, start: int, stop: int, done: int, total: int, rate: float | None = None) -> str:
+    """The progress line of an ensemble block just stored (or put in place); ``rate``: trajectories
+    a second so far, for the time left (a user trial's 10^8 trajectories showed no end in sight)."""
     from .kernels.codes import STATUS_OK
     failed = int(np.count_nonzero(rows["status"] != STATUS_OK))
-    return f"[{done:,}/{total:,}] trajectories {start}-{stop - 1}: {failed} failed"
+    left = f"; about {_duration((total - done) / rate)} left" if rate and done < total else ""
+    return f"[{done:,}/{total:,}] trajectories {start}-{stop - 1}: {failed} failed{left}"
+
+
+def _duration(seconds: float) -> str:
+    """'42 s', '7 min 12 s', '3 h 28 min', '12 days 4 h'."""
+    seconds = int(round(seconds))
+    minutes, hours, days = seconds // 60, seconds // 3600, seconds // 86400
+    if seconds < 60:
+        return f"{seconds} s"
+    if seconds < 3600:
+        return f"{minutes} min {seconds % 60} s"
+    if seconds < 86400:
+        return f"{hours} h {minutes % 60} min"
+    return f"{days} day{'s' if days != 1 else ''} {hours % 24} h"
 
 
 def ensemble_states(spec: SweepSpec, streamed: bool = False):
@@ -1180,14 +1196,28 @@ def stored_outcome(path, run: SweepRun, group_name: str, keep_result: bool = Fal
 _PR_SET_PDEATHSIG = 1   # linux/prctl.h
 
 
-def _worker_init(parent: int | None = None, allow_python: bool = False) -> None:
+# Set in a worker by _worker_init: where it says which run it starts (_execute_noting_start).
+_STARTED = None
+
+
+def _execute_noting_start(label: str, coordinates: dict, config: dict, source: str, store_arrays: bool) -> RunOutcome:
+    """_execute in a pool's worker, first telling the parent (through _STARTED) that this run
+    began: if the worker dies, the parent knows which runs it may have died of (run_sweep)."""
+    if _STARTED is not None:
+        _STARTED.put(label)
+    return _execute(label, coordinates, config, source, store_arrays)
+
+
+def _worker_init(parent: int | None = None, allow_python: bool = False, started=None) -> None:
     """A forked worker starts with Python's default signal handling, not the parent's watchdog,
     and dies with its parent ``parent``: after a kill -9 of the sweep, orphaned workers waited
     forever on the pool's queue and, sharing the forked output file's descriptor, held its
     writer lock, so --resume and inspect refused the file until they were found and killed.
     ``allow_python``: the parent's config.python_allowed() (its allowing_python, if that is what
-    allowed it, is not inherited by a process)."""
+    allowed it, is not inherited by a process). ``started``: the pool's queue of runs begun."""
     import signal
+    global _STARTED
+    _STARTED = started
     from .config import ALLOW_PYTHON_ENV
     if allow_python:
         os.environ[ALLOW_PYTHON_ENV] = "1"
@@ -1276,16 +1306,27 @@ def _expected_work(config: dict) -> float:
         return math.inf
 
 
+def _stop_pool(pool) -> None:
+    """Kill a pool's workers now and let it go (a worker inside a kernel call cannot run a signal
+    handler)."""
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        with contextlib.suppress(Exception):
+            process.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
 def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = True,
               on_done: Callable[[RunOutcome, int, int], None] | None = None,
-              skip=frozenset()) -> tuple[list[RunOutcome], RunOutcome | None]:
+              skip=frozenset(), on_message: Callable[[str], None] | None = None
+              ) -> tuple[list[RunOutcome], RunOutcome | None]:
     """Run every point (and the reference run, if any) in ``workers`` processes.
 
     Returns the outcomes in grid order and the reference outcome. ``on_done(outcome,
     done, total)`` is called in the parent as each run finishes (progress, writing).
     Workers are forked where the platform allows it: they inherit the loaded kernels
     instead of importing and loading them again. Runs labelled in ``skip`` are not run
-    (nor returned).
+    (nor returned). A worker that dies is replaced, and the runs it may have died of run again
+    one at a time (``on_message`` says so); a run whose worker dies twice fails.
     """
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
@@ -1343,27 +1384,69 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
         context = multiprocessing.get_context(method)
         # Freeze what is loaded while the workers fork: a worker's garbage collector then never
         # walks (and so never copies, page by page) the parent's Numba objects.
-        gc.freeze()
-        pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(jobs))), mp_context=context,
-                                   initializer=_worker_init, initargs=(os.getpid(), config.python_allowed()))
-        try:
-            futures = {pool.submit(_execute, label, coordinates, config, spec.source, store_arrays): label
-                       for label, coordinates, config in jobs}
-            gc.unfreeze()   # the workers are forked (all at the first submit)
-            for done, future in enumerate(as_completed(futures), start=done + 1):
-                outcome = future.result()
-                results[outcome.label] = outcome
-                if on_done:
-                    on_done(outcome, done, total)
-        except BaseException:
-            # Ctrl-C, SIGTERM or an error: the workers stop now (a worker inside a kernel call
-            # cannot run a signal handler, so it is killed), unfinished runs are dropped.
-            for process in list(getattr(pool, "_processes", {}).values()):
-                with contextlib.suppress(Exception):
-                    process.kill()
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-        pool.shutdown(wait=True)
+        allowed = config.python_allowed()
+        pending = {label: (label, coordinates, config) for label, coordinates, config in jobs}
+        order = [label for label, _, _ in jobs]
+        deaths: dict[str, int] = {}
+        unexplained = 0
+        alone: list[str] = []   # runs that were in flight when a worker died: each run by itself next
+        while pending:
+            # A worker that dies (the out-of-memory killer, a kill, a crash in compiled code) breaks
+            # the pool and every run in flight (a user trial: the whole sweep ended in an internal
+            # error). The runs it may have died of are run again, one at a time, and a run whose
+            # worker dies twice fails with that reason; the others go on in a new pool.
+            batch = [alone.pop(0)] if alone else [label for label in order if label in pending]
+            started = context.SimpleQueue()
+            gc.freeze()
+            pool = ProcessPoolExecutor(max_workers=max(1, min(workers, len(batch))), mp_context=context,
+                                       initializer=_worker_init, initargs=(os.getpid(), allowed, started))
+            try:
+                futures = {pool.submit(_execute_noting_start, *pending[label], spec.source, store_arrays): label
+                           for label in batch}
+                gc.unfreeze()   # the workers are forked (all at the first submit)
+                for future in as_completed(futures):
+                    outcome = future.result()
+                    results[outcome.label] = outcome
+                    pending.pop(outcome.label, None)
+                    done += 1
+                    if on_done:
+                        on_done(outcome, done, total)
+            except BrokenProcessPool:
+                _stop_pool(pool)
+                begun = set()
+                while not started.empty():
+                    begun.add(started.get())
+                suspects = [label for label in order if label in begun and label in pending]
+                if on_message is not None:
+                    on_message(f"a worker process died (killed, out of memory, or a crash) while running "
+                               f"{', '.join(suspects) or 'no run yet'}: "
+                               + ("running them again, one at a time" if suspects else "starting another"))
+                if not suspects:   # died before it began a run: that is not a run's doing
+                    unexplained += 1
+                    if unexplained >= 3:
+                        raise SweepError("the sweep's worker processes died three times before they began a run "
+                                         "(killed, or out of memory at start); run it with --workers 1, or resume "
+                                         "it once the machine has room") from None
+                for label in suspects:
+                    deaths[label] = deaths.get(label, 0) + 1
+                    if deaths[label] >= 2:
+                        outcome = RunOutcome(label=label, coordinates=pending.pop(label)[1], status=(
+                            f"failed: {run_source(spec.source, label)}: its worker process died while running "
+                            "it, twice (killed: by the out-of-memory killer, a kill, or a crash); run it alone "
+                            "with elimfast run to see why, or resume the sweep to try it again"))
+                        results[label] = outcome
+                        done += 1
+                        if on_done:
+                            on_done(outcome, done, total)
+                    elif label not in alone:
+                        alone.append(label)
+                continue
+            except BaseException:
+                # Ctrl-C, SIGTERM or an error: the workers stop now (a worker inside a kernel call
+                # cannot run a signal handler, so it is killed), unfinished runs are dropped.
+                _stop_pool(pool)
+                raise
+            pool.shutdown(wait=True)
     reference = results.pop(REFERENCE_LABEL, None) if spec.reference is not None else None
     return [results[run.label] for run in spec.runs if run.label in results], reference
 
@@ -1740,6 +1823,10 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                 ensemble = ensemble_run(spec, run, states, None if client is not None else workers)
                 if on_start is not None:
                     on_start(states.shape[0])
+                if not resume or not path.exists():   # (a user trial's n = 10^8: 17.7 GB, without a word)
+                    from .io.ensemblefile import bytes_on_disk
+                    say(f"{path}: {states.shape[0]:,} trajectories take {_size(bytes_on_disk(ensemble, states))} "
+                        "on disk, allocated as the file is created")
                 open_writer((ensemble, states, _config_text(run.resolved)))
                 _stream_ensemble(spec, writer, ensemble, states, client, say)
                 writer.close()
@@ -1792,7 +1879,7 @@ def run_to_file(sweep, path=None, *, workers: int | None = None, overwrite: bool
                                                    skip=skip, on_message=say)
             else:
                 outcomes, reference = run_sweep(spec, workers=workers, on_done=stored, store_arrays=store_arrays,
-                                                skip=skip)
+                                                skip=skip, on_message=say)
             reference = reference if reference is not None else stored_reference
             ran = {outcome.label: outcome for outcome in outcomes}
             outcomes = [done_before.get(run.label) or ran[run.label] for run in spec.runs]
@@ -1821,11 +1908,12 @@ def _stream_ensemble(spec: SweepSpec, writer, ensemble, states: np.ndarray, clie
     else:
         blocks = run_in_blocks(ensemble, states, todo)
     threads = 0   # of the blocks run now (0: none, a resumed file that held them all)
+    began, done_before = time.perf_counter(), done
     with contextlib.closing(blocks):
         for start, stop, rows, block_threads in blocks:
             writer.add_ensemble_rows(start, stop, rows)
             threads, done = max(threads, block_threads), done + stop - start
-            say(block_line(rows, start, stop, done, n))
+            say(block_line(rows, start, stop, done, n, (done - done_before) / max(time.perf_counter() - began, 1e-9)))
     if not writer.ensemble_complete:
         writer.finish_ensemble(threads=threads, ok_status=STATUS_OK)
 

@@ -164,6 +164,53 @@ def test_bad_sweep_files_give_one_line_errors(tmp_path, data, match):
     assert str(path) in str(caught.value) and "\n" not in str(caught.value)
 
 
+@pytest.mark.parametrize("kills", ["always", "once"])
+def test_a_worker_that_dies_fails_only_its_run_and_the_sweep_goes_on(tmp_path, monkeypatch, kills):
+    """A user trial: kill -9 of one sweep worker (as the out-of-memory killer would) ended the whole
+    sweep in 'internal error: BrokenProcessPool', every other run dropped. Now the runs in flight are
+    run again, one at a time; a run whose worker dies twice fails with that reason, and every other
+    run completes as it would have (the same numbers as the serial sweep). A worker killed once (the
+    user's kill) costs nothing: its run completes on the second try."""
+    import os
+    import signal
+    from elimfast import sweep as sweeps
+
+    path = write_sweep(tmp_path, {
+        "base": BASE,
+        "grid": [{"name": "h", "key": "integration.h", "values": ["2*pi/40", "2*pi/80", "2*pi/160", "2*pi/320"]}],
+        "error": {"exact": "initial"}})
+    spec = load_sweep(path)
+    serial, _ = run_sweep(spec, workers=1)
+    victim = serial[2].label        # not the shortest: that one runs in the parent before the pool forks
+    marker = tmp_path / "killed-once"
+    original = sweeps._execute
+
+    def dying(label, *args):    # forked into the workers with the module
+        if label == victim and (kills == "always" or not marker.exists()):
+            marker.touch()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return original(label, *args)
+
+    monkeypatch.setattr(sweeps, "_execute", dying)
+    seen, said = [], []
+    outcomes, _ = run_sweep(spec, workers=2, on_done=lambda outcome, done, total: seen.append((done, total)),
+                            on_message=said.append)
+    assert said and all(line.startswith("a worker process died (killed, out of memory, or a crash) while running ")
+                        for line in said), said
+    assert victim in said[0] and said[0].endswith("running them again, one at a time")
+    assert [o.label for o in outcomes] == [o.label for o in serial]
+    assert seen == [(done, 4) for done in range(1, 5)]
+    for before, after in zip(serial, outcomes):
+        if after.label == victim and kills == "always":
+            assert after.status.startswith(f"failed: {path} [{victim}]: its worker process died while running it, "
+                                           "twice"), after.status
+            assert after.y_final is None
+        else:
+            assert after.status == "complete", after.status
+            np.testing.assert_array_equal(after.y_final, before.y_final)
+            assert after.iterations_total == before.iterations_total
+
+
 def test_sweep_runs_in_parallel_give_the_same_numbers_and_orders(tmp_path):
     path = write_sweep(tmp_path, {
         "base": BASE,
