@@ -239,11 +239,13 @@ class StepControl:
             from .problems import PROBLEMS
             if problem.name in PROBLEMS and problem.hessian_source == "analytic":
                 # a built-in takes no time_scale key: only kepler, perturbed_kepler and nbody define one
-                raise ParameterError("step_control", f"the built-in problem {problem.name!r} defines no time scale: "
+                raise ParameterError("step_control", f"'time_scale' needs a time scale, which the built-in problem "
+                                                     f"{problem.name!r} does not define: "
                                                      "use step_control = 'error' with rtol, or give it one: "
                                                      "time_scale: \"<expression>\" in the config's problem "
                                                      "(in Python: problem.with_time_scale(\"<expression>\"))")
-            raise ParameterError("step_control", f"problem {problem.name!r} defines no time scale: declare "
+            raise ParameterError("step_control", f"'time_scale' needs a time scale, which problem {problem.name!r} "
+                                                 "does not define: declare "
                                                  "time_scale: \"<expression>\" in the problem (in Python: "
                                                  "problem.with_time_scale(\"<expression>\")), or use "
                                                  "step_control = 'error' with rtol")

@@ -958,7 +958,8 @@ def run_to_file(integration, path, *, config_text: str, t_end: float | None = No
                     integration.events_not_finite[name] = min(first, integration.events_not_finite.get(name, first))
             note = f"resumed at step {integration.steps_done}" + (" with new solver settings" if solver_changed else "")
             if extension is not None:
-                note += f", continued to t_end = {extension['t_end']:.10g} (it ended at {float(attrs['t_end']):.10g})"
+                # (its t_end, which a run stopped before it never reached: a user trial's interrupted run "ended at" it)
+                note += f", continued to t_end = {extension['t_end']:.10g} (its t_end was {float(attrs['t_end']):.10g})"
             if source_file is not None:
                 changed = (f"the problem file {integration.problem.source_file} has changed since the run began: "
                            f"the {saved['steps_done']} steps before used the old one (problem_file_history)")

@@ -156,7 +156,7 @@ def test_a_run_continued_to_a_later_end_is_the_run_to_that_end(tmp_path):
     result = CliRunner().invoke(cli, ["run", KEPLER, "-o", str(extended), "--resume", "--set", "output.every=7",
                                       "--set", "integration.t_end=12"])
     assert result.exit_code == 0, result.stderr
-    assert "resumed at step 50, continued to t_end = 12 (it ended at 5)" in result.stderr
+    assert "resumed at step 50, continued to t_end = 12 (its t_end was 5)" in result.stderr
     assert CliRunner().invoke(cli, [*base, "-o", str(whole), "--set", "integration.t_end=12"]).exit_code == 0
     with h5py.File(extended, "r") as a, h5py.File(whole, "r") as b:
         assert a.attrs["status"] == "complete" and a.attrs["t_end"] == 12.0 and a.attrs["n_steps"] == 120
@@ -420,7 +420,7 @@ def test_resume_applies_the_config_files_edits_as_set_would(tmp_path):
     config.write_text(FAILING.replace("max_halvings: 1", "max_halvings: 8").replace("t_end: 20", "t_end: 30"))
     later = CliRunner().invoke(cli, ["run", str(config), "-o", str(path), "--resume"])
     assert later.exit_code == 0, later.stderr
-    assert "continued to t_end = 30 (it ended at 20)" in later.stderr
+    assert "continued to t_end = 30 (its t_end was 20)" in later.stderr
     with h5py.File(path, "r") as f:
         assert f.attrs["status"] == "complete" and f.attrs["steps_done"] == 60
 
