@@ -1417,10 +1417,15 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
                 while not started.empty():
                     begun.add(started.get())
                 suspects = [label for label in order if label in begun and label in pending]
+                for label in suspects:
+                    deaths[label] = deaths.get(label, 0) + 1
+                again = [label for label in suspects if deaths[label] < 2]
+                given_up = [label for label in suspects if deaths[label] >= 2]
                 if on_message is not None:
+                    parts = [f"running {'them' if len(again) > 1 else 'it'} again, one at a time"] if again else []
+                    parts += [f"{', '.join(given_up)} failed: its worker died twice"] if given_up else []
                     on_message(f"a worker process died (killed, out of memory, or a crash) while running "
-                               f"{', '.join(suspects) or 'no run yet'}: "
-                               + ("running them again, one at a time" if suspects else "starting another"))
+                               f"{', '.join(suspects) or 'no run yet'}: {'; '.join(parts) or 'starting another'}")
                 if not suspects:   # died before it began a run: that is not a run's doing
                     unexplained += 1
                     if unexplained >= 3:
@@ -1428,8 +1433,7 @@ def run_sweep(spec: SweepSpec, workers: int | None = None, store_arrays: bool = 
                                          "(killed, or out of memory at start); run it with --workers 1, or resume "
                                          "it once the machine has room") from None
                 for label in suspects:
-                    deaths[label] = deaths.get(label, 0) + 1
-                    if deaths[label] >= 2:
+                    if label in given_up:
                         outcome = RunOutcome(label=label, coordinates=pending.pop(label)[1], status=(
                             f"failed: {run_source(spec.source, label)}: its worker process died while running "
                             "it, twice (killed: by the out-of-memory killer, a kill, or a crash); run it alone "
