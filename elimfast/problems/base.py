@@ -122,18 +122,15 @@ def _affine_rows(gradients, y0) -> list[bool]:
     mean, to 1e-12 of that component's own size. Each component on its own: the solar system's
     potential gradient, 1e-17 of its kinetic one (Pluto's p / m), passed a test against the row's
     largest. A component that cancels to far below its terms may fail the test though affine: the
-    safe side, where ELIM is tried as before. False where a gradient is not finite, or a function
-    raises there (outside its domain)."""
+    safe side, where ELIM is tried as before. False where a gradient is not finite; a function
+    that raises there (outside its domain) raises here."""
     rng = np.random.default_rng(20141202)
     spread = 0.1 * max(1.0, float(np.max(np.abs(y0))))
     affine = None
     for _ in range(3):
         a, b = (y0 * (1.0 + 0.1 * rng.standard_normal(y0.size)) + spread * rng.standard_normal(y0.size)
                 for _ in range(2))
-        try:
-            ga, gb, gm = gradients(a), gradients(b), gradients(0.5 * (a + b))
-        except Exception:   # noqa: BLE001 -- a user's function outside its domain: no answer, so not affine
-            return [False] * (len(affine) if affine is not None else np.atleast_2d(gradients(y0)).shape[0])
+        ga, gb, gm = gradients(a), gradients(b), gradients(0.5 * (a + b))
         with np.errstate(invalid="ignore", over="ignore"):
             size = np.maximum(np.maximum(np.abs(ga), np.abs(gb)), np.abs(gm))
             here = np.all(np.abs(ga + gb - 2.0 * gm) <= 1e-12 * size, axis=1)
@@ -341,9 +338,12 @@ class Problem:
             self.grad_H(_vector(y), self.params, gradient)
             return gradient[None, :].copy()
 
-        if not _affine_rows(grad_H, self.y0)[0]:
+        try:
+            if not _affine_rows(grad_H, self.y0)[0]:
+                return ()
+            affine = _affine_rows(self.invariant_gradients, self.y0)
+        except Exception:   # noqa: BLE001 -- a user's function outside its domain near y0: no answer, so none
             return ()
-        affine = _affine_rows(self.invariant_gradients, self.y0)
         return tuple(name for name, is_affine in zip(self.invariant_names, affine)
                      if is_affine and name not in self.linear_invariant_names)
 
