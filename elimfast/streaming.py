@@ -355,6 +355,27 @@ def _duration(seconds: float) -> str:
 
 
 # --- the loop -----------------------------------------------------------------------------
+LARGE_OUTPUT_BYTES = 1e9   # a run whose file will grow by more is told so before its first step
+
+
+def output_growth_note(writer, remaining_steps: int | None, step_bytes: float) -> str | None:
+    """What a run whose output may grow by more than LARGE_OUTPUT_BYTES says before it starts (a
+    user trial's 10^9 steps with output.every 1, about 43 GB, began without a word): the size
+    before compression (what each chunk reserves; Kepler's rows compress to about half), what
+    makes it, and whether its disk has the room (where it has not, the run stops when the disk
+    is full, resumable). None for smaller runs and adaptive ones (steps not known)."""
+    if remaining_steps is None or remaining_steps * step_bytes <= LARGE_OUTPUT_BYTES:
+        return None
+    from .io.safety import _free_bytes, _size
+    growth = remaining_steps * step_bytes
+    free = _free_bytes(Path(writer.path).parent)
+    room = ("" if free is None or free >= growth else
+            f"; its disk has {_size(free)} free: if it fills, the run stops there (resume it once there is room)")
+    return (f"{writer.path} may grow by up to {_size(growth)}: {remaining_steps:,} steps of up to "
+            f"{step_bytes:.0f} bytes each before compression (every step's iterations and multipliers, and the "
+            f"samples; raise output.every or shorten the run for less){room}")
+
+
 def bytes_per_step(integration) -> float:
     """Output bytes one step needs in a chunk: per-step data plus its share of a sample."""
     n_inv = len(integration.problem.invariant_names)
@@ -424,6 +445,10 @@ def drive(integration, writer: hdf5.RunWriter, *, progress: NoProgress | None = 
     start_steps = integration.steps_done
     step_bytes = bytes_per_step(integration)
     steps = max(1, min(first_chunk_steps, int(max_chunk_bytes // step_bytes) or 1))
+    if notice is not None:
+        growth = output_growth_note(writer, integration.remaining_steps, step_bytes)
+        if growth:
+            progress.write(growth, notice)
     probing = True   # the first kernel call only measures the speed: its data join the first chunk's flush
     stopped = None   # (status reason, message) when the run stops short
     unimposed = [0, 0, notice is None]   # steps taken without imposing, steps seen, said

@@ -43,6 +43,32 @@ def test_run_writes_the_file_and_a_summary_line(kepler_file):
         assert f["steps/alpha"].shape == (200, 2)
 
 
+def test_a_run_whose_file_may_grow_large_says_so_before_it_starts(tmp_path, monkeypatch):
+    """A user trial: 10^9 steps with output.every 1 (about 43 GB) began without a word. A run whose
+    output may grow by more than LARGE_OUTPUT_BYTES says how much, before compression, and what
+    makes it (here the threshold is lowered to 10 kB for a 2,000-step run; the default's 200 steps
+    stay silent, as the test above checks); a disk without that room is named too."""
+    from types import SimpleNamespace
+    from elimfast import streaming
+    monkeypatch.setattr(streaming, "LARGE_OUTPUT_BYTES", 1e4)
+    path = tmp_path / "big.h5"
+    result = invoke("run", KEPLER, "-o", path, "--set", "integration.t_end=200")
+    assert result.exit_code == 0, result.output
+    step_bytes = 8 + 8 * 2 + 8 * (1 + 4 + 1 + 3) / 10   # iterations and substeps, alpha, a tenth of a sample
+    first = result.stderr.splitlines()[0]
+    from elimfast.io.safety import _size
+    assert first == (f"note: {path} may grow by up to {_size(2000 * step_bytes)}: 2,000 steps of up to "
+                     f"{step_bytes:.0f} bytes each before compression (every step's iterations and multipliers, "
+                     "and the samples; raise output.every or shorten the run for less)"), first
+    assert "note:" not in invoke("run", KEPLER, "-o", path, "--overwrite", "--quiet",
+                                 "--set", "integration.t_end=200").stderr
+    writer = SimpleNamespace(path=tmp_path / "x.h5")
+    free = os.statvfs(tmp_path).f_bavail * os.statvfs(tmp_path).f_frsize
+    assert streaming.output_growth_note(writer, int(10 * free / 96), 96.0).endswith(
+        "free: if it fills, the run stops there (resume it once there is room)")
+    assert streaming.output_growth_note(writer, None, 96.0) is None      # adaptive steps: not known
+
+
 def test_run_quiet_prints_nothing_and_the_default_prints_one_line(tmp_path):
     quiet = invoke("run", KEPLER, "-o", tmp_path / "q.h5", "--quiet", *SHORT)
     assert quiet.exit_code == 0 and quiet.stdout == "" and quiet.stderr == ""
