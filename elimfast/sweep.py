@@ -830,22 +830,10 @@ def block_line(rows: dict, start: int, stop: int, done: int, total: int, rate: f
     """The progress line of an ensemble block just stored (or put in place); ``rate``: trajectories
     a second so far, for the time left (a user trial's 10^8 trajectories showed no end in sight)."""
     from .kernels.codes import STATUS_OK
+    from .streaming import _duration   # a run's progress line writes its ETA so too
     failed = int(np.count_nonzero(rows["status"] != STATUS_OK))
-    left = f"; about {_duration((total - done) / rate)} left" if rate and done < total else ""
+    left = f", ETA {_duration((total - done) / rate)}" if rate and done < total else ""
     return f"[{done:,}/{total:,}] trajectories {start}-{stop - 1}: {failed} failed{left}"
-
-
-def _duration(seconds: float) -> str:
-    """'42 s', '7 min 12 s', '3 h 28 min', '12 days 4 h'."""
-    seconds = int(round(seconds))
-    minutes, hours, days = seconds // 60, seconds // 3600, seconds // 86400
-    if seconds < 60:
-        return f"{seconds} s"
-    if seconds < 3600:
-        return f"{minutes} min {seconds % 60} s"
-    if seconds < 86400:
-        return f"{hours} h {minutes % 60} min"
-    return f"{days} day{'s' if days != 1 else ''} {hours % 24} h"
 
 
 def ensemble_states(spec: SweepSpec, streamed: bool = False):
