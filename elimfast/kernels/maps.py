@@ -497,14 +497,11 @@ def equilibrated_condition(work, n_t):
     row or column. Unlike cond(Gamma), all but blind to the units of the invariants (rows)
     and to the powers of h in the columns (w_c): within a factor nu^2 of the same whatever they are,
     so large only where the rows are nearly dependent, Assumption 1 failing. Uses
-    work.small_inverse as scratch (its row a: row_a Gamma^-1 e_a), and work.small_rounding[0] for
-    the column sizes (elim_rounding writes it afresh before anything reads it)."""
+    work.small_inverse as scratch (its row a: row_a Gamma^-1 e_a), and _column_sizes' scratch."""
     matrix, inverse, factor, pivots = work.small_copy, work.small_inverse, work.small_matrix, work.small_pivots
     sizes = work.small_rounding[0]
-    for c in range(n_t):
-        sizes[c] = _column_size(matrix, c, n_t)
-        if not (sizes[c] > 0.0):
-            return np.inf
+    if not _column_sizes(matrix, n_t, sizes):
+        return np.inf
     norm = 0.0
     for a in range(n_t):
         row = 0.0
@@ -539,12 +536,18 @@ def _copy_square(source, target, n):
 
 
 @njit(cache=True, inline="always")
-def _column_size(matrix, c, n_t):
-    """max_a |matrix[a, c]|"""
-    size = 0.0
-    for a in range(n_t):
-        size = max(size, abs(matrix[a, c]))
-    return size
+def _column_sizes(matrix, n_t, sizes):
+    """sizes[c] = max_a |matrix[a, c]| (the scaling of equilibrated_condition and
+    column_scaled_condition, into the scratch work.small_rounding[0]: elim_rounding writes it afresh
+    before anything reads it); False for a zero (or NaN) column."""
+    for c in range(n_t):
+        size = 0.0
+        for a in range(n_t):
+            size = max(size, abs(matrix[a, c]))
+        sizes[c] = size
+        if not (size > 0.0):
+            return False
+    return True
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -559,13 +562,12 @@ def column_scaled_condition(work, n_t):
     of 1e-7, a tenth of the time scale there) they differ by 1e-14 and cond(Gamma) reached 7e14
     where the scaled matrix is well conditioned."""
     matrix, inverse = work.small_copy, work.small_inverse
-    sizes = work.small_rounding[0]   # scratch, as in equilibrated_condition
+    sizes = work.small_rounding[0]
+    if not _column_sizes(matrix, n_t, sizes):
+        return np.inf
     norm = 0.0
     inverse_norm = 0.0
     for c in range(n_t):
-        sizes[c] = _column_size(matrix, c, n_t)
-        if not (sizes[c] > 0.0):
-            return np.inf
         inverse_row = 0.0
         for a in range(n_t):
             inverse_row += abs(inverse[c, a])
