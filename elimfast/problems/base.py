@@ -115,21 +115,27 @@ def _terms_size(gradient, y, m: int):
     return np.sum(np.abs(gradient[..., :m]), axis=-1) * q_size + np.sum(np.abs(gradient[..., m:]), axis=-1) * p_size
 
 
+def _point_near(y0: np.ndarray, rng) -> np.ndarray:
+    """A seeded state near y0 for the structural tests of a problem's functions (linear or quadratic
+    invariants): each component moved by 10% of itself and by a tenth of the state's size (at least
+    0.1), so that zero components move too."""
+    spread = 0.1 * max(1.0, float(np.max(np.abs(y0))))
+    return y0 * (1.0 + 0.1 * rng.standard_normal(y0.size)) + spread * rng.standard_normal(y0.size)
+
+
 def _affine_rows(gradients, y0) -> list[bool]:
     """For each row of gradients(y) (rows: functions' gradients), whether it is affine in y (the
-    function quadratic or linear): at three seeded pairs of points around y0 (spread as
-    linear_invariant_names' points), every component of the gradient at their midpoint is their
-    mean, to 1e-12 of that component's own size. Each component on its own: the solar system's
-    potential gradient, 1e-17 of its kinetic one (Pluto's p / m), passed a test against the row's
-    largest. A component that cancels to far below its terms may fail the test though affine: the
-    safe side, where ELIM is tried as before. False where a gradient is not finite; a function
-    that raises there (outside its domain) raises here."""
+    function quadratic or linear): at three seeded pairs of points around y0 (_point_near), every
+    component of the gradient at their midpoint is their mean, to 1e-12 of that component's own
+    size. Each component on its own: the solar system's potential gradient, 1e-17 of its kinetic
+    one (Pluto's p / m), passed a test against the row's largest. A component that cancels to far
+    below its terms may fail the test though affine: the safe side, where ELIM is tried as before.
+    False where a gradient is not finite; a function that raises there (outside its domain) raises
+    here."""
     rng = np.random.default_rng(20141202)
-    spread = 0.1 * max(1.0, float(np.max(np.abs(y0))))
     affine = None
     for _ in range(3):
-        a, b = (y0 * (1.0 + 0.1 * rng.standard_normal(y0.size)) + spread * rng.standard_normal(y0.size)
-                for _ in range(2))
+        a, b = _point_near(y0, rng), _point_near(y0, rng)
         ga, gb, gm = gradients(a), gradients(b), gradients(0.5 * (a + b))
         with np.errstate(invalid="ignore", over="ignore"):
             size = np.maximum(np.maximum(np.abs(ga), np.abs(gb)), np.abs(gm))
@@ -309,9 +315,7 @@ class Problem:
         if not self.invariant_names:
             return ()
         rng = np.random.default_rng(20140611)
-        spread = 0.1 * max(1.0, float(np.max(np.abs(self.y0))))
-        points = [self.y0] + [self.y0 * (1.0 + 0.1 * rng.standard_normal(self.y0.size))
-                              + spread * rng.standard_normal(self.y0.size) for _ in range(2)]
+        points = [self.y0] + [_point_near(self.y0, rng) for _ in range(2)]
         gradients = [self.invariant_gradients(point) for point in points]
         linear = []
         for i, name in enumerate(self.invariant_names):
